@@ -1,0 +1,78 @@
+"""The binary Bayes filter in closed form, shared by occupancy-grid cells and doors.
+
+A binary state y (cell occupied / door open) is tracked either as log-odds
+``l = log p(y) / (1 - p(y))`` (grid cells: the static-state update is an addition)
+or as a probability ``p`` (doors: a transition model mixes the states between
+steps, which is linear in p).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+def logodds(p: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Log-odds of a probability, finite for p in (0, 1)."""
+    return jnp.log(p) - jnp.log1p(-p)
+
+
+def probability(logodds_value: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Probability of a log-odds value."""
+    return jax.nn.sigmoid(logodds_value)
+
+
+def clamp_logodds(value, lower, upper):
+    """Clamp log-odds so that a state stays able to change (GMapping-free maps saturate otherwise)."""
+    return jnp.clip(value, lower, upper)
+
+
+def update_logodds(prior, measurement, lower=-jnp.inf, upper=jnp.inf):
+    """Static-state update: posterior log-odds = prior + inverse-sensor-model log-odds, clamped.
+
+    ``measurement`` is ``log p(y | z) / p(not y | z) - log p(y) / p(not y)`` (the prior already
+    removed), so that a sequence of measurements adds up.
+    """
+    return clamp_logodds(prior + measurement, lower, upper)
+
+
+def predict(p, p_stay, p_enter):
+    """One step of the transition model (Avots et al., Eq. 24).
+
+    Args:
+      p: p(y_{t-1} = 1), any shape.
+      p_stay: p(y_t = 1 | y_{t-1} = 1), e.g. p(open | open).
+      p_enter: p(y_t = 1 | y_{t-1} = 0), e.g. p(open | closed).
+
+    Returns:
+      p(y_t = 1) before the measurement.
+    """
+    return p_stay * p + p_enter * (1.0 - p)
+
+
+def stationary(p_stay, p_enter):
+    """The stationary probability of y = 1 under the transition model: p_enter / (1 - p_stay + p_enter)."""
+    return p_enter / (1.0 - p_stay + p_enter)
+
+
+def predict_n(p, p_stay, p_enter, steps):
+    """``steps`` transition steps in closed form: the distance to the stationary value shrinks
+    by (p_stay - p_enter) per step."""
+    s = stationary(p_stay, p_enter)
+    return s + (p - s) * (p_stay - p_enter) ** steps
+
+
+def update(p_prior, log_lik_true, log_lik_false):
+    """Measurement update in probability space, from log-likelihoods of the two states.
+
+    Returns ``(posterior, log_evidence)`` with posterior = L1 p / (L1 p + L0 (1 - p)) and
+    log_evidence = log(L1 p + L0 (1 - p)) (Avots et al., Eqs. 27-28 and 33). Computed in
+    log space, so that tiny likelihoods neither underflow nor produce NaN.
+    """
+    a = log_lik_true + jnp.log(p_prior)
+    b = log_lik_false + jnp.log1p(-p_prior)
+    log_evidence = jnp.logaddexp(a, b)
+    posterior = jnp.exp(a - jnp.where(jnp.isfinite(log_evidence), log_evidence, 0.0))
+    posterior = jnp.where(jnp.isfinite(log_evidence), posterior, p_prior)
+    return posterior, log_evidence

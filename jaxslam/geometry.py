@@ -1,0 +1,67 @@
+"""SE(2) poses as ``(..., 3)`` arrays ``[x, y, theta]``.
+
+x and y are in metres, theta in radians wrapped to (-pi, pi]. Every function
+broadcasts over leading axes and works on both JAX and NumPy inputs (it uses
+``jax.numpy``; NumPy callers get JAX arrays back).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+def wrap_angle(theta: Float[Array, "..."]) -> Float[Array, "..."]:
+    """Wrap angles (rad) to the half-open interval (-pi, pi]."""
+    return jnp.pi - jnp.mod(jnp.pi - theta, 2.0 * jnp.pi)
+
+
+def make_pose(x, y, theta) -> Float[Array, "... 3"]:
+    """Stack x, y (m) and theta (rad, wrapped) into a pose array."""
+    x, y, theta = jnp.broadcast_arrays(jnp.asarray(x), jnp.asarray(y), jnp.asarray(theta))
+    return jnp.stack([x, y, wrap_angle(theta)], axis=-1)
+
+
+def compose(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """``a (+) b``: the pose ``b``, given in the frame of ``a``, in the frame ``a`` lives in."""
+    c, s = jnp.cos(a[..., 2]), jnp.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return jnp.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(a: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """The pose ``a^-1`` with ``compose(a, inverse(a)) == 0``."""
+    c, s = jnp.cos(a[..., 2]), jnp.sin(a[..., 2])
+    x = -c * a[..., 0] - s * a[..., 1]
+    y = s * a[..., 0] - c * a[..., 1]
+    return jnp.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
+
+
+def between(a: Float[Array, "... 3"], b: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+    """``a^-1 (+) b``: the pose ``b`` expressed in the frame of ``a`` (relative motion a -> b)."""
+    c, s = jnp.cos(a[..., 2]), jnp.sin(a[..., 2])
+    dx = b[..., 0] - a[..., 0]
+    dy = b[..., 1] - a[..., 1]
+    return jnp.stack(
+        [c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1
+    )
+
+
+def transform_points(pose: Float[Array, "... 3"], points: Float[Array, "... P 2"]) -> Float[Array, "... P 2"]:
+    """Map points (m) given in the frame of ``pose`` into the frame ``pose`` lives in."""
+    c, s = jnp.cos(pose[..., 2])[..., None], jnp.sin(pose[..., 2])[..., None]
+    px, py = points[..., 0], points[..., 1]
+    x = pose[..., 0][..., None] + c * px - s * py
+    y = pose[..., 1][..., None] + s * px + c * py
+    return jnp.stack([x, y], axis=-1)
+
+
+def interpolate(a: Float[Array, "... 3"], b: Float[Array, "... 3"], fraction) -> Float[Array, "... 3"]:
+    """Pose a fraction (0 at ``a``, 1 at ``b``) of the way along the relative motion ``a -> b``.
+
+    The translation and the (wrapped) rotation of ``between(a, b)`` are scaled linearly;
+    used to read odometry at a scan's timestamp between two odometry messages.
+    """
+    fraction = jnp.asarray(fraction)[..., None]
+    return compose(a, between(a, b) * fraction)

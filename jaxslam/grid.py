@@ -1,0 +1,215 @@
+"""Occupancy grids: the static :class:`GridSpec`, world <-> cell maps, scan insertion.
+
+A map is a pair of (H, W) arrays per particle (stacked (N, H, W) in a filter):
+
+* ``logodds`` float32: the occupancy log-odds of each cell (0 = unknown), updated
+  with the binary Bayes filter of :mod:`jaxslam.binary_bayes`;
+* ``hit_dist2`` uint8: the squared distance, in cells, from each cell to the
+  nearest cell that has registered a laser endpoint, truncated at the field
+  radius (:data:`FAR` beyond it). It is the likelihood field of the endpoint
+  model (:mod:`jaxslam.sensor`), kept up to date by a scatter-min at insertion
+  time so that a likelihood evaluation is one lookup per beam.
+
+Row ``i`` of a map is ``y = origin_y + (i + 0.5) * resolution`` and column ``j``
+is ``x = origin_x + (j + 0.5) * resolution``: ``origin`` is the lower-left corner
+of cell (0, 0), as in a ROS map_server YAML file (whose image rows run top-down).
+Points outside the map are never wrapped: they are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import TYPE_CHECKING, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, UInt8
+
+from jaxslam import binary_bayes
+from jaxslam.geometry import compose
+
+if TYPE_CHECKING:
+    from jaxslam.sensor import SensorSpec
+
+FAR = 255
+"""Value of ``hit_dist2`` for a cell with no endpoint within the field radius."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GridSpec:
+    """Shape and placement of a grid map. Static (hashable): changing it recompiles."""
+
+    shape: tuple[int, int]
+    """(height, width) in cells: rows along y, columns along x."""
+    resolution: float
+    """Cell side in metres."""
+    origin: tuple[float, float]
+    """World (x, y) in metres of the lower-left corner of cell (0, 0)."""
+
+    def __post_init__(self):
+        h, w = self.shape
+        if h <= 0 or w <= 0 or not self.resolution > 0:
+            raise ValueError(f"GridSpec needs a positive shape and resolution, got {self}")
+        object.__setattr__(self, "shape", (int(h), int(w)))
+        object.__setattr__(self, "resolution", float(self.resolution))
+        object.__setattr__(self, "origin", (float(self.origin[0]), float(self.origin[1])))
+
+    @classmethod
+    def from_bounds(cls, xmin: float, ymin: float, xmax: float, ymax: float, resolution: float) -> "GridSpec":
+        """The smallest grid at ``resolution`` covering the rectangle (m)."""
+        w = int(math.ceil((xmax - xmin) / resolution))
+        h = int(math.ceil((ymax - ymin) / resolution))
+        return cls((max(h, 1), max(w, 1)), resolution, (xmin, ymin))
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) in metres, as matplotlib's ``imshow(extent=...)`` takes it."""
+        x0, y0 = self.origin
+        h, w = self.shape
+        return (x0, x0 + w * self.resolution, y0, y0 + h * self.resolution)
+
+    @property
+    def num_cells(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+
+def world_to_cell(spec: GridSpec, xy: Float[Array, "... 2"]) -> Int[Array, "... 2"]:
+    """(row, col) int32 of the cells containing world points (m). May lie outside the map."""
+    col = jnp.floor((xy[..., 0] - spec.origin[0]) / spec.resolution)
+    row = jnp.floor((xy[..., 1] - spec.origin[1]) / spec.resolution)
+    # Clip far-away points before the int cast so that huge values cannot overflow.
+    big = 4 * max(spec.shape) + 4
+    return jnp.stack([jnp.clip(row, -big, big), jnp.clip(col, -big, big)], axis=-1).astype(jnp.int32)
+
+
+def cell_to_world(spec: GridSpec, cell: Int[Array, "... 2"]) -> Float[Array, "... 2"]:
+    """World (x, y) in metres of the centres of cells given as (row, col)."""
+    x = spec.origin[0] + (cell[..., 1] + 0.5) * spec.resolution
+    y = spec.origin[1] + (cell[..., 0] + 0.5) * spec.resolution
+    return jnp.stack([x, y], axis=-1)
+
+
+def in_bounds(spec: GridSpec, cell: Int[Array, "... 2"]) -> Bool[Array, "..."]:
+    """Whether (row, col) cells lie inside the map."""
+    h, w = spec.shape
+    return (cell[..., 0] >= 0) & (cell[..., 0] < h) & (cell[..., 1] >= 0) & (cell[..., 1] < w)
+
+
+def flat_index(spec: GridSpec, cell: Int[Array, "... 2"]) -> Int[Array, "..."]:
+    """Row-major flat index of (row, col) cells; out-of-map cells get ``num_cells`` (dropped by scatters)."""
+    idx = cell[..., 0] * spec.shape[1] + cell[..., 1]
+    return jnp.where(in_bounds(spec, cell), idx, spec.num_cells)
+
+
+class GridMap(NamedTuple):
+    """One occupancy grid map (or a stack of them along leading axes)."""
+
+    logodds: Float[Array, "... H W"]
+    """Occupancy log-odds per cell (0 = unknown, > 0 occupied)."""
+    hit_dist2: UInt8[Array, "... H W"]
+    """Squared distance in cells to the nearest registered endpoint, ``FAR`` beyond the field radius."""
+
+
+def empty_map(spec: GridSpec) -> GridMap:
+    """An all-unknown map with no registered endpoints."""
+    return GridMap(jnp.zeros(spec.shape, jnp.float32), jnp.full(spec.shape, FAR, jnp.uint8))
+
+
+class InsertionParams(NamedTuple):
+    """Traced numbers of scan insertion (a view of the filter's ``Params``)."""
+
+    logodds_occupied: Float[Array, ""]
+    """Log-odds added to the endpoint cell of a returned beam."""
+    logodds_free: Float[Array, ""]
+    """Log-odds added (negative) to each cell a beam passes through."""
+    logodds_min: Float[Array, ""]
+    """Lower clamp of a cell's log-odds (keeps maps able to change)."""
+    logodds_max: Float[Array, ""]
+    """Upper clamp of a cell's log-odds."""
+    no_return_free_range: Float[Array, ""]
+    """Metres of free space cleared along a "no return" beam (range >= range_max)."""
+
+
+def _field_kernel(radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets (K, 2) within ``radius`` cells and their squared lengths (K,)."""
+    r = np.arange(-radius, radius + 1)
+    dr, dc = np.meshgrid(r, r, indexing="ij")
+    d2 = dr**2 + dc**2
+    keep = d2 <= radius**2
+    return np.stack([dr[keep], dc[keep]], axis=-1).astype(np.int32), d2[keep].astype(np.uint8)
+
+
+def insert_scan(
+    spec: GridSpec,
+    grid_map: GridMap,
+    pose: Float[Array, "3"],
+    ranges: Float[Array, "B"],
+    sensor: "SensorSpec",
+    params: InsertionParams,
+    max_insert_range: float,
+    field_radius: int,
+) -> tuple[GridMap, Int[Array, ""]]:
+    """Insert one scan taken at robot ``pose`` into one map.
+
+    Every cell a beam crosses before its endpoint gets ``logodds_free`` once per beam;
+    the endpoint cell of a returned beam (range_min <= r < min(range_max, max_insert_range))
+    gets ``logodds_occupied`` and registers an endpoint in the likelihood field. A "no
+    return" beam (r >= range_max) clears free space up to ``no_return_free_range`` and
+    marks nothing occupied. Beams are traced up to ``max_insert_range`` metres (static:
+    it sets the number of samples per beam, one per cell).
+
+    Returns the new map and the number of beam samples (free or endpoint) that fell
+    outside the map and were dropped.
+    """
+    res = spec.resolution
+    num_samples = int(math.ceil(max_insert_range / res)) + 1
+    origin = compose(pose, sensor.laser_pose)
+    no_return = ranges >= sensor.range_max
+    returned = (~no_return) & (ranges >= sensor.range_min) & (ranges < max_insert_range)
+    free_len = jnp.where(no_return, jnp.minimum(params.no_return_free_range, max_insert_range),
+                         jnp.minimum(ranges, max_insert_range))
+    free_len = jnp.where((ranges < sensor.range_min) & ~no_return, 0.0, free_len)
+    angle = origin[2] + sensor.beam_angles
+    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)  # (B, 2)
+
+    dist = jnp.arange(num_samples, dtype=jnp.float32) * res  # (S,)
+    points = origin[:2] + dist[None, :, None] * direction[:, None, :]  # (B, S, 2)
+    cells = world_to_cell(spec, points)  # (B, S, 2)
+    end_points = origin[:2] + ranges[:, None] * direction
+    end_cells = world_to_cell(spec, end_points)  # (B, 2)
+
+    same_as_prev = jnp.concatenate(
+        [jnp.zeros((cells.shape[0], 1), bool), jnp.all(cells[:, 1:] == cells[:, :-1], axis=-1)], axis=1
+    )
+    is_end = jnp.all(cells == end_cells[:, None, :], axis=-1) & returned[:, None]
+    free = (dist[None, :] < free_len[:, None]) & ~same_as_prev & ~is_end  # (B, S)
+
+    free_idx = flat_index(spec, cells)
+    end_idx = flat_index(spec, end_cells)
+    outside = jnp.sum(free & (free_idx == spec.num_cells)) + jnp.sum(returned & (end_idx == spec.num_cells))
+
+    # Scatter straight into the flat map (out-of-map samples carry index num_cells and are
+    # dropped), then clamp only the touched cells: the cost is O(beams x samples), not O(H x W).
+    flat = grid_map.logodds.reshape(-1)
+    flat = flat.at[free_idx.reshape(-1)].add(
+        jnp.where(free, params.logodds_free, 0.0).reshape(-1), mode="drop")
+    flat = flat.at[end_idx].add(jnp.where(returned, params.logodds_occupied, 0.0), mode="drop")
+    touched = jnp.concatenate([free_idx.reshape(-1), end_idx])
+    clamped = binary_bayes.clamp_logodds(
+        flat.at[touched].get(mode="fill", fill_value=0.0), params.logodds_min, params.logodds_max)
+    logodds = flat.at[touched].set(clamped, mode="drop").reshape(spec.shape)
+
+    offsets, d2 = _field_kernel(field_radius)
+    splat_cells = end_cells[:, None, :] + jnp.asarray(offsets)[None]  # (B, K, 2)
+    splat_idx = jnp.where(returned[:, None], flat_index(spec, splat_cells), spec.num_cells)
+    hit_dist2 = grid_map.hit_dist2.reshape(-1).at[splat_idx.reshape(-1)].min(
+        jnp.broadcast_to(jnp.asarray(d2), splat_idx.shape).reshape(-1), mode="drop"
+    )
+    return GridMap(logodds, hit_dist2.reshape(spec.shape)), outside
+
+
+def occupancy_probability(logodds: Float[Array, "... H W"]) -> Float[Array, "... H W"]:
+    """p(occupied) of each cell from its log-odds."""
+    return jax.nn.sigmoid(logodds)

@@ -1,0 +1,1 @@
+"""Log readers and writers: ROS bags, CARMEN logs, relations files, maps, trajectories."""

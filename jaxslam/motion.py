@@ -1,0 +1,72 @@
+"""Odometry motion model, GMapping-style: sample and log-density.
+
+The odometry motion ``u = [dx, dy, dtheta]`` (robot frame of the previous pose)
+is perturbed by independent Gaussian noise in that frame:
+
+    sigma_x  = srr |dx| + sxy |dy| + srt |dtheta| + min_translation_std
+    sigma_y  = srr |dy| + sxy |dx| + srt |dtheta| + min_translation_std
+    sigma_th = stt |dtheta| + str sqrt(dx^2 + dy^2) + min_rotation_std
+
+and the new pose is ``x_{t-1} (+) (u + noise)``. The names follow GMapping's
+parameters (srr: translation error per metre of translation, srt: translation
+error per radian of rotation, str: rotation error per metre of translation,
+stt: rotation error per radian of rotation, sxy = 0.3 srr as in GMapping); the
+minimum stds keep the density finite for a robot standing still.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from jaxslam.geometry import between, compose, wrap_angle
+
+_LOG_2PI = 1.8378770664093453
+
+
+class MotionParams(NamedTuple):
+    """Traced noise coefficients (a view of the filter's ``Params``)."""
+
+    srr: Float[Array, ""]
+    """Translation std per metre of translation (m/m)."""
+    srt: Float[Array, ""]
+    """Translation std per radian of rotation (m/rad)."""
+    str: Float[Array, ""]
+    """Rotation std per metre of translation (rad/m)."""
+    stt: Float[Array, ""]
+    """Rotation std per radian of rotation (rad/rad)."""
+    min_translation_std: Float[Array, ""]
+    """Std floor of each translation component (m)."""
+    min_rotation_std: Float[Array, ""]
+    """Std floor of the rotation (rad)."""
+
+
+def noise_std(motion: Float[Array, "... 3"], params: MotionParams) -> Float[Array, "... 3"]:
+    """Std of the noise on [dx, dy, dtheta] for an odometry motion."""
+    ax, ay, ath = jnp.abs(motion[..., 0]), jnp.abs(motion[..., 1]), jnp.abs(motion[..., 2])
+    sxy = 0.3 * params.srr
+    sx = params.srr * ax + sxy * ay + params.srt * ath + params.min_translation_std
+    sy = params.srr * ay + sxy * ax + params.srt * ath + params.min_translation_std
+    sth = params.stt * ath + params.str * jnp.hypot(motion[..., 0], motion[..., 1]) + params.min_rotation_std
+    return jnp.stack([sx, sy, sth], axis=-1)
+
+
+def sample(key: PRNGKeyArray, pose: Float[Array, "... 3"], motion: Float[Array, "3"],
+           params: MotionParams) -> Float[Array, "... 3"]:
+    """Draw ``x_t ~ p(x_t | x_{t-1} = pose, u = motion)`` for each pose (leading axes broadcast)."""
+    std = noise_std(motion, params)
+    noise = jax.random.normal(key, pose.shape, pose.dtype) * std
+    return compose(pose, motion + noise)
+
+
+def log_density(new_pose: Float[Array, "... 3"], pose: Float[Array, "... 3"], motion: Float[Array, "3"],
+                params: MotionParams) -> Float[Array, "..."]:
+    """log p(x_t = new_pose | x_{t-1} = pose, u = motion) (density in m^-2 rad^-1)."""
+    std = noise_std(motion, params)
+    residual = between(pose, new_pose) - motion
+    residual = residual.at[..., 2].set(wrap_angle(residual[..., 2]))
+    z = residual / std
+    return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * _LOG_2PI, axis=-1)

@@ -1,0 +1,1 @@
+"""Simulation: segment worlds, exact ray casting, noisy odometry, scenarios."""

@@ -1,0 +1,53 @@
+"""Exact ray casting against line segments, vectorised over rays and segments."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+_EPS = 1e-9
+
+
+def raycast(
+    segments: Float[Array, "M 4"],
+    origins: Float[Array, "... 2"],
+    angles: Float[Array, "..."],
+    max_range: float | Float[Array, ""],
+    active: Bool[Array, "M"] | None = None,
+) -> tuple[Float[Array, "..."], Int[Array, "..."]]:
+    """Distance along each ray to the first segment it hits.
+
+    Args:
+      segments: (M, 4) rows [x1, y1, x2, y2] in metres.
+      origins: ray origins (m), broadcast against ``angles``.
+      angles: ray directions (rad, world frame).
+      max_range: rays that hit nothing closer get this range.
+      active: optional (M,) mask; inactive segments (an open door, say) are transparent.
+
+    Returns:
+      ``(ranges, hit)``: ranges (m) clipped to ``max_range``, and the index of the segment
+      hit first (-1 when nothing is hit within ``max_range``). Exact: no ray marching.
+    """
+    segments = jnp.asarray(segments, jnp.float32)
+    origins = jnp.asarray(origins, jnp.float32)
+    angles = jnp.asarray(angles, jnp.float32)
+    shape = jnp.broadcast_shapes(origins.shape[:-1], angles.shape)
+    origins = jnp.broadcast_to(origins, shape + (2,))[..., None, :]  # (..., 1, 2)
+    d = jnp.stack([jnp.cos(angles), jnp.sin(angles)], axis=-1)
+    d = jnp.broadcast_to(d, shape + (2,))[..., None, :]  # (..., 1, 2)
+    a = segments[:, :2]
+    e = segments[:, 2:] - a  # (M, 2)
+    ap = a - origins  # (..., M, 2)
+    denom = d[..., 0] * e[:, 1] - d[..., 1] * e[:, 0]  # cross(d, e)
+    ok = jnp.abs(denom) > _EPS
+    safe = jnp.where(ok, denom, 1.0)
+    t = (ap[..., 0] * e[:, 1] - ap[..., 1] * e[:, 0]) / safe  # distance along the ray
+    s = (ap[..., 0] * d[..., 1] - ap[..., 1] * d[..., 0]) / safe  # position on the segment
+    hit = ok & (t > _EPS) & (s >= 0.0) & (s <= 1.0)
+    if active is not None:
+        hit = hit & active
+    t = jnp.where(hit, t, jnp.inf)
+    first = jnp.argmin(t, axis=-1)
+    best = jnp.min(t, axis=-1)
+    found = best < max_range
+    return jnp.where(found, best, max_range), jnp.where(found, first, -1).astype(jnp.int32)
