@@ -65,3 +65,20 @@ def interpolate(a: Float[Array, "... 3"], b: Float[Array, "... 3"], fraction) ->
     """
     fraction = jnp.asarray(fraction)[..., None]
     return compose(a, between(a, b) * fraction)
+
+
+def weighted_mean_and_covariance(
+    poses: Float[Array, "N 3"], weights: Float[Array, "N"]
+) -> tuple[Float[Array, "3"], Float[Array, "3 3"]]:
+    """Weighted mean pose (circular mean for theta) and covariance of a particle set.
+
+    ``weights`` are normalised (sum 1). Angle residuals are wrapped about the mean, so a
+    cloud straddling theta = pi has a small spread, not a huge one.
+    """
+    xy = weights @ poses[:, :2]
+    theta = jnp.arctan2(weights @ jnp.sin(poses[:, 2]), weights @ jnp.cos(poses[:, 2]))
+    mean = jnp.concatenate([xy, theta[None]])
+    residual = poses - mean
+    residual = residual.at[:, 2].set(wrap_angle(residual[:, 2]))
+    cov = (residual * weights[:, None]).T @ residual
+    return mean, cov

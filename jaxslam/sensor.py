@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
-from jaxtyping import Array, Float, UInt8
+from jaxtyping import Array, Bool, Float, UInt8
 
 from jaxslam.geometry import compose
 from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
@@ -71,6 +71,31 @@ class LikelihoodParams(NamedTuple):
     """Multiplier of the summed log-likelihood."""
 
 
+def endpoint_fit(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    pose: Float[Array, "3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    sigma: Float[Array, ""],
+) -> tuple[Float[Array, "B"], Bool[Array, "B"]]:
+    """Per-beam fit ``exp(-d_b^2 / (2 sigma^2))`` in [0, 1] of a scan at ``pose``, and which beams count.
+
+    d_b is the distance (m) from beam b's endpoint to the nearest registered endpoint in
+    the map; the fit is 0 beyond the field radius and outside the map. Beams without a
+    return or below range_min do not count.
+    """
+    origin = compose(pose, sensor.laser_pose)
+    angle = origin[2] + sensor.beam_angles
+    ends = origin[:2] + ranges[:, None] * jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
+    idx = flat_index(spec, world_to_cell(spec, ends))
+    d2 = hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR)
+    d2_m = d2.astype(jnp.float32) * (spec.resolution**2)
+    fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2_m / sigma**2))
+    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
+    return fit, valid
+
+
 def endpoint_log_likelihood(
     spec: GridSpec,
     hit_dist2: UInt8[Array, "H W"],
@@ -79,18 +104,25 @@ def endpoint_log_likelihood(
     sensor: SensorSpec,
     params: LikelihoodParams,
 ) -> Float[Array, ""]:
-    """log p(z | x, m) of one scan at one robot pose in one map (``spec`` a GridSpec).
+    """log p(z | x, m) of one scan at one robot pose in one map, in nats.
 
-    vmap it over poses (particles, localizers) and maps. Endpoints outside the map
-    score ``log(z_rand)``.
+    ``gain * sum_b log(z_hit * fit_b + z_rand)`` over the beams that count (see
+    :func:`endpoint_fit`). vmap it over poses (particles, localizers) and maps.
     """
-    origin = compose(pose, sensor.laser_pose)
-    angle = origin[2] + sensor.beam_angles
-    ends = origin[:2] + ranges[:, None] * jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
-    idx = flat_index(spec, world_to_cell(spec, ends))
-    d2 = hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR)
-    d2_m = d2.astype(jnp.float32) * (spec.resolution**2)
-    gauss = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2_m / params.sigma**2))
-    per_beam = jnp.log(params.z_hit * gauss + params.z_rand)
-    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
+    fit, valid = endpoint_fit(spec, hit_dist2, pose, ranges, sensor, params.sigma)
+    per_beam = jnp.log(params.z_hit * fit + params.z_rand)
     return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0))
+
+
+def match_score(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    pose: Float[Array, "3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    sigma: Float[Array, ""],
+) -> Float[Array, ""]:
+    """Mean per-beam fit (0..1) of the beams that count; 0 when none counts."""
+    fit, valid = endpoint_fit(spec, hit_dist2, pose, ranges, sensor, sigma)
+    n = jnp.sum(valid)
+    return jnp.sum(jnp.where(valid, fit, 0.0)) / jnp.maximum(n, 1)

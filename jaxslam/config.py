@@ -1,0 +1,212 @@
+"""The static ``SlamConfig`` and the traced ``SlamParams`` of the RBPF.
+
+``SlamConfig`` holds everything that sets array shapes or picks code paths
+(particle counts, horizon, map shape, beam subsampling, proposal kind): it is a
+frozen, hashable dataclass passed to ``jax.jit`` as a static argument, and
+changing it recompiles. ``SlamParams`` holds the numbers (noise, gains,
+thresholds): a pytree of float32 arrays, traced, so changing it never recompiles
+and it can be differentiated.
+
+Both can be written and read as flat dictionaries with dotted names
+(``motion.srr``, ``likelihood.sigma``) for the command line and config files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from jaxslam.grid import GridSpec, InsertionParams
+from jaxslam.motion import MotionParams
+from jaxslam.resampling import RESAMPLERS
+from jaxslam.sensor import LikelihoodParams
+
+PROPOSALS = ("op", "smp", "lp")
+
+
+class ConfigError(ValueError):
+    """A configuration or parameter value is invalid; the message names it."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SlamConfig:
+    """Static settings of the RBPF (shapes and code paths). Hashable; changing it recompiles."""
+
+    num_particles: int = 30
+    """N, the number of SLAM particles (each with its own map)."""
+    proposal: str = "smp"
+    """Proposal distribution: "op" (odometry), "smp" (scan matching), "lp" (look-ahead)."""
+    resolution: float = 0.05
+    """Map cell size (m), used when ``grid`` is None."""
+    map_padding: float = 8.0
+    """Metres added around the odometry's extent when the grid is sized from a log."""
+    grid: GridSpec | None = None
+    """The map's shape and placement; None sizes it from the log (see ``map_padding``)."""
+    max_insert_range: float = 15.0
+    """Beams are inserted into the map up to this range (m); sets samples per beam."""
+    field_radius: int = 4
+    """Radius (cells) of the likelihood field around each registered endpoint."""
+    beam_stride: int = 1
+    """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
+    linear_update: float = 1.0
+    """Process a scan after this much travel (m) since the last processed one (GMapping)."""
+    angular_update: float = 0.5
+    """... or after this much rotation (rad)."""
+    resampler: str = "systematic"
+    """Resampling scheme: systematic, stratified, multinomial or residual."""
+    match_iterations: int = 24
+    """Fixed iteration budget of the hill-climbing scan matcher."""
+    num_localizers: int = 100
+    """L, localizer particles per SLAM particle in the look-ahead proposal."""
+    horizon: int = 5
+    """k, the look-ahead horizon in processed scans (0: the LP's weights reduce to an average)."""
+
+    def __post_init__(self):
+        checks = [
+            (self.num_particles >= 1, "num_particles must be >= 1"),
+            (self.proposal in PROPOSALS, f"proposal must be one of {PROPOSALS}, got {self.proposal!r}"),
+            (self.resolution > 0, "resolution must be > 0"),
+            (self.map_padding >= 0, "map_padding must be >= 0"),
+            (self.max_insert_range > 0, "max_insert_range must be > 0"),
+            (1 <= self.field_radius <= 11, "field_radius must be in 1..11 (its squared distances fit uint8)"),
+            (self.beam_stride >= 1, "beam_stride must be >= 1"),
+            (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}"),
+            (self.match_iterations >= 0, "match_iterations must be >= 0"),
+            (self.num_localizers >= 1, "num_localizers must be >= 1"),
+            (self.horizon >= 0, "horizon must be >= 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"SlamConfig: {message}")
+
+    @property
+    def lookahead_steps(self) -> int:
+        """Future scans each step carries: the horizon for LP, none otherwise."""
+        return self.horizon if self.proposal == "lp" else 0
+
+
+class ScanMatchParams(NamedTuple):
+    """Traced numbers of the scan matcher and the scan-matching proposal."""
+
+    linear_step: Float[Array, ""]
+    """Initial step (m) of the hill climber; also the SMP's sampling stencil spacing in x, y."""
+    angular_step: Float[Array, ""]
+    """Initial step (rad) of the hill climber and the stencil spacing in theta."""
+    min_score: Float[Array, ""]
+    """Mean per-beam match quality (0..1) under which the match counts as failed (fall back to OP)."""
+
+
+class LookaheadParams(NamedTuple):
+    """Traced numbers of the look-ahead proposal."""
+
+    alpha: Float[Array, ""]
+    """Defensive share in [0, 1): 0 is the paper's Eq. 10; > 0 makes the weights unbiased."""
+    resample_threshold: Float[Array, ""]
+    """Localizers are resampled inside the horizon when their ESS < this * L."""
+
+
+class SlamParams(NamedTuple):
+    """Traced numbers of the RBPF. Changing them never recompiles; differentiable."""
+
+    motion: MotionParams
+    """Odometry noise."""
+    likelihood: LikelihoodParams
+    """Endpoint (likelihood-field) model."""
+    insertion: InsertionParams
+    """Occupancy log-odds increments and clamps."""
+    scan_match: ScanMatchParams
+    """Scan matcher and SMP."""
+    lookahead: LookaheadParams
+    """Look-ahead proposal."""
+    resample_threshold: Float[Array, ""]
+    """SLAM particles are resampled when ESS < this * N (GMapping: 0.5)."""
+
+
+_DEFAULTS: dict[str, float] = {
+    # GMapping's ROS defaults for the odometry noise.
+    "motion.srr": 0.1, "motion.srt": 0.2, "motion.str": 0.1, "motion.stt": 0.2,
+    "motion.min_translation_std": 0.01, "motion.min_rotation_std": 0.005,
+    "likelihood.sigma": 0.05, "likelihood.z_hit": 0.9, "likelihood.z_rand": 0.05,
+    "likelihood.gain": 0.33,
+    "insertion.logodds_occupied": 0.85, "insertion.logodds_free": -0.4,
+    "insertion.logodds_min": -4.0, "insertion.logodds_max": 4.0,
+    "insertion.no_return_free_range": 5.0,
+    "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
+    "lookahead.alpha": 0.1, "lookahead.resample_threshold": 0.5,
+    "resample_threshold": 0.5,
+}
+
+
+def default_params(**overrides: float) -> SlamParams:
+    """``SlamParams`` with defaults, overridden by dotted names (``**{"motion.srr": 0.05}``)
+    or underscored ones (``motion__srr=0.05``)."""
+    return params_from_dict({k.replace("__", "."): v for k, v in overrides.items()})
+
+
+def params_from_dict(values: dict[str, Any]) -> SlamParams:
+    """Build ``SlamParams`` from dotted names; unknown names raise ``ConfigError``."""
+    unknown = sorted(set(values) - set(_DEFAULTS))
+    if unknown:
+        raise ConfigError(f"unknown parameter(s) {unknown}; known: {sorted(_DEFAULTS)}")
+    merged = {**_DEFAULTS, **values}
+    for name, value in merged.items():
+        try:
+            merged[name] = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"parameter {name} must be a number, got {value!r}") from None
+    if not 0.0 <= merged["lookahead.alpha"] < 1.0:
+        raise ConfigError(f"parameter lookahead.alpha must be in [0, 1), got {merged['lookahead.alpha']}")
+    if merged["likelihood.z_rand"] <= 0:
+        raise ConfigError("parameter likelihood.z_rand must be > 0 (it keeps log-likelihoods finite)")
+
+    def group(cls, prefix):
+        return cls(**{f: jnp.float32(merged[f"{prefix}.{f}"]) for f in cls._fields})
+
+    return SlamParams(
+        motion=group(MotionParams, "motion"),
+        likelihood=group(LikelihoodParams, "likelihood"),
+        insertion=group(InsertionParams, "insertion"),
+        scan_match=group(ScanMatchParams, "scan_match"),
+        lookahead=group(LookaheadParams, "lookahead"),
+        resample_threshold=jnp.float32(merged["resample_threshold"]),
+    )
+
+
+def params_to_dict(params: SlamParams) -> dict[str, float]:
+    """Flat dotted-name view of ``SlamParams`` (for summaries and config files)."""
+    out = {}
+    for name in SlamParams._fields:
+        value = getattr(params, name)
+        if hasattr(value, "_fields"):
+            out.update({f"{name}.{f}": float(getattr(value, f)) for f in value._fields})
+        else:
+            out[name] = float(value)
+    return out
+
+
+def config_to_dict(config: SlamConfig) -> dict[str, Any]:
+    """Plain-data view of a ``SlamConfig`` (JSON-ready)."""
+    out = dataclasses.asdict(config)
+    return out
+
+
+def config_from_dict(values: dict[str, Any]) -> SlamConfig:
+    """Build a ``SlamConfig`` from field names; unknown names or bad types raise ``ConfigError``."""
+    fields = {f.name: f for f in dataclasses.fields(SlamConfig)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown config field(s) {unknown}; known: {sorted(fields)}")
+    kwargs = {}
+    for name, value in values.items():
+        if name == "grid":
+            kwargs[name] = None if value is None else GridSpec(tuple(value["shape"]), value["resolution"], tuple(value["origin"]))
+            continue
+        default = getattr(SlamConfig, name)
+        try:
+            kwargs[name] = type(default)(value) if not isinstance(default, str) else str(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"config field {name} must be a {type(default).__name__}, got {value!r}") from None
+    return SlamConfig(**kwargs)

@@ -1,0 +1,321 @@
+"""Read a 2-D laser log from a CARMEN text log (``.clf``, ``.log``).
+
+Laser lines are ``FLASER`` (old front laser: 180 degrees, both ends included,
+odometry inside the line) or ``ROBOTLASER1`` (beam geometry and robot odometry
+inside the line); a log holds one kind, not both. ``ODOM`` lines are a separate
+odometry stream (``odometry_source="odom"`` reads it at the laser timestamps);
+``TRUEPOS`` lines, where present, fill the ground truth. Comments (``#``) and
+other messages (PARAM, SYNC, RAWLASER*, ...) are ignored. Line formats
+(``ipc_timestamp`` is the timestamp used, in seconds)::
+
+    FLASER n r_1 .. r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp
+    ROBOTLASER1 laser_type start_angle fov angular_res max_range accuracy remission_mode
+        n r_1 .. r_n n_rem rem_1 .. rem_n_rem laser_x laser_y laser_theta robot_x robot_y robot_theta
+        tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp
+    ODOM x y theta tv rv accel ipc_timestamp hostname logger_timestamp
+    TRUEPOS true_x true_y true_theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp
+
+Every malformed line raises :class:`~jaxslam.laserlog.LogError` naming the file
+and the (1-based) line number.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+
+import numpy as np
+
+from jaxslam.geometry import between
+from jaxslam.io.trajectory import poses_at
+from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.sensor import make_sensor, uniform_beams
+
+__all__ = ["FLASER_NO_RETURN", "read_carmen"]
+
+FLASER_NO_RETURN = 81.91
+"""Range (m) that old CARMEN logs write for a beam with no return (SICK LMS maximum)."""
+
+LASER_MESSAGES = ("FLASER", "ROBOTLASER1")
+"""The laser message types the reader understands."""
+
+# Fields after the ranges of a FLASER line: x y theta odom_x odom_y odom_theta ipc host logger.
+_FLASER_TAIL = 9
+# Fields after the remissions of a ROBOTLASER1 line: 11 pose/velocity fields + ipc host logger.
+_ROBOTLASER_TAIL = 14
+# Fields of ODOM and TRUEPOS lines after the message name.
+_ODOM_FIELDS = 9
+_TRUEPOS_FIELDS = 9
+# Laser mounting (between robot and laser pose) may vary by print rounding only.
+_LASER_POSE_TOLERANCE = 0.01
+
+
+def read_carmen(path, range_max: float | None = None, odometry_source: str = "laser") -> LaserLog:
+    """Read a CARMEN log with ``FLASER`` or ``ROBOTLASER1`` laser lines.
+
+    Args:
+        path: the text log.
+        range_max: ranges at or above this (m) are "no return" and stored as exactly
+            ``range_max``. None: 81.91 for FLASER logs, the line's ``max_range`` for
+            ROBOTLASER1 logs.
+        odometry_source: ``"laser"`` takes the odometry written in each laser line;
+            ``"odom"`` interpolates the ``ODOM`` lines at the laser timestamps (laser lines
+            outside the ODOM time span are dropped with a ``UserWarning`` naming how many).
+
+    Returns:
+        A :class:`~jaxslam.laserlog.LaserLog`: timestamps (T,) s (``ipc_timestamp``),
+        odometry (T, 3) [x, y, theta] (m, m, rad), ranges (T, B) m. FLASER beams span
+        -90..+90 degrees with both ends included; ROBOTLASER1 beams are
+        ``start_angle + i * angular_res`` and the laser's mounting pose is read from the
+        first line. Ground truth comes from TRUEPOS lines (interpolated) when they cover
+        every scan, else it is None (with a warning if TRUEPOS lines exist).
+
+    Raises:
+        LogError: naming file and line, for a truncated or over-long line, a non-numeric
+            field, a NaN or negative range, a non-finite pose, a beam count or beam
+            geometry that changes, timestamps that go backwards, FLASER and ROBOTLASER1
+            mixed in one log, no laser lines (or no ODOM lines with ``"odom"``).
+    """
+    if odometry_source not in ("laser", "odom"):
+        raise ValueError(f"odometry_source must be 'laser' or 'odom', got {odometry_source!r}")
+    src = os.fspath(path)
+    try:
+        with open(src, encoding="utf-8", errors="strict") as f:
+            lines = f.read().splitlines()
+    except FileNotFoundError:
+        raise LogError(f"{src}: no such CARMEN log") from None
+    except UnicodeDecodeError as err:
+        raise LogError(f"{src}: not a text file ({err})") from None
+    except OSError as err:
+        raise LogError(f"{src}: cannot read the log ({err})") from None
+
+    laser = _LaserLines(src)
+    odom = _PoseStream("ODOM")
+    truth = _PoseStream("TRUEPOS")
+    for line_no, line in enumerate(lines, start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        kind = fields[0]
+        where = f"{src}:{line_no}"
+        if kind in LASER_MESSAGES:
+            laser.add(kind, fields, where)
+        elif kind == "ODOM":
+            odom.add(fields, _ODOM_FIELDS, 0, where)
+        elif kind == "TRUEPOS":
+            truth.add(fields, _TRUEPOS_FIELDS, 0, where)
+    if not laser.times:
+        raise LogError(f"{src}: no laser lines (expected {' or '.join(LASER_MESSAGES)})")
+    return laser.build(range_max, odometry_source, odom, truth)
+
+
+def _numbers(fields: list[str], start: int, stop: int, where: str, what: str) -> np.ndarray:
+    """fields[start:stop] as float64, or a LogError naming the first bad field (1-based)."""
+    try:
+        return np.asarray(fields[start:stop], dtype=np.float64)
+    except ValueError:
+        for k in range(start, stop):
+            try:
+                float(fields[k])
+            except ValueError:
+                raise LogError(f"{where}: field {k + 1} ({what}) is not a number: {fields[k]!r}") from None
+        raise  # unreachable: some field failed above
+
+
+def _integer(fields: list[str], k: int, where: str, what: str) -> int:
+    """fields[k] as a non-negative int, or a LogError naming it."""
+    if k >= len(fields):
+        raise LogError(f"{where}: truncated line: {len(fields)} fields, no field {k + 1} ({what})")
+    try:
+        value = int(fields[k])
+    except ValueError:
+        raise LogError(f"{where}: field {k + 1} ({what}) is not a non-negative integer: {fields[k]!r}") from None
+    if value < 0:
+        raise LogError(f"{where}: field {k + 1} ({what}) is negative: {value}")
+    return value
+
+
+def _check_length(fields: list[str], expected: int, where: str, what: str) -> None:
+    if len(fields) < expected:
+        raise LogError(f"{where}: truncated {what} line: {len(fields)} fields, expected {expected}")
+    if len(fields) > expected:
+        raise LogError(f"{where}: {what} line has {len(fields)} fields, expected {expected}")
+
+
+def _check_finite(values: np.ndarray, where: str, what: str) -> None:
+    if not np.all(np.isfinite(values)):
+        raise LogError(f"{where}: non-finite {what} {values.tolist()}")
+
+
+class _PoseStream:
+    """Time-stamped poses of ODOM or TRUEPOS lines (x y theta first, ipc_timestamp 7th)."""
+
+    def __init__(self, kind: str):
+        self.kind = kind
+        self.times: list[float] = []
+        self.poses: list[np.ndarray] = []
+
+    def add(self, fields: list[str], num_fields: int, pose_at: int, where: str) -> None:
+        _check_length(fields, 1 + num_fields, where, self.kind)
+        # Pose fields, then the numeric fields after (velocities, odometry) up to ipc_timestamp.
+        values = _numbers(fields, 1, num_fields - 1, where, f"{self.kind} number")
+        _numbers(fields, num_fields, num_fields + 1, where, "logger_timestamp")
+        _check_finite(values, where, f"{self.kind} values")
+        stamp = float(values[-1])
+        if self.times and stamp < self.times[-1]:
+            raise LogError(f"{where}: {self.kind} timestamp goes backwards ({self.times[-1]:.6f} -> {stamp:.6f})")
+        self.times.append(stamp)
+        self.poses.append(values[pose_at : pose_at + 3])
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.times, dtype=np.float64), np.asarray(self.poses, dtype=np.float64).reshape(-1, 3)
+
+
+class _LaserLines:
+    """Laser lines accumulated while reading, validated against the first one."""
+
+    def __init__(self, src: str):
+        self.src = src
+        self.kind: str | None = None
+        self.first_where = ""
+        self.num_beams = 0
+        self.geometry: tuple[float, float, float] | None = None  # ROBOTLASER1 start, res, max_range
+        self.laser_pose: np.ndarray | None = None  # ROBOTLASER1 mounting, robot frame
+        self.laser_pose_varies = ""
+        self.times: list[float] = []
+        self.odometry: list[np.ndarray] = []
+        self.ranges: list[np.ndarray] = []
+        self.wheres: list[str] = []
+
+    def add(self, kind: str, fields: list[str], where: str) -> None:
+        if self.kind is None:
+            self.kind, self.first_where = kind, where
+        elif kind != self.kind:
+            raise LogError(
+                f"{where}: {kind} line in a log of {self.kind} lines (first at {self.first_where}); "
+                "a log must hold one laser message type"
+            )
+        if kind == "FLASER":
+            ranges, odometry, stamp = self._flaser(fields, where)
+        else:
+            ranges, odometry, stamp = self._robotlaser(fields, where)
+        if self.times and ranges.size != self.num_beams:
+            raise LogError(f"{where}: the beam count changes from {self.num_beams} to {ranges.size}")
+        self.num_beams = ranges.size
+        if np.any(np.isnan(ranges)) or np.any(ranges < 0):
+            beam = int(np.argmax(np.isnan(ranges) | (ranges < 0)))
+            raise LogError(f"{where}: beam {beam} has range {ranges[beam]!r} (NaN or negative)")
+        _check_finite(odometry, where, "odometry pose")
+        if not math.isfinite(stamp):
+            raise LogError(f"{where}: non-finite ipc_timestamp {stamp!r}")
+        if self.times and stamp < self.times[-1]:
+            raise LogError(f"{where}: timestamp goes backwards ({self.times[-1]:.6f} -> {stamp:.6f})")
+        self.times.append(stamp)
+        self.odometry.append(odometry)
+        self.ranges.append(ranges)
+        self.wheres.append(where)
+
+    def _flaser(self, fields: list[str], where: str):
+        num_beams = _integer(fields, 1, where, "number of readings")
+        if num_beams == 0:
+            raise LogError(f"{where}: FLASER line with 0 readings")
+        _check_length(fields, 2 + num_beams + _FLASER_TAIL, where, f"FLASER (n={num_beams})")
+        ranges = _numbers(fields, 2, 2 + num_beams, where, "range")
+        tail = 2 + num_beams
+        poses = _numbers(fields, tail, tail + 7, where, "pose or ipc_timestamp")
+        _numbers(fields, tail + 8, tail + 9, where, "logger_timestamp")
+        return ranges, poses[3:6], float(poses[6])
+
+    def _robotlaser(self, fields: list[str], where: str):
+        header = _numbers(fields, 1, min(8, len(fields)), where, "laser settings")
+        num_beams = _integer(fields, 8, where, "number of readings")
+        if num_beams == 0:
+            raise LogError(f"{where}: ROBOTLASER1 line with 0 readings")
+        num_rem = _integer(fields, 9 + num_beams, where, "number of remissions")
+        expected = 10 + num_beams + num_rem + _ROBOTLASER_TAIL
+        _check_length(fields, expected, where, f"ROBOTLASER1 (n={num_beams}, n_remissions={num_rem})")
+        _check_finite(header, where, "laser settings")
+        start_angle, _fov, resolution, max_range = header[1], header[2], header[3], header[4]
+        ranges = _numbers(fields, 9, 9 + num_beams, where, "range")
+        tail = 10 + num_beams + num_rem
+        _numbers(fields, 10 + num_beams, tail, where, "remission")
+        numbers = _numbers(fields, tail, tail + 12, where, "pose, velocity or ipc_timestamp")
+        _numbers(fields, tail + 13, tail + 14, where, "logger_timestamp")
+        laser_world, robot_world = numbers[0:3], numbers[3:6]
+        _check_finite(laser_world, where, "laser pose")
+        geometry = (float(start_angle), float(resolution), float(max_range))
+        if self.geometry is None:
+            if resolution == 0 or not max_range > 0:
+                raise LogError(f"{where}: bad laser settings angular_res={resolution} max_range={max_range}")
+            self.geometry = geometry
+            self.laser_pose = np.asarray(between(robot_world, laser_world), dtype=np.float64)
+        else:
+            if geometry[:2] != self.geometry[:2]:
+                raise LogError(
+                    f"{where}: start_angle/angular_res change from {self.geometry[:2]} to {geometry[:2]}"
+                )
+            if geometry[2] != self.geometry[2]:
+                raise LogError(f"{where}: max_range changes from {self.geometry[2]} to {geometry[2]}")
+            mounting = np.asarray(between(robot_world, laser_world), dtype=np.float64)
+            if not self.laser_pose_varies and np.max(np.abs(mounting - self.laser_pose)) > _LASER_POSE_TOLERANCE:
+                self.laser_pose_varies = where
+        return ranges, robot_world, float(numbers[11])
+
+    def build(self, range_max, odometry_source, odom: _PoseStream, truth: _PoseStream) -> LaserLog:
+        src = self.src
+        times = np.asarray(self.times, dtype=np.float64)
+        odometry = np.stack(self.odometry)
+        ranges = np.stack(self.ranges)
+        if self.kind == "FLASER":
+            beam_angles = np.asarray(uniform_beams(self.num_beams, math.pi), dtype=np.float64)
+            default_max, laser_pose = FLASER_NO_RETURN, (0.0, 0.0, 0.0)
+        else:
+            start, resolution, default_max = self.geometry
+            beam_angles = start + resolution * np.arange(self.num_beams, dtype=np.float64)
+            laser_pose = tuple(self.laser_pose)
+            if self.laser_pose_varies:
+                warnings.warn(
+                    f"{self.laser_pose_varies}: the laser's pose on the robot differs by more than "
+                    f"{_LASER_POSE_TOLERANCE} from the first line's; the first line's is used",
+                    stacklevel=3,
+                )
+        limit = default_max if range_max is None else float(range_max)
+        if not limit > 0:
+            raise ValueError(f"range_max must be positive, got {range_max!r}")
+        limit32 = np.float32(limit)
+        # Readings at or beyond the limit are "no return": exactly range_max in the log.
+        ranges = np.where(ranges >= limit32, limit32, ranges.astype(np.float32))
+        keep = np.ones(times.size, dtype=bool)
+        if odometry_source == "odom":
+            if not odom.times:
+                raise LogError(f"{src}: odometry_source='odom' but the log has no ODOM lines")
+            paired = poses_at(times, *odom.arrays())
+            keep = paired.covered
+            dropped = int(np.sum(~keep))
+            if dropped == times.size:
+                raise LogError(
+                    f"{src}: no laser line ({times[0]:.6f}..{times[-1]:.6f} s) lies within the time span "
+                    f"of the ODOM lines ({odom.times[0]:.6f}..{odom.times[-1]:.6f} s)"
+                )
+            if dropped:
+                early = int(np.sum(times < odom.times[0]))
+                warnings.warn(
+                    f"{src}: dropped {dropped} of {times.size} laser lines outside the ODOM lines' time "
+                    f"span ({early} before the first, {dropped - early} after the last): odometry is "
+                    "interpolated, never extrapolated",
+                    stacklevel=3,
+                )
+            odometry = paired.poses
+        ground_truth = None
+        if truth.times:
+            true_at = poses_at(times[keep], *truth.arrays())
+            if np.all(true_at.covered):
+                ground_truth = true_at.poses
+            else:
+                warnings.warn(
+                    f"{src}: TRUEPOS lines do not cover every laser timestamp; no ground truth is returned",
+                    stacklevel=3,
+                )
+        sensor = make_sensor(beam_angles, range_min=0.0, range_max=limit, laser_pose=laser_pose)
+        return LaserLog(times[keep], odometry[keep], ranges[keep], sensor, ground_truth, src)
