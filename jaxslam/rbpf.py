@@ -29,6 +29,7 @@ from jaxslam.config import SlamConfig, SlamParams
 from jaxslam.geometry import weighted_mean_and_covariance
 from jaxslam.grid import GridMap, GridSpec, empty_map, flat_index, insert_scan, world_to_cell
 from jaxslam.laserlog import LaserLog, UpdateSelection, select_updates
+from jaxslam.proposals import lookahead, odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.sensor import SensorSpec, subsample_beams
 
@@ -77,12 +78,10 @@ class SlamInfo(NamedTuple):
 
 def _proposal_fn(kind: str):
     if kind == "op":
-        from jaxslam.proposals.odometry import propose
-    elif kind == "smp":
-        from jaxslam.proposals.scan_match import propose
-    else:
-        from jaxslam.proposals.lookahead import propose
-    return propose
+        return odometry.propose
+    if kind == "smp":
+        return scan_match.propose
+    return lookahead.propose
 
 
 @jax.jit(static_argnames=("config",))
@@ -157,8 +156,9 @@ def step(
     ancestors, new_log_weights, resampled = resampling.resample_if_needed(
         key_res, normalized, params.resample_threshold, resampling.RESAMPLERS[config.resampler]
     )
-    # Gather (copy) the maps only when resampling happened.
-    maps = jax.lax.cond(resampled, lambda m: jax.tree.map(lambda a: a[ancestors], m), lambda m: m, maps)
+    # Survivors keep their slots, so only the maps of dead particles are overwritten, in place.
+    ancestors = resampling.keep_survivors_in_place(ancestors)
+    maps = copy_particles_in_place(maps, ancestors)
     pose_cells = world_to_cell(spec, out.pose[:, :2])
     info = SlamInfo(
         ess=resampling.ess(normalized),
@@ -176,6 +176,24 @@ def step(
     )
     new_state = SlamState(out.pose[ancestors], new_log_weights, maps, state.step + 1)
     return new_state, info
+
+
+def copy_particles_in_place(tree, ancestors: Int[Array, "N"]):
+    """``tree[i] = tree[ancestors[i]]`` along the leading axis, copying only where they differ.
+
+    Needs ``ancestors`` from :func:`resampling.keep_survivors_in_place` (no overwritten slot
+    is a source). A loop over particles with a conditional copy: inside a jitted loop XLA
+    updates the (N, H, W) maps in place, where a gather ``maps[ancestors]`` would allocate
+    and write a whole new stack of maps at every resampling.
+    """
+
+    def body(i, tree):
+        def copy(t):
+            return jax.tree.map(lambda a: a.at[i].set(a[ancestors[i]]), t)
+
+        return jax.lax.cond(ancestors[i] != i, copy, lambda t: t, tree)
+
+    return jax.lax.fori_loop(0, ancestors.shape[0], body, tree)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -231,16 +249,36 @@ def build_inputs(log: LaserLog, selection: UpdateSelection, lookahead_steps: int
     )
 
 
-@jax.jit(static_argnames=("config",))
+@jax.jit(static_argnames=("config",), donate_argnames=("state",))
 def _run_chunk(state, keys, inputs, valid, sensor, params, config):
     def body(state, xs):
         key, inp, ok = xs
-        new_state, info = step(key, state, inp, sensor, params, config)
-        # Padding steps past the end of the log leave the state untouched.
-        state = jax.lax.cond(ok, lambda: new_state, lambda: state)
-        return state, info
+        # A padding step past the end of the log sees a scan with no usable beam (nothing
+        # enters the maps, every weight increment is 0) and may not resample; its pose
+        # draws are discarded. Masking, not lax.cond: a cond over the state would copy maps.
+        inp = jax.tree.map(lambda a, b: jnp.where(ok, a, b), inp, _noop_inputs(inp, sensor))
+        noop_params = params._replace(resample_threshold=jnp.where(ok, params.resample_threshold, 0.0))
+        new_state, info = step(key, state, inp, sensor, noop_params, config)
+        new_state = new_state._replace(
+            poses=jnp.where(ok, new_state.poses, state.poses),
+            log_weights=jnp.where(ok, new_state.log_weights, state.log_weights),
+            step=jnp.where(ok, new_state.step, state.step),
+        )
+        return new_state, info
 
     return jax.lax.scan(body, state, (keys, inputs, valid))
+
+
+def _noop_inputs(inputs: StepInputs, sensor: SensorSpec) -> StepInputs:
+    """Inputs of a padding step: no motion and only invalid (below range_min) beams."""
+    invalid = jnp.full_like(inputs.ranges, -1.0)
+    return StepInputs(
+        motion=jnp.zeros_like(inputs.motion),
+        ranges=invalid,
+        future_motions=jnp.zeros_like(inputs.future_motions),
+        future_ranges=jnp.full_like(inputs.future_ranges, -1.0),
+        future_valid=jnp.zeros_like(inputs.future_valid),
+    )
 
 
 def backtrack_path(info: SlamInfo, final_index: int) -> np.ndarray:

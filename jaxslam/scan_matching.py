@@ -15,15 +15,15 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, UInt8
 
 from jaxslam.geometry import wrap_angle
 from jaxslam.grid import GridSpec
 from jaxslam.sensor import LikelihoodParams, SensorSpec, endpoint_log_likelihood, match_score
 
-_MOVES = jnp.array(
-    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=jnp.float32
-)
+# NumPy, not jnp: module-level jnp values created while a trace is active would leak tracers.
+_MOVES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float32)
 
 
 class MatchResult(NamedTuple):

@@ -102,9 +102,9 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
         if kind in LASER_MESSAGES:
             laser.add(kind, fields, where)
         elif kind == "ODOM":
-            odom.add(fields, _ODOM_FIELDS, 0, where)
+            odom.add(fields, _ODOM_FIELDS, where)
         elif kind == "TRUEPOS":
-            truth.add(fields, _TRUEPOS_FIELDS, 0, where)
+            truth.add(fields, _TRUEPOS_FIELDS, where)
     if not laser.times:
         raise LogError(f"{src}: no laser lines (expected {' or '.join(LASER_MESSAGES)})")
     return laser.build(range_max, odometry_source, odom, truth)
@@ -156,7 +156,7 @@ class _PoseStream:
         self.times: list[float] = []
         self.poses: list[np.ndarray] = []
 
-    def add(self, fields: list[str], num_fields: int, pose_at: int, where: str) -> None:
+    def add(self, fields: list[str], num_fields: int, where: str) -> None:
         _check_length(fields, 1 + num_fields, where, self.kind)
         # Pose fields, then the numeric fields after (velocities, odometry) up to ipc_timestamp.
         values = _numbers(fields, 1, num_fields - 1, where, f"{self.kind} number")
@@ -166,7 +166,7 @@ class _PoseStream:
         if self.times and stamp < self.times[-1]:
             raise LogError(f"{where}: {self.kind} timestamp goes backwards ({self.times[-1]:.6f} -> {stamp:.6f})")
         self.times.append(stamp)
-        self.poses.append(values[pose_at : pose_at + 3])
+        self.poses.append(values[:3])
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         return np.asarray(self.times, dtype=np.float64), np.asarray(self.poses, dtype=np.float64).reshape(-1, 3)

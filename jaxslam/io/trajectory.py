@@ -122,8 +122,10 @@ def trajectory_per_scan(log: LaserLog, processed_indices, processed_poses) -> np
 
 
 def _wrap(theta: np.ndarray) -> np.ndarray:
-    """Angles (rad) wrapped to (-pi, pi] in float64 (the jnp version is float32)."""
-    return np.pi - np.mod(np.pi - theta, 2.0 * np.pi)
+    """Angles (rad) wrapped to (-pi, pi] in float64 (the jnp version is float32); angles
+    already in range are returned bit for bit."""
+    inside = (theta > -np.pi) & (theta <= np.pi)
+    return np.where(inside, theta, np.pi - np.mod(np.pi - theta, 2.0 * np.pi))
 
 
 def write_trajectory(path, timestamps, poses) -> None:

@@ -25,7 +25,7 @@ from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.scan_matching import match
 from jaxslam.sensor import endpoint_log_likelihood
 
-_STENCIL = jnp.asarray(np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float32))  # (27, 3)
+_STENCIL = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float32)  # (27, 3), NumPy: see scan_matching
 _REGULARIZER = 0.1  # floor of the fitted std, as a fraction of the stencil spacing
 
 

@@ -1,1 +1,53 @@
 """Simulation: segment worlds, exact ray casting, noisy odometry, scenarios."""
+
+from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path
+from jaxslam.sim.raycast import raycast
+from jaxslam.sim.scenarios import (
+    Scenario,
+    box_world,
+    box_world_path,
+    box_world_scenario,
+    motion_params,
+    office_scenario,
+    office_waypoints,
+    office_world,
+)
+from jaxslam.sim.simulate import noisy_odometry, simulate_log, simulate_scan, simulate_scans
+from jaxslam.sim.world import (
+    SegmentWorld,
+    box_segments,
+    concat_worlds,
+    make_world,
+    path_crossings,
+    point_segment_distance,
+    polyline_segments,
+    wall_segments,
+)
+
+__all__ = [
+    "Scenario",
+    "SegmentWorld",
+    "box_segments",
+    "box_world",
+    "box_world_path",
+    "box_world_scenario",
+    "circle_path",
+    "concat_paths",
+    "concat_worlds",
+    "make_world",
+    "motion_params",
+    "noisy_odometry",
+    "office_scenario",
+    "office_waypoints",
+    "office_world",
+    "passage_indices",
+    "path_crossings",
+    "point_segment_distance",
+    "polyline_segments",
+    "raycast",
+    "simulate_log",
+    "simulate_scan",
+    "simulate_scans",
+    "waypoint_path",
+    "wall_segments",
+]

@@ -1,0 +1,268 @@
+"""Monte Carlo localization on a known segment map, with the beam model by ray casting.
+
+Each of N particles is a pose with a log-weight. A step moves every particle by
+the odometry motion model (:func:`jaxslam.motion.sample`), casts the scan's beams
+from it into the map (:func:`jaxslam.sim.raycast`, exact), scores the measured
+ranges with the beam model (:func:`jaxslam.sensor.beam_model_log_likelihood`),
+and resamples selectively (ESS below ``ess_threshold * N``).
+
+Shape of the code: a static :class:`MclConfig` (particle count, beam stride,
+resampler; changing it recompiles), traced :class:`MclParams`, named
+:class:`MclState` / :class:`MclInfo`; ``init_tracked`` / ``init_global`` /
+``step`` / ``run`` are pure, and ``run`` is one ``lax.scan`` over the scans.
+The same pieces (:func:`laser_rays`, :func:`weigh_and_resample`) serve the door
+filter in :mod:`jaxslam.doors`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+from jaxslam import motion as motion_model
+from jaxslam import resampling
+from jaxslam.geometry import between, compose, weighted_mean_and_covariance, wrap_angle
+from jaxslam.laserlog import LaserLog
+from jaxslam.motion import MotionParams
+from jaxslam.sensor import BeamModelParams, SensorSpec, beam_model_log_likelihood, make_beam_model_params
+from jaxslam.sim.raycast import raycast
+
+
+@dataclasses.dataclass(frozen=True)
+class MclConfig:
+    """Static settings (shapes and code paths). Hashable; changing it recompiles."""
+
+    num_particles: int = 1000
+    """N, the number of particles."""
+    beam_stride: int = 1
+    """Use every ``beam_stride``-th beam of a scan in the likelihood."""
+    resampler: str = "systematic"
+    """Resampling scheme: one of :data:`jaxslam.resampling.RESAMPLERS`."""
+
+    def __post_init__(self):
+        if self.num_particles < 1:
+            raise ValueError("MclConfig: num_particles must be >= 1")
+        if self.beam_stride < 1:
+            raise ValueError("MclConfig: beam_stride must be >= 1")
+        if self.resampler not in resampling.RESAMPLERS:
+            raise ValueError(f"MclConfig: resampler must be one of {sorted(resampling.RESAMPLERS)}")
+
+
+class MclParams(NamedTuple):
+    """Traced numbers: changing them never recompiles; they can be differentiated."""
+
+    motion: MotionParams
+    """Odometry noise coefficients."""
+    beam: BeamModelParams
+    """Beam model mixture weights, sigma_hit (m), lambda_short (1/m)."""
+    likelihood_gain: Float[Array, ""]
+    """Multiplier of every beam's log-likelihood (< 1 tempers the over-confidence of
+    treating neighbouring beams as independent)."""
+    ess_threshold: Float[Array, ""]
+    """Resample when ESS < ess_threshold * N (0: never, 1: every step)."""
+
+
+def default_motion_params(srr=0.05, srt=0.02, str_=0.05, stt=0.05, min_translation_std=0.01,
+                          min_rotation_std=0.005) -> MotionParams:
+    """A :class:`MotionParams` of float32 scalars (the filter's assumed odometry noise)."""
+    f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
+    return MotionParams(f(srr), f(srt), f(str_), f(stt), f(min_translation_std), f(min_rotation_std))
+
+
+def make_params(motion: MotionParams | None = None, beam: BeamModelParams | None = None,
+                likelihood_gain=0.5, ess_threshold=0.5) -> MclParams:
+    """An :class:`MclParams` with float32 leaves; None picks the defaults."""
+    return MclParams(
+        default_motion_params() if motion is None else motion,
+        make_beam_model_params() if beam is None else beam,
+        jnp.asarray(likelihood_gain, jnp.float32),
+        jnp.asarray(ess_threshold, jnp.float32),
+    )
+
+
+class MclState(NamedTuple):
+    """The particle set."""
+
+    poses: Float[Array, "N 3"]
+    """Pose of each particle [x, y, theta] (m, m, rad)."""
+    log_weights: Float[Array, "N"]
+    """Normalised log-weights (logsumexp = 0)."""
+    step: Int[Array, ""]
+    """Steps taken since init."""
+
+
+class MclInfo(NamedTuple):
+    """Diagnostics of one step (stacked over time by :func:`run`)."""
+
+    ess: Float[Array, ""]
+    """Effective sample size after the weight update, before resampling."""
+    resampled: Bool[Array, ""]
+    """Whether the particles were resampled at the end of the step."""
+    mean_pose: Float[Array, "3"]
+    """Weighted mean pose after the weight update (circular mean in theta)."""
+    pose_covariance: Float[Array, "3 3"]
+    """Weighted covariance of the poses (theta residuals wrapped)."""
+    log_evidence: Float[Array, ""]
+    """log sum_i w_{t-1,i} p(z_t | x_t,i): the log-likelihood increment of the step (-inf
+    when every particle was rejected)."""
+    all_rejected: Bool[Array, ""]
+    """Every particle's weight was -inf (or NaN) this step; the weights were reset to uniform."""
+
+
+class ScanInputs(NamedTuple):
+    """What one step consumes (stacked (T, ...) for :func:`run`)."""
+
+    motion: Float[Array, "3"]
+    """Odometry motion [dx, dy, dtheta] since the previous scan, in the previous robot frame."""
+    ranges: Float[Array, "B"]
+    """Measured ranges (m)."""
+
+
+def init_tracked(key: PRNGKeyArray, pose: Float[Array, "3"], pose_std: Float[Array, "3"],
+                 config: MclConfig) -> MclState:
+    """Particles drawn from a Gaussian around ``pose`` with per-axis std ``pose_std`` (m, m, rad)."""
+    pose = jnp.asarray(pose, jnp.float32)
+    noise = jax.random.normal(key, (config.num_particles, 3)) * jnp.asarray(pose_std, jnp.float32)
+    poses = pose + noise
+    poses = poses.at[:, 2].set(wrap_angle(poses[:, 2]))
+    return _uniform_state(poses)
+
+
+def init_global(key: PRNGKeyArray, regions: Float[Array, "R 4"], config: MclConfig,
+                heading_range: tuple[float, float] = (-np.pi, np.pi)) -> MclState:
+    """Particles uniform over a union of axis-aligned boxes and a heading interval.
+
+    Args:
+      key: PRNG key.
+      regions: (R, 4) boxes [xmin, ymin, xmax, ymax] (m) of free space (or of the region
+        the robot is known to be in); a box is chosen with probability proportional to its
+        area, so that the density is uniform over the union (boxes should not overlap).
+      config: the particle count.
+      heading_range: (lo, hi) headings (rad), uniform; the full circle by default.
+    """
+    regions = jnp.asarray(regions, jnp.float32).reshape(-1, 4)
+    area = (regions[:, 2] - regions[:, 0]) * (regions[:, 3] - regions[:, 1])
+    k_box, k_xy, k_theta = jax.random.split(key, 3)
+    n = config.num_particles
+    box = jax.random.categorical(k_box, jnp.log(area), shape=(n,))
+    u = jax.random.uniform(k_xy, (n, 2))
+    lo, hi = regions[box, :2], regions[box, 2:]
+    xy = lo + u * (hi - lo)
+    theta = jax.random.uniform(k_theta, (n,), minval=heading_range[0], maxval=heading_range[1])
+    return _uniform_state(jnp.concatenate([xy, wrap_angle(theta)[:, None]], axis=1))
+
+
+def _uniform_state(poses):
+    n = poses.shape[0]
+    return MclState(poses.astype(jnp.float32), jnp.full((n,), -jnp.log(n), jnp.float32),
+                    jnp.zeros((), jnp.int32))
+
+
+def laser_rays(pose: Float[Array, "3"], sensor: SensorSpec, beam_stride: int = 1
+               ) -> tuple[Float[Array, "2"], Float[Array, "B"]]:
+    """The laser's origin (m, world) and the world angles (rad) of its (subsampled) beams."""
+    origin = compose(pose, sensor.laser_pose)
+    return origin[:2], origin[2] + sensor.beam_angles[::beam_stride]
+
+
+def expected_ranges(segments: Float[Array, "M 4"], pose: Float[Array, "3"], sensor: SensorSpec,
+                    active: Bool[Array, "M"] | None = None, beam_stride: int = 1) -> Float[Array, "B"]:
+    """Ranges (m) the map predicts for each (subsampled) beam of a scan taken at ``pose``."""
+    origin, angles = laser_rays(pose, sensor, beam_stride)
+    ranges, _ = raycast(segments, origin, angles, sensor.range_max, active)
+    return ranges
+
+
+def scan_log_likelihood(segments: Float[Array, "M 4"], pose: Float[Array, "3"], ranges: Float[Array, "B"],
+                        sensor: SensorSpec, params: MclParams, active: Bool[Array, "M"] | None = None,
+                        beam_stride: int = 1) -> Float[Array, ""]:
+    """``gain * sum_b log p(z_b | x, map)`` of one scan (all B beams given; the stride is applied here)."""
+    expected = expected_ranges(segments, pose, sensor, active, beam_stride)
+    per_beam = beam_model_log_likelihood(expected, ranges[::beam_stride], sensor.range_max, params.beam)
+    return params.likelihood_gain * jnp.sum(per_beam)
+
+
+def weigh_and_resample(
+    key: PRNGKeyArray,
+    poses: Float[Array, "N 3"],
+    log_weights: Float[Array, "N"],
+    log_likelihoods: Float[Array, "N"],
+    ess_threshold: Float[Array, ""],
+    resampler: str,
+) -> tuple[Int[Array, "N"], Float[Array, "N"], MclInfo]:
+    """The weight update, diagnostics and selective resampling shared by MCL and the door filter.
+
+    Returns ``(ancestors, new_log_weights, info)``: the caller gathers its per-particle state
+    (poses, door beliefs) with ``ancestors``. A NaN likelihood counts as -inf; when every
+    particle is rejected the weights become uniform and ``info.all_rejected`` says so.
+    """
+    log_likelihoods = jnp.where(jnp.isnan(log_likelihoods), -jnp.inf, log_likelihoods)
+    unnormalised = log_weights + log_likelihoods
+    normalised, log_evidence = resampling.normalize_log_weights(unnormalised)
+    all_rejected = ~jnp.isfinite(log_evidence)
+    ess = resampling.ess(normalised)
+    mean, cov = weighted_mean_and_covariance(poses, jnp.exp(normalised))
+    ancestors, new_log_weights, resampled = resampling.resample_if_needed(
+        key, normalised, ess_threshold, resampling.RESAMPLERS[resampler])
+    info = MclInfo(ess, resampled, mean, cov, log_evidence, all_rejected)
+    return ancestors, new_log_weights, info
+
+
+def step(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float[Array, "M 4"],
+         sensor: SensorSpec, params: MclParams, config: MclConfig,
+         active: Bool[Array, "M"] | None = None) -> tuple[MclState, MclInfo]:
+    """One MCL step: move every particle, weigh it by the scan, resample if the ESS is low.
+
+    Args:
+      key: PRNG key (split into motion and resampling keys).
+      state: the particle set at the previous scan.
+      inputs: the odometry motion since the previous scan and this scan's (B,) ranges.
+      segments: (M, 4) map segments (m).
+      sensor: the laser.
+      params: traced numbers.
+      config: static settings.
+      active: optional (M,) mask of the segments present (transparent when False).
+    """
+    k_motion, k_resample = jax.random.split(key)
+    poses = motion_model.sample(k_motion, state.poses, inputs.motion, params.motion)
+    log_lik = jax.vmap(lambda p: scan_log_likelihood(segments, p, inputs.ranges, sensor, params, active,
+                                                     config.beam_stride))(poses)
+    ancestors, log_weights, info = weigh_and_resample(k_resample, poses, state.log_weights, log_lik,
+                                                      params.ess_threshold, config.resampler)
+    return MclState(poses[ancestors], log_weights, state.step + 1), info
+
+
+step_jit = jax.jit(step, static_argnames=("config",))
+""":func:`step`, jitted (``config`` static)."""
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def run(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float[Array, "M 4"],
+        sensor: SensorSpec, params: MclParams, config: MclConfig,
+        active: Bool[Array, "M"] | None = None) -> tuple[MclState, MclInfo]:
+    """:func:`step` over (T, ...) stacked ``inputs`` in one ``lax.scan``; per-step keys are scan inputs.
+
+    Returns the final state and the (T, ...) stacked infos.
+    """
+    keys = jax.random.split(key, inputs.motion.shape[0])
+
+    def body(carry, xs):
+        k, inp = xs
+        return step(k, carry, inp, segments, sensor, params, config, active)
+
+    return jax.lax.scan(body, state, (keys, inputs))
+
+
+def log_inputs(log: LaserLog) -> ScanInputs:
+    """The (T, ...) inputs of a log: odometry motions (row 0 is zero: the first scan is
+    weighed at the initial particles) and ranges, as float32 JAX arrays."""
+    odom = np.asarray(log.odometry, np.float64)
+    motions = np.zeros_like(odom)
+    motions[1:] = np.asarray(between(odom[:-1], odom[1:]), np.float64)
+    return ScanInputs(jnp.asarray(motions, jnp.float32), jnp.asarray(log.ranges, jnp.float32))

@@ -1,0 +1,162 @@
+"""Accuracy metrics of estimated trajectories, one section per metric.
+
+All metrics run on the host (NumPy) on per-scan trajectories: timestamps (T,) in
+seconds and poses (T, 3) [x, y, theta] (m, m, rad), e.g. from
+:func:`jaxslam.io.trajectory.trajectory_per_scan`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from jaxslam.geometry import between, wrap_angle
+from jaxslam.io.relations import Relations
+
+__all__ = ["RelationError", "lookup_poses", "relation_error"]
+
+
+# ---------------------------------------------------------------------------
+# Shared helpers
+# ---------------------------------------------------------------------------
+
+
+def lookup_poses(timestamps, poses, query_times, time_tolerance: float = 1e-4) -> np.ndarray:
+    """The poses of a trajectory at given timestamps, matched exactly (within a tolerance).
+
+    Args:
+        timestamps: (T,) trajectory timestamps (s), any order.
+        poses: (T, 3) poses [x, y, theta] (m, m, rad) at ``timestamps``.
+        query_times: (Q,) timestamps (s) to look up.
+        time_tolerance: largest |query - trajectory timestamp| (s) that counts as a match.
+
+    Returns:
+        (Q, 3) float64: for each query, the pose at the nearest trajectory timestamp.
+
+    Raises:
+        ValueError: a query timestamp has no trajectory timestamp within the tolerance
+            (the message names it): a metric never silently skips a pose.
+    """
+    ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    ps = np.asarray(poses, dtype=np.float64)
+    query = np.asarray(query_times, dtype=np.float64).reshape(-1)
+    if ts.size == 0 or ps.shape != (ts.size, 3):
+        raise ValueError(f"need T >= 1 timestamps and (T, 3) poses, got {ts.shape} and {ps.shape}")
+    if not (np.all(np.isfinite(ts)) and np.all(np.isfinite(ps))):
+        raise ValueError("trajectory timestamps and poses must be finite")
+    order = np.argsort(ts, kind="stable")
+    sorted_ts = ts[order]
+    right = np.clip(np.searchsorted(sorted_ts, query), 0, ts.size - 1)
+    left = np.clip(right - 1, 0, ts.size - 1)
+    nearest = np.where(np.abs(sorted_ts[left] - query) <= np.abs(sorted_ts[right] - query), left, right)
+    gap = np.abs(sorted_ts[nearest] - query)
+    missing = np.nonzero(~(gap <= time_tolerance))[0]
+    if missing.size:
+        k = int(missing[0])
+        raise ValueError(
+            f"timestamp {query[k]:.6f} (query {k}) is not in the trajectory: the nearest trajectory "
+            f"timestamp is {sorted_ts[nearest[k]]:.6f} ({gap[k]:.3g} s away, tolerance {time_tolerance} s); "
+            f"{missing.size} of {query.size} queries are missing"
+        )
+    return ps[order[nearest]]
+
+
+# ---------------------------------------------------------------------------
+# Relation error (Kümmerle et al. 2009)
+# ---------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RelationError:
+    """Errors of a trajectory's relative motions against ground-truth relations.
+
+    Rotational values are in radians (``to_dict`` adds degrees). Standard deviations are
+    population ones (ddof = 0) over the relations.
+    """
+
+    trans: np.ndarray
+    """(R,) float64 translational error (m) of each relation."""
+    rot: np.ndarray
+    """(R,) float64 absolute rotational error (rad) of each relation, in [0, pi]."""
+    trans_mean: float
+    trans_std: float
+    trans_max: float
+    rot_mean: float
+    rot_std: float
+    rot_max: float
+    trans2_mean: float
+    """Mean of the squared translational errors (m^2)."""
+    trans2_std: float
+    rot2_mean: float
+    """Mean of the squared rotational errors (rad^2)."""
+    rot2_std: float
+    count: int
+    """Number of relations R."""
+
+    def to_dict(self) -> dict:
+        """Summary as plain floats (JSON-ready), with degree versions of the rotational ones
+        (``*_deg``; squared ones in deg^2 as ``rot2_*_deg2``). Per-relation arrays are left out."""
+        deg = 180.0 / math.pi
+        summary = {
+            f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("trans", "rot")
+        }
+        summary.update(
+            rot_mean_deg=self.rot_mean * deg,
+            rot_std_deg=self.rot_std * deg,
+            rot_max_deg=self.rot_max * deg,
+            rot2_mean_deg2=self.rot2_mean * deg**2,
+            rot2_std_deg2=self.rot2_std * deg**2,
+        )
+        return summary
+
+
+def relation_error(timestamps, poses, relations: Relations, time_tolerance: float = 1e-4) -> RelationError:
+    """Kümmerle et al.'s relation-based error of a trajectory.
+
+    For each relation (t1, t2, motion): the estimated motion is ``between(x(t1), x(t2))``
+    (the pose at t2 in the frame of the pose at t1, also when t1 > t2), and
+
+        e_trans = || est[:2] - motion[:2] ||,   e_rot = | wrap(est[2] - motion[2]) |.
+
+    Args:
+        timestamps: (T,) trajectory timestamps (s): a pose per scan of the log.
+        poses: (T, 3) [x, y, theta] (m, m, rad).
+        relations: R relations (:func:`jaxslam.io.relations.read_relations`), R >= 1.
+        time_tolerance: largest gap (s) between a relation's timestamp and the trajectory's.
+
+    Returns:
+        :class:`RelationError` with per-relation errors and their summaries.
+
+    Raises:
+        ValueError: a relation timestamp is not in the trajectory (named in the message),
+            or there are no relations.
+    """
+    t1 = np.asarray(relations.t1, dtype=np.float64).reshape(-1)
+    t2 = np.asarray(relations.t2, dtype=np.float64).reshape(-1)
+    motion = np.asarray(relations.motion, dtype=np.float64)
+    if t1.size == 0:
+        raise ValueError("relation_error needs at least one relation")
+    if t2.shape != t1.shape or motion.shape != (t1.size, 3):
+        raise ValueError(f"relations have inconsistent shapes {t1.shape}, {t2.shape}, {motion.shape}")
+    x1 = lookup_poses(timestamps, poses, t1, time_tolerance)
+    x2 = lookup_poses(timestamps, poses, t2, time_tolerance)
+    estimated = np.asarray(between(x1, x2), dtype=np.float64)
+    trans = np.hypot(estimated[:, 0] - motion[:, 0], estimated[:, 1] - motion[:, 1])
+    rot = np.abs(np.asarray(wrap_angle(estimated[:, 2] - motion[:, 2]), dtype=np.float64))
+    return RelationError(
+        trans=trans,
+        rot=rot,
+        trans_mean=float(np.mean(trans)),
+        trans_std=float(np.std(trans)),
+        trans_max=float(np.max(trans)),
+        rot_mean=float(np.mean(rot)),
+        rot_std=float(np.std(rot)),
+        rot_max=float(np.max(rot)),
+        trans2_mean=float(np.mean(trans**2)),
+        trans2_std=float(np.std(trans**2)),
+        rot2_mean=float(np.mean(rot**2)),
+        rot2_std=float(np.std(rot**2)),
+        count=int(t1.size),
+    )

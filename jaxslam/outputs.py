@@ -1,0 +1,95 @@
+"""Writing the results of a SLAM run: map (PGM + YAML + PNG), trajectory, summary, figure."""
+
+from __future__ import annotations
+
+import json
+import resource
+from pathlib import Path
+
+import numpy as np
+
+from jaxslam.config import config_to_dict, params_to_dict
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far (MB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_warnings(result) -> list[str]:
+    """Human-readable reports of what went wrong during a run, with the step where it happened."""
+    info, idx = result.info, result.selection.indices
+    out = []
+    for name, counts, what in (
+        ("outside_samples", np.asarray(info.outside_samples), "beam samples fell outside the map and were dropped"),
+        ("poses_outside", np.asarray(info.poses_outside), "particle poses lay outside the map"),
+        ("degenerate", np.asarray(info.degenerate).astype(int), "steps gave every particle weight zero (weights reset)"),
+    ):
+        steps = np.nonzero(counts)[0]
+        if steps.size:
+            first = int(steps[0])
+            out.append(f"{int(counts.sum())} {what}; first at step {first + 1} (scan {int(idx[first + 1])} of the log)"
+                       + ("; enlarge the map (map_padding or grid)" if name != "degenerate" else ""))
+    return out
+
+
+def summarize(log, result, params, seed: int, source: str) -> dict:
+    """The ``summary.json`` content of a run."""
+    info = result.info
+    config = config_to_dict(result.config)
+    return {
+        "source": source,
+        "seed": seed,
+        "config": config,
+        "params": params_to_dict(params),
+        "scans_in_log": log.num_scans,
+        "scans_processed": int(result.selection.indices.size),
+        "log_duration_s": log.duration,
+        "timings": dict(result.timings),
+        "scans_per_second": result.selection.indices.size / result.timings["total"],
+        "peak_memory_mb": peak_memory_mb(),
+        "resampling_steps": int(np.sum(info.resampled)),
+        "mean_ess": float(np.mean(info.ess)) if info.ess.size else None,
+        "fallbacks": int(np.sum(info.num_fallbacks)),
+        "log_evidence": float(np.sum(info.log_evidence_increment)),
+        "warnings": run_warnings(result),
+    }
+
+
+def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, world=None) -> dict:
+    """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json`` and ``slam.png`` into ``out_dir``.
+
+    The map is the final best particle's. The trajectory has one pose per scan of the log.
+    Returns the summary.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxslam.io.maps import write_map
+    from jaxslam.io.trajectory import write_trajectory
+    from jaxslam.plotting import plot_slam_result
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    best = int(np.argmax(np.asarray(result.state.log_weights)))
+    logodds = np.asarray(result.state.maps.logodds[best])
+    write_map(out / "map", logodds, result.config.grid)
+    write_trajectory(out / "trajectory.txt", log.timestamps, result.trajectory)
+    fig = plot_slam_result(result, log, world=world)
+    fig.savefig(out / "slam.png", dpi=150)
+    plt.close(fig)
+    summary = summarize(log, result, params, seed, source)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    return summary
+
+
+def _json_default(value):
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)

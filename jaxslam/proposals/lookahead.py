@@ -1,0 +1,383 @@
+"""The k-step look-ahead proposal (LP) of Grzonka, Plagemann, Grisetti and Burgard.
+
+For one SLAM particle (pose x_{t-1}, map m = m_{t-1}) the LP runs a small particle
+filter of L *localizer* particles k scans into the future in the fixed map m and uses
+how well each time-t sample explains the future to choose the particle's new pose
+(DESIGN.md section 5):
+
+1. Draw x_t^(i) ~ p(x_t | x_{t-1}, u_t), i = 1..L; g_i = a_i = log p(z_t | x_t^(i), m);
+   origin_i = i; log Z = 0.
+2. For s = t+1 .. t+k: when the localizer ESS < ``resample_threshold`` * L,
+   log Z += logsumexp(a) - log L and resample (poses, origin) by softmax(a), a = 0.
+   Then move x_s ~ p(x_s | x_{s-1}, u_s) and a_i += log p(z_s | x_s^(i), m).
+   Steps past the end of the log (``future_valid`` False) change nothing.
+3. Back-propagate: log V_i = log Z + logsumexp_{m : origin_m = i} a_m (-inf when the
+   time-t sample i has no descendant).
+4. Select J with p_i = (1 - alpha) V_i / sum(V) + alpha exp(g_i) / sum(exp(g)).
+5. log w_t = log w_{t-1} + g_J - log L - log p_J.
+
+alpha = 0 is the paper's Eq. 10 (log w += log(sum(V) / L) + g_J - log V_J); it is
+biased low because time-t samples whose line died out in the horizon's resampling
+can never be drawn. Any alpha > 0 makes exp(increment) an unbiased estimate of
+p(z_t | x_{t-1}, m, u_t): E_J[exp(g_J) / (L p_J)] = mean_i exp(g_i) whenever every
+sample with g_i > -inf has p_i > 0, and alpha bounds the weight by
+sum(exp(g)) / (L alpha).
+
+The model-independent core (:func:`run_horizon`, :func:`back_propagate`,
+:func:`selection_log_probs`, :func:`select`, :func:`lookahead_core`) takes the
+time-t samples, their log-likelihoods and two callables for the future steps, so it
+can be tested on a toy model without grid maps. :func:`propose` plugs in the
+odometry motion model and the endpoint likelihood; the RBPF vmaps it over SLAM
+particles, and inside it everything is vectorised over the L localizers with a
+``lax.scan`` over the horizon.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+
+from jaxslam import motion, resampling
+from jaxslam.geometry import compose
+from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
+from jaxslam.proposals.base import ProposalOutput, StepInputs
+from jaxslam.sensor import LikelihoodParams, SensorSpec
+
+# Fixed fold-in tags so that the random numbers of horizon step s do not depend on
+# the horizon length K: a run whose last steps are invalid then equals a shorter run.
+_TAG_INITIAL, _TAG_SELECT, _TAG_HORIZON = 0, 1, 2
+
+MoveFn = Callable[[PRNGKeyArray, Any, Any], Any]
+"""``move(key, states, step_input) -> states``: propagate all L localizer states one step."""
+LogLikelihoodFn = Callable[[Any, Any], Float[Array, "L"]]
+"""``log_likelihood(states, step_input) -> (L,)``: log p(z_s | x_s^(i)) of every localizer."""
+
+
+class HorizonResult(NamedTuple):
+    """The localizer filter at the end of the horizon."""
+
+    log_a: Float[Array, "L"]
+    """Unnormalised log-weights a_m accumulated since the last resampling."""
+    origin: Int[Array, "L"]
+    """Index of the time-t sample each localizer descends from."""
+    log_z: Float[Array, ""]
+    """Sum over the resamplings of logsumexp(a) - log L (the evidence already paid out)."""
+    states: Any
+    """Final localizer states (for poses: (L, 3))."""
+    num_resamplings: Int[Array, ""]
+    """How many horizon steps resampled."""
+
+
+class HorizonHistory(NamedTuple):
+    """Per horizon step s = t+1..t+K, after moving and weighting (only with ``return_history``)."""
+
+    states: Any
+    """(K, L, ...) localizer states at step s."""
+    log_a: Float[Array, "K L"]
+    """Log-weights after step s."""
+    origin: Int[Array, "K L"]
+    """Time-t origin of each localizer at step s."""
+    resampled: Bool[Array, "K"]
+    """Whether step s resampled before moving."""
+    valid: Bool[Array, "K"]
+    """Whether step s was inside the log."""
+
+
+class LookaheadDraw(NamedTuple):
+    """The selection at time t."""
+
+    index: Int[Array, ""]
+    """J, the drawn time-t sample."""
+    log_v: Float[Array, "L"]
+    """log V_i, the back-propagated weights (-inf: no descendant)."""
+    log_p: Float[Array, "L"]
+    """log p_i, the selection probabilities (logsumexp = 0)."""
+    log_weight_increment: Float[Array, ""]
+    """g_J - log L - log p_J (-inf when alpha = 0 and every V is zero)."""
+    fallback: Bool[Array, ""]
+    """Every V_i is zero: the draw used the defensive component alone."""
+
+
+def run_horizon(
+    key: PRNGKeyArray,
+    states_t: Any,
+    log_lik_t: Float[Array, "L"],
+    future_inputs: Any,
+    future_valid: Bool[Array, "K"],
+    move: MoveFn,
+    log_likelihood: LogLikelihoodFn,
+    resample_threshold: Float[Array, ""],
+    resample_fn: resampling.ResampleFn = resampling.systematic,
+    return_history: bool = False,
+) -> tuple[HorizonResult, HorizonHistory | None]:
+    """Steps 1-2: run the L localizers through the horizon with ESS-triggered resampling.
+
+    Args:
+      key: randomness of the horizon (step s uses ``fold_in(key, s)``).
+      states_t: the L time-t samples (a pytree with leading axis L; poses: (L, 3)).
+      log_lik_t: (L,) g_i = log p(z_t | x_t^(i)).
+      future_inputs: pytree with leading axis K, one entry per future step (motion, scan).
+      future_valid: (K,) False for steps past the end of the log: they change nothing.
+      move, log_likelihood: the model (see :data:`MoveFn`, :data:`LogLikelihoodFn`).
+      resample_threshold: resample before step s when ESS(a) < this * L (> 1: always).
+      resample_fn: a resampler of :mod:`jaxslam.resampling`.
+      return_history: also return every step's cloud (static; for plots).
+    """
+    num = log_lik_t.shape[0]
+    log_num = math.log(num)
+    origin0 = jnp.arange(num, dtype=jnp.int32)
+    num_steps = future_valid.shape[0]
+
+    def body(carry, xs):
+        states, log_a, origin, log_z, count = carry
+        step_index, step_input, valid = xs
+        key_res, key_move = jax.random.split(jax.random.fold_in(key, step_index))
+        do = valid & (resampling.ess(log_a) < resample_threshold * num)
+        drawn = resample_fn(key_res, log_a, num)
+        ancestors = jnp.where(do, drawn, origin0)
+        total = jax.scipy.special.logsumexp(log_a)
+        log_z = jnp.where(do, log_z + total - log_num, log_z)
+        log_a = jnp.where(do, 0.0, log_a)
+        origin = origin[ancestors]
+        states = jax.tree.map(lambda s: s[ancestors], states)
+        moved = move(key_move, states, step_input)
+        new_log_a = log_a + log_likelihood(moved, step_input)
+        states = jax.tree.map(lambda new, old: jnp.where(_expand(valid, new), new, old), moved, states)
+        log_a = jnp.where(valid, new_log_a, log_a)
+        count = count + do.astype(jnp.int32)
+        out = HorizonHistory(states, log_a, origin, do, valid) if return_history else None
+        return (states, log_a, origin, log_z, count), out
+
+    init = (states_t, log_lik_t, origin0, jnp.zeros((), log_lik_t.dtype), jnp.int32(0))
+    xs = (jnp.arange(num_steps, dtype=jnp.int32), future_inputs, future_valid)
+    (states, log_a, origin, log_z, count), history = jax.lax.scan(body, init, xs)
+    return HorizonResult(log_a, origin, log_z, states, count), history
+
+
+def _expand(flag: Bool[Array, ""], like: Array) -> Bool[Array, "..."]:
+    return jnp.reshape(flag, (1,) * like.ndim)
+
+
+def back_propagate(
+    log_a: Float[Array, "M"],
+    origin: Int[Array, "M"],
+    log_z: Float[Array, ""],
+    num_origins: int | None = None,
+) -> Float[Array, "L"]:
+    """Step 3: log V_i = log Z + logsumexp over {m : origin_m = i} of a_m.
+
+    Args:
+      log_a: (M,) log-weights of the final localizers.
+      origin: (M,) their time-t origins in 0..L-1.
+      log_z: the evidence paid out by the horizon's resamplings.
+      num_origins: L (default M).
+
+    Returns:
+      (L,) log V; -inf for a time-t sample without descendant. Never NaN.
+    """
+    num_origins = log_a.shape[0] if num_origins is None else num_origins
+    # A dense (L, M) membership mask: L = M ~ 100 makes this a few thousand flops,
+    # cheaper and simpler on CPU and GPU than a scatter-based segment logsumexp.
+    member = origin[None, :] == jnp.arange(num_origins, dtype=origin.dtype)[:, None]
+    per_origin = jax.scipy.special.logsumexp(jnp.where(member, log_a[None, :], -jnp.inf), axis=1)
+    return log_z + per_origin
+
+
+def selection_log_probs(
+    log_v: Float[Array, "L"],
+    log_lik_t: Float[Array, "L"],
+    alpha: Float[Array, ""],
+) -> tuple[Float[Array, "L"], Bool[Array, ""]]:
+    """Step 4: log p_i = log[(1 - alpha) V_i / sum(V) + alpha exp(g_i) / sum(exp(g))].
+
+    Both shares are normalised over this SLAM particle's L samples, so that p sums to 1
+    and the increment does not depend on the overall scale of the future likelihoods.
+    When every V_i is zero (``fallback``) the V share is undefined and p is the
+    defensive share alone.
+    """
+    alpha = jnp.asarray(alpha, log_v.dtype)
+    total_v = jax.scipy.special.logsumexp(log_v)
+    fallback = ~jnp.isfinite(total_v)
+    v_share = jnp.where(fallback, -jnp.inf, log_v - jnp.where(fallback, 0.0, total_v))
+    g_share, _ = resampling.normalize_log_weights(log_lik_t)
+    # log(0) = -inf is intended for alpha = 0 (the paper's form); logaddexp handles it.
+    log_alpha = jnp.where(fallback, 0.0, jnp.log(alpha))
+    log_one_minus_alpha = jnp.log1p(-alpha)
+    log_p = jnp.logaddexp(log_one_minus_alpha + v_share, log_alpha + g_share)
+    return log_p, fallback
+
+
+def select(
+    key: PRNGKeyArray,
+    log_v: Float[Array, "L"],
+    log_lik_t: Float[Array, "L"],
+    alpha: Float[Array, ""],
+) -> LookaheadDraw:
+    """Steps 4-5: draw J ~ p and return the weight increment g_J - log L - log p_J.
+
+    With alpha = 0 and every V zero the increment is -inf (the paper's weight is 0/0
+    there; the RBPF then drops the particle) and ``fallback`` reports it.
+    """
+    num = log_v.shape[0]
+    log_p, fallback = selection_log_probs(log_v, log_lik_t, alpha)
+    index = jax.random.categorical(key, log_p).astype(jnp.int32)
+    increment = log_lik_t[index] - math.log(num) - log_p[index]
+    paper_form_undefined = fallback & (jnp.asarray(alpha) <= 0.0)
+    increment = jnp.where(paper_form_undefined | jnp.isnan(increment), -jnp.inf, increment)
+    return LookaheadDraw(index, log_v, log_p, increment, fallback)
+
+
+def lookahead_core(
+    key: PRNGKeyArray,
+    states_t: Any,
+    log_lik_t: Float[Array, "L"],
+    future_inputs: Any,
+    future_valid: Bool[Array, "K"],
+    move: MoveFn,
+    log_likelihood: LogLikelihoodFn,
+    alpha: Float[Array, ""],
+    resample_threshold: Float[Array, ""],
+    resample_fn: resampling.ResampleFn = resampling.systematic,
+    return_history: bool = False,
+) -> tuple[LookaheadDraw, HorizonResult, HorizonHistory | None]:
+    """Steps 2-5 for given time-t samples (step 1 is the caller's: it owns the model).
+
+    ``key`` is split by fold-in tags, never by the horizon length. See :func:`run_horizon`
+    for the arguments. Returns the draw, the final horizon state and (optionally) history.
+    """
+    horizon, history = run_horizon(
+        jax.random.fold_in(key, _TAG_HORIZON), states_t, log_lik_t, future_inputs, future_valid,
+        move, log_likelihood, resample_threshold, resample_fn, return_history,
+    )
+    log_v = back_propagate(horizon.log_a, horizon.origin, horizon.log_z, log_lik_t.shape[0])
+    draw = select(jax.random.fold_in(key, _TAG_SELECT), log_v, log_lik_t, alpha)
+    return draw, horizon, history
+
+
+# ---------------------------------------------------------------------------------------------
+# The grid-map model.
+
+
+def scan_log_likelihoods(
+    spec: GridSpec,
+    hit_dist2: Array,
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    params: LikelihoodParams,
+) -> Float[Array, "L"]:
+    """log p(z | x^(i), m) of one scan at L robot poses in one map (nats); equals
+    ``vmap(sensor.endpoint_log_likelihood)`` but fused for the look-ahead's hot loop.
+
+    The beam endpoints are computed once in the laser frame (B trig calls, shared by
+    every pose and, under the RBPF's vmap, by every SLAM particle); a pose then costs one
+    rotation per beam. The per-beam term log(z_hit exp(-d^2 / 2 sigma^2) + z_rand) only
+    depends on the stored squared cell distance (uint8), so it is read from a 256-entry
+    table instead of evaluating exp and log per beam.
+    """
+    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
+    beam_x = ranges * jnp.cos(sensor.beam_angles)  # (B,) endpoints in the laser frame (m)
+    beam_y = ranges * jnp.sin(sensor.beam_angles)
+    # Laser frame -> robot frame, once per scan.
+    lc, ls = jnp.cos(sensor.laser_pose[2]), jnp.sin(sensor.laser_pose[2])
+    robot_x = sensor.laser_pose[0] + lc * beam_x - ls * beam_y
+    robot_y = sensor.laser_pose[1] + ls * beam_x + lc * beam_y
+
+    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])  # (L, 1)
+    ends = jnp.stack([poses[:, 0:1] + c * robot_x - s * robot_y,
+                      poses[:, 1:2] + s * robot_x + c * robot_y], axis=-1)  # (L, B, 2)
+    idx = flat_index(spec, world_to_cell(spec, ends))
+    d2 = hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR)  # (L, B) uint8
+
+    table = per_beam_table(spec, params)
+    per_beam = table[d2.astype(jnp.int32)]
+    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+
+
+def per_beam_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:
+    """log(z_hit * fit + z_rand) for every uint8 squared cell distance (FAR: fit 0)."""
+    d2 = jnp.arange(FAR + 1, dtype=jnp.float32)
+    fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2 * spec.resolution**2 / params.sigma**2))
+    return jnp.log(params.z_hit * fit + params.z_rand)
+
+
+def _grid_model(pose_params: motion.MotionParams, spec: GridSpec, hit_dist2, sensor, lik_params):
+    def move(key, poses, step_input):
+        step_motion, _ = step_input
+        return motion.sample(key, poses, step_motion, pose_params)
+
+    def log_likelihood(poses, step_input):
+        _, ranges = step_input
+        return scan_log_likelihoods(spec, hit_dist2, poses, ranges, sensor, lik_params)
+
+    return move, log_likelihood
+
+
+class LookaheadExplanation(NamedTuple):
+    """Everything one LP draw computed, for plots (see ``notebooks/lookahead.ipynb``)."""
+
+    poses_t: Float[Array, "L 3"]
+    """The time-t samples x_t^(i)."""
+    log_lik_t: Float[Array, "L"]
+    """g_i."""
+    draw: LookaheadDraw
+    """J, log V, log p, the increment."""
+    horizon: HorizonResult
+    """The localizers at the end of the horizon."""
+    history: HorizonHistory
+    """The localizer cloud at every horizon step."""
+
+
+def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, config, return_history):
+    spec = config.grid
+    num = config.num_localizers
+    move, log_likelihood = _grid_model(params.motion, spec, grid_map.hit_dist2, sensor, params.likelihood)
+    start = jnp.broadcast_to(pose, (num, 3))
+    poses_t = motion.sample(jax.random.fold_in(key, _TAG_INITIAL), start, inputs.motion, params.motion)
+    log_lik_t = log_likelihood(poses_t, (inputs.motion, inputs.ranges))
+    draw, horizon, history = lookahead_core(
+        key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
+        move, log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,
+        resampling.RESAMPLERS[config.resampler], return_history,
+    )
+    return poses_t, log_lik_t, draw, horizon, history
+
+
+def propose(
+    key: PRNGKeyArray,
+    pose: Float[Array, "3"],
+    grid_map,
+    inputs: StepInputs,
+    sensor: SensorSpec,
+    params,
+    config,
+) -> ProposalOutput:
+    """One LP draw for one SLAM particle (see the module docstring).
+
+    Uses ``config.num_localizers`` (L), the K = ``config.horizon`` future scans in
+    ``inputs`` (invalid ones skipped), ``params.lookahead.alpha`` and
+    ``params.lookahead.resample_threshold``; the map stays ``grid_map`` (m_{t-1})
+    over the whole horizon. ``fallback`` is True when no time-t sample kept weight.
+    """
+    poses_t, _, draw, _, _ = _propose_impl(key, pose, grid_map, inputs, sensor, params, config, False)
+    return ProposalOutput(poses_t[draw.index], draw.log_weight_increment, draw.fallback)
+
+
+def explain(
+    key: PRNGKeyArray,
+    pose: Float[Array, "3"],
+    grid_map,
+    inputs: StepInputs,
+    sensor: SensorSpec,
+    params,
+    config,
+) -> LookaheadExplanation:
+    """The same draw as :func:`propose` (same key, same result) with its intermediate
+    quantities: the time-t samples, the horizon's clouds, V, p and J."""
+    poses_t, log_lik_t, draw, horizon, history = _propose_impl(
+        key, pose, grid_map, inputs, sensor, params, config, True)
+    return LookaheadExplanation(poses_t, log_lik_t, draw, horizon, history)

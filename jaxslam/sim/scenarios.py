@@ -1,0 +1,387 @@
+"""Ready-made simulated datasets: worlds, true paths and logs.
+
+* :func:`office_scenario`: the library's demo. A 20 m x 15 m office, a loop through
+  the corridor and three of its six rooms, a 180-beam laser.
+* :func:`box_world_scenario`: the box world of Grzonka, Plagemann, Grisetti and
+  Burgard, "Look-ahead Proposals for Robust Grid-based SLAM with Rao-Blackwellized
+  Particle Filters" (Figs. 1 and 4): 15 laps around a lone box with a 4 m laser,
+  then back to a checkpoint X whose surroundings were mapped at the start.
+
+Both are deterministic given the key: the world and the true path are fixed, the key
+draws the range and odometry noise.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import PRNGKeyArray
+
+from jaxslam.laserlog import LaserLog
+from jaxslam.motion import MotionParams
+from jaxslam.sensor import make_sensor, uniform_beams
+from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path
+from jaxslam.sim.simulate import simulate_log
+from jaxslam.sim.world import (
+    SegmentWorld,
+    box_segments,
+    concat_worlds,
+    make_world,
+    polyline_segments,
+    wall_segments,
+)
+
+
+class Scenario(NamedTuple):
+    """A simulated dataset with everything needed to score a filter on it."""
+
+    log: LaserLog
+    """Simulated scans and odometry, with ``ground_truth`` set."""
+    world: SegmentWorld
+    """The segments the scans were cast against."""
+    true_poses: np.ndarray
+    """(T, 3) float64 true robot poses (m, m, rad), the same as ``log.ground_truth``."""
+    metadata: dict[str, Any]
+    """Scenario facts: the parameters it was simulated with (``motion_params``,
+    ``range_noise_std``, ``step_length``, ...) and landmarks such as checkpoints."""
+
+
+def motion_params(srr, srt, str_, stt, min_translation_std=0.0, min_rotation_std=0.0) -> MotionParams:
+    """A :class:`~jaxslam.motion.MotionParams` of float32 scalars (``str_`` is ``str``)."""
+    f = jnp.float32
+    return MotionParams(f(srr), f(srt), f(str_), f(stt), f(min_translation_std), f(min_rotation_std))
+
+
+# ----------------------------------------------------------------------------- office
+
+OFFICE_SIZE = (20.0, 15.0)
+"""Outer dimensions (m) of the office."""
+_CORRIDOR_Y = (6.5, 8.5)  # the corridor's south and north walls
+_DOOR_WIDTH = 1.2
+_UPPER_DOORS = (3.5, 10.25, 16.75)  # door centres (x, m) in the corridor's north wall
+_LOWER_DOORS = (3.0, 9.0, 16.0)  # door centres (x, m) in the corridor's south wall
+
+
+def office_world() -> SegmentWorld:
+    """A small office: 20 m x 15 m outer walls, an east-west corridor 2 m wide
+    (y from 6.5 to 8.5 m), three rooms north of it and three south, each with a 1.2 m
+    door onto the corridor, and furniture (desks, tables, cabinets, a pillar).
+
+    Groups: "outer", "walls" (corridor walls and room dividers), "furniture".
+    """
+    width, height = OFFICE_SIZE
+    south, north = _CORRIDOR_Y
+    outer = polyline_segments([[0, 0], [width, 0], [width, height], [0, height]], closed=True)
+    walls = np.concatenate([
+        wall_segments([0, north], [width, north], [(x, _DOOR_WIDTH) for x in _UPPER_DOORS]),
+        wall_segments([0, south], [width, south], [(x, _DOOR_WIDTH) for x in _LOWER_DOORS]),
+        # Room dividers: north rooms x in [0, 7], [7, 13.5], [13.5, 20];
+        # south rooms x in [0, 6], [6, 12], [12, 20].
+        polyline_segments([[7.0, north], [7.0, height]]),
+        polyline_segments([[13.5, north], [13.5, height]]),
+        polyline_segments([[6.0, 0.0], [6.0, south]]),
+        polyline_segments([[12.0, 0.0], [12.0, south]]),
+    ])
+    pillar = np.array([[18.8 + 0.25 * np.cos(a), 7.9 + 0.25 * np.sin(a)]
+                       for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)])
+    furniture = np.concatenate([
+        # North-west room: two desks along the back wall, a cabinet.
+        box_segments(2.0, 14.1, 1.6, 0.8),
+        box_segments(4.6, 14.1, 1.6, 0.8),
+        box_segments(6.55, 11.0, 0.5, 1.4),
+        # North-middle room: a meeting table in the middle, a cabinet in a corner.
+        box_segments(10.25, 11.9, 2.2, 1.2),
+        box_segments(13.0, 14.3, 0.8, 0.6),
+        # North-east room: a desk at an angle.
+        box_segments(17.0, 12.5, 1.6, 0.8, angle=0.4),
+        # South-west room: a table, a shelf on the west wall.
+        box_segments(3.0, 3.2, 1.4, 1.0),
+        box_segments(0.3, 2.0, 0.4, 1.6),
+        # South-middle room: two desks.
+        box_segments(7.5, 1.0, 1.6, 0.8),
+        box_segments(10.5, 3.5, 0.8, 1.6),
+        # South-east room: an island of two tables, a cabinet.
+        box_segments(15.0, 3.2, 1.6, 1.2),
+        box_segments(17.3, 3.0, 1.2, 1.6, angle=-0.3),
+        box_segments(19.6, 0.6, 0.6, 0.9),
+        # A pillar in the corridor's east end (8-sided).
+        polyline_segments(pillar, closed=True),
+    ])
+    world = make_world(outer, bounds=(-1.0, -1.0, width + 1.0, height + 1.0), groups={"outer": np.arange(4)})
+    return concat_worlds(
+        world,
+        make_world(walls, world.bounds, groups={"walls": np.arange(walls.shape[0])}),
+        make_world(furniture, world.bounds, groups={"furniture": np.arange(furniture.shape[0])}),
+    )
+
+
+def office_waypoints() -> np.ndarray:
+    """(P, 2) waypoints (m) of the office tour: from the corridor's west end east into the
+    north-middle room (round its table), on into the south-east room (round its tables),
+    back west along the corridor into the south-west room (round its table), and back to
+    the start, so the corridor and the start are revisited."""
+    mid = 0.5 * sum(_CORRIDOR_Y)  # the corridor's centre line
+    return np.array([
+        [1.2, mid],
+        # North-middle room, counter-clockwise round the meeting table.
+        [10.25, mid], [10.25, 10.0], [12.6, 10.0], [12.6, 13.6], [8.0, 13.6], [8.0, 10.0],
+        [10.25, 10.0], [10.25, mid],
+        # South-east room, clockwise round the two tables.
+        [16.0, mid], [16.0, 5.2], [18.9, 5.2], [18.9, 1.2], [13.0, 1.2], [13.0, 5.2], [16.0, 5.2],
+        [16.0, mid],
+        # Back west; south-west room, round its table.
+        [3.0, mid], [3.0, 5.2], [4.9, 5.2], [4.9, 1.4], [1.4, 1.4], [1.4, 5.2], [3.0, 5.2],
+        [3.0, mid], [1.2, mid],
+    ])
+
+
+OFFICE_TURN_RADIUS = 0.6
+"""Radius (m) of the office path's rounded corners: tight enough to turn through a
+1.2 m door from the corridor's centre line without touching the door frame."""
+
+
+def office_scenario(
+    key: PRNGKeyArray,
+    num_scans: int = 500,
+    num_beams: int = 180,
+    range_max: float = 10.0,
+    range_noise_std: float = 0.02,
+    speed: float = 1.0,
+    motion: MotionParams | None = None,
+) -> Scenario:
+    """The library's demo dataset: a loop through :func:`office_world`.
+
+    The path (:func:`office_waypoints`, 88 m long) is sampled at ``num_scans`` poses of
+    equal arc length (0.18 m apart at the default 500; corners are arcs of radius
+    :data:`OFFICE_TURN_RADIUS`), and scans are ``step / speed`` seconds apart. The laser
+    has ``num_beams`` beams over 180 degrees, range_max 10 m, and Gaussian range noise
+    of 0.02 m (a SICK LMS-like scanner).
+
+    Odometry noise (default ``motion``): srr = 0.05 m/m (5 % of each step's length),
+    srt = 0.02 m/rad, str = 0.05 rad/m (about 3 degrees of heading per metre, as a
+    single-step std), stt = 0.05 rad/rad (about 18 degrees per revolution turned in one
+    step), minimum stds 1 mm and 0.001 rad. Accumulated over the 500 independent steps
+    (the per-step stds grow with the step, so these figures hold for ~0.2 m steps) this is
+    a heading std of about 17 degrees at the end, and odometry that ends 2.7 m from the
+    truth (median over 100 seeds; 0.9 m to 5 m from the 10th to the 90th percentile): a
+    map built from odometry alone is visibly wrong, and the loop back to the start must be
+    closed by the filter.
+
+    Returns:
+      A :class:`Scenario`; metadata holds ``motion_params``, ``range_noise_std``,
+      ``step_length``, ``dt``, ``turn_radius``, ``start`` ((2,) m) and ``path_length`` (m).
+    """
+    if motion is None:
+        motion = motion_params(0.05, 0.02, 0.05, 0.05, 0.001, 0.001)
+    world = office_world()
+    waypoints = office_waypoints()
+    # The corners' arcs make the path shorter than the polyline: sample it once finely to
+    # measure it, then choose the step that gives exactly num_scans poses.
+    fine = waypoint_path(waypoints, 0.01, 0.01 / OFFICE_TURN_RADIUS, turn_radius=OFFICE_TURN_RADIUS)
+    length = float(np.sum(np.hypot(*np.diff(fine[:, :2], axis=0).T)))
+    step = length / (num_scans - 1)
+    true_poses = waypoint_path(waypoints, step, step / OFFICE_TURN_RADIUS, turn_radius=OFFICE_TURN_RADIUS)
+    true_poses = _exactly(true_poses, num_scans)
+    sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
+    dt = step / speed
+    log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<office scenario>")
+    metadata = dict(
+        motion_params=motion,
+        range_noise_std=float(range_noise_std),
+        step_length=step,
+        dt=dt,
+        turn_radius=OFFICE_TURN_RADIUS,
+        start=waypoints[0].copy(),
+        path_length=length,
+    )
+    return Scenario(log, world, log.ground_truth, metadata)
+
+
+def _exactly(poses: np.ndarray, count: int) -> np.ndarray:
+    """``poses`` with exactly ``count`` rows: the fine length estimate may be off by a hair,
+    which can add or drop the final (tiny) step."""
+    if poses.shape[0] > count:
+        return poses[:count]
+    if poses.shape[0] < count:
+        return np.concatenate([poses, np.repeat(poses[-1:], count - poses.shape[0], axis=0)])
+    return poses
+
+
+# -------------------------------------------------------------------------- box world
+
+BOX_SIZE = 1.0
+"""Side (m) of both box landmarks."""
+BOX1_CENTER = np.array([-6.0, 0.0])
+BOX2_CENTER = np.array([4.0, 0.0])
+CHECKPOINT_X = np.array([0.0, 0.0])
+"""Checkpoint X: 4 m from box 2's centre (3.5 m from its near face), 2.7 m from the hedge."""
+TURNAROUND = np.array([-2.5, 0.0])
+"""Where excursions from the circle turn back: 3 m from box 1, so box 1 and the hedge are seen."""
+_HEDGE_POINTS = np.array([
+    # A hedge north-east of box 1: a ragged row of short segments, 3.7 m long.
+    [-5.9, 1.45], [-5.4, 1.62], [-4.9, 1.5], [-4.4, 1.7], [-3.9, 1.55], [-3.4, 1.72],
+    [-2.9, 1.58], [-2.5, 1.9], [-2.25, 2.3],
+])
+
+
+def box_world() -> SegmentWorld:
+    """Open flat ground with two 1 m x 1 m boxes 10 m apart and a hedge near box 1.
+
+    Box 1 is centred at (-6, 0) and turned by 0.3 rad; box 2 is centred at (4, 0). Their
+    near faces are 9 m apart (box 1's nearest corner is a little closer, about 8.8 m), more
+    than twice the 4 m laser range plus a margin, so no scan sees both. The hedge (a ragged
+    polyline from (-5.9, 1.45) to (-2.25, 2.3)) is visible from checkpoint X (0, 0), but not
+    from anywhere within 2.1 m of box 2, so it is out of view while the robot circles box 2.
+    No enclosing walls: beams into the open return nothing.
+
+    Groups: "box1", "box2", "hedge".
+    """
+    box1 = box_segments(*BOX1_CENTER, BOX_SIZE, BOX_SIZE, angle=0.3)
+    box2 = box_segments(*BOX2_CENTER, BOX_SIZE, BOX_SIZE)
+    hedge = polyline_segments(_HEDGE_POINTS)
+    bounds = (-8.0, -4.0, 7.0, 4.0)
+    return concat_worlds(
+        make_world(box1, bounds, groups={"box1": np.arange(4)}),
+        make_world(box2, bounds, groups={"box2": np.arange(4)}),
+        make_world(hedge, bounds, groups={"hedge": np.arange(hedge.shape[0])}),
+    )
+
+
+def box_world_path(
+    laps: int = 15,
+    laps_per_visit: int = 5,
+    circle_radius: float = 1.75,
+    step_length: float = 0.1,
+    max_turn_per_step: float = 0.1,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """The true path of :func:`box_world_scenario` and facts about it.
+
+    The robot starts at X facing box 1 and the hedge, drives to the turnaround point, turns
+    on the spot, drives back over X and on a line tangent to the circle round box 2, circles
+    it counter-clockwise ``laps_per_visit`` times, leaves on the tangent through X, turns at
+    the turnaround point, comes back over X to the circle, and so on; after the last lap it
+    drives over X and stops at the turnaround point facing the hedge.
+
+    Returns:
+      ``(poses, info)``: (T, 3) float64 poses and a dict with ``lap_end_indices`` (index of
+      the pose that completes each lap) and ``turn_radius``.
+    """
+    radius = circle_radius
+    # Tangent points on the circle for lines through X: with cos(beta) = r / d, the robot
+    # enters at polar angle pi + beta (south of the X-box line) heading counter-clockwise
+    # along the tangent, and leaves at pi - beta (north of it) on the tangent back to X.
+    distance = float(np.hypot(*(BOX2_CENTER - CHECKPOINT_X)))
+    toward_x = float(np.arctan2(*(CHECKPOINT_X - BOX2_CENTER)[::-1]))
+    beta = float(np.arccos(radius / distance))
+    enter_angle, leave_angle = toward_x + beta, toward_x - beta
+    enter = BOX2_CENTER + radius * np.array([np.cos(enter_angle), np.sin(enter_angle)])
+    leave = BOX2_CENTER + radius * np.array([np.cos(leave_angle), np.sin(leave_angle)])
+    # From entering to leaving, counter-clockwise: whole laps plus the arc between them.
+    leave_sweep = float(np.mod(leave_angle - enter_angle, 2.0 * np.pi))
+    turn_radius = step_length / max_turn_per_step
+
+    def line(points, start_heading=None):
+        return waypoint_path(points, step_length, max_turn_per_step, start_heading=start_heading,
+                             turn_radius=turn_radius)
+
+    def circle(num_laps):
+        return circle_path(BOX2_CENTER, radius, num_laps + leave_sweep / (2 * np.pi), step_length, enter_angle)
+
+    heading_to_box1 = float(np.arctan2(*(TURNAROUND - CHECKPOINT_X)[::-1]))
+    parts = [line([CHECKPOINT_X, TURNAROUND, CHECKPOINT_X, enter], start_heading=heading_to_box1)]
+    lap_ends = []
+    visits = [laps_per_visit] * (laps // laps_per_visit) + ([laps % laps_per_visit] if laps % laps_per_visit else [])
+    for v, num_laps in enumerate(visits):
+        offset = sum(len(p) - 1 for p in parts)  # index of the circle's first pose in the joined path
+        loop = circle(num_laps)
+        per_lap = (loop.shape[0] - 1) * 2 * np.pi / (2 * np.pi * num_laps + leave_sweep)
+        lap_ends += [offset + int(round(per_lap * (k + 1))) for k in range(num_laps)]
+        parts.append(loop)
+        last = v + 1 == len(visits)
+        out = [leave, CHECKPOINT_X, TURNAROUND] + ([] if last else [CHECKPOINT_X, enter])
+        parts.append(line(out, start_heading=loop[-1, 2]))
+    poses = concat_paths(*parts, atol=1e-5)
+    return poses, dict(lap_end_indices=np.array(lap_ends, dtype=np.int64), turn_radius=turn_radius)
+
+
+X_TOLERANCE = 0.3
+"""Radius (m) round checkpoint X within which the path counts as passing over it."""
+
+
+def box_world_scenario(
+    key: PRNGKeyArray,
+    laps: int = 15,
+    laps_per_visit: int = 5,
+    circle_radius: float = 1.75,
+    step_length: float = 0.1,
+    max_turn_per_step: float = 0.1,
+    num_beams: int = 180,
+    range_max: float = 4.0,
+    range_noise_std: float = 0.02,
+    dt: float = 0.1,
+    motion: MotionParams | None = None,
+) -> Scenario:
+    """The box world of Grzonka et al. (Figs. 1 and 4), the test case for look-ahead proposals.
+
+    The robot starts at checkpoint X, 4 m from box 2, looks at box 1 and the hedge, drives
+    to box 2 and circles it ``laps`` times at ``circle_radius`` (1.75 m: 1.25 m off the
+    box's faces), counter-clockwise. After every ``laps_per_visit`` laps it drives out over
+    X to the turnaround point 2.5 m beyond, and back to the circle; after the last lap it
+    drives over X again and stops at the turnaround point. While circling, only box 2 is in
+    view, and a 1 m square seen from one side is a weak constraint: the filter's pose error
+    grows, and at X the robot sees the hedge again, mapped at the start: a loop to close.
+    With the defaults: 2,351 scans (0.1 m steps, 1 m/s at 10 Hz; U-turns on the spot in
+    0.1 rad steps), 229 m.
+
+    Laser: ``num_beams`` = 180 beams over 180 degrees (forward-facing), range_max 4 m,
+    Gaussian range noise 0.02 m. We keep the 180-degree field of view of the SICK LMS on
+    the paper's Pioneer-class robots: the robot sees the hedge only when it drives toward
+    X from the box, which is what makes the return to X a loop closure. Circling box 2
+    counter-clockwise keeps it on the robot's left, in view at bearings of 70 to 90 degrees.
+
+    Odometry noise (default ``motion``, per 0.1 m step, independent between steps):
+    srr = 0.05 m/m (5 % translation error), srt = 0.02 m/rad, str = 0.05 rad/m (rotation
+    drift per metre driven), stt = 0.1 rad/rad, minimum stds 1 mm and 0.002 rad. The
+    per-step heading stds add up (GMapping's model sums the terms), so per lap (11 m and
+    2 pi turned in 110 steps) odometry accumulates a heading std of about 7 degrees and a
+    position std of about 0.3 m: a few degrees per revolution, as on a wheeled robot on
+    flat ground. Over the whole run (measured on 100 seeds) the heading std reaches about
+    40 degrees, and at the last passage over X odometry is off by 2 m (median; 0.65 m to
+    4.5 m from the 10th to the 90th percentile). So the filter must close the loop at X:
+    the point of the paper is that the odometry (OP) and scan-matching (SMP) proposals
+    lose the right hypothesis during the laps, and the look-ahead proposal (LP) keeps it.
+    These stds scale with the step: with longer steps (fewer, larger independent errors)
+    the same coefficients give more drift.
+
+    Returns:
+      A :class:`Scenario`. metadata: ``checkpoint_x`` ((2,) m), ``x_passages`` (indices of
+      the scans at which the true path passes over X, within ``x_tolerance`` = 0.3 m: the
+      start, out and back after every visit but the last, and the end), ``x_tolerance``,
+      ``box1_center``, ``box2_center``, ``circle_radius``, ``lap_end_indices``, ``laps``,
+      ``motion_params``, ``range_noise_std``, ``step_length``, ``dt``.
+    """
+    if motion is None:
+        motion = motion_params(0.05, 0.02, 0.05, 0.1, 0.001, 0.002)
+    world = box_world()
+    true_poses, info = box_world_path(laps, laps_per_visit, circle_radius, step_length, max_turn_per_step)
+    sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
+    log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<box world scenario>")
+    metadata = dict(
+        checkpoint_x=CHECKPOINT_X.copy(),
+        x_passages=passage_indices(true_poses, CHECKPOINT_X, X_TOLERANCE),
+        x_tolerance=X_TOLERANCE,
+        box1_center=BOX1_CENTER.copy(),
+        box2_center=BOX2_CENTER.copy(),
+        circle_radius=circle_radius,
+        lap_end_indices=info["lap_end_indices"],
+        laps=laps,
+        turn_radius=info["turn_radius"],
+        motion_params=motion,
+        range_noise_std=float(range_noise_std),
+        step_length=step_length,
+        dt=dt,
+    )
+    return Scenario(log, world, log.ground_truth, metadata)

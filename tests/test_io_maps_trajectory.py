@@ -1,0 +1,302 @@
+"""Map files (PGM/PNG + YAML, ROS map_server) and per-scan trajectories (fill-in, text files)."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from jaxslam.geometry import between, compose
+from jaxslam.grid import GridSpec
+from jaxslam.io import (
+    poses_at,
+    read_map,
+    read_trajectory,
+    trajectory_per_scan,
+    write_map,
+    write_trajectory,
+)
+from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.sensor import make_sensor, uniform_beams
+
+# --------------------------------------------------------------------------- maps
+
+
+def _test_grid():
+    """A 4 x 6 grid: occupied bottom-left cell, a free row, unknown elsewhere, one
+    borderline cell each side of the thresholds."""
+    logodds = np.zeros((4, 6), np.float32)
+    logodds[0, 0] = 3.0  # occupied, at the origin (bottom-left in the world, bottom row of the image)
+    logodds[1, :] = -3.0  # free
+    logodds[3, 5] = 0.7  # p = 0.668 > 0.65: occupied (top-right)
+    logodds[3, 4] = 0.5  # p = 0.622: unknown
+    logodds[2, 1] = -1.3  # p = 0.214: unknown
+    logodds[2, 2] = -1.5  # p = 0.182 < 0.196: free
+    spec = GridSpec((4, 6), 0.05, (-1.25, 2.5))
+    return logodds, spec
+
+
+def _expected_probability(logodds):
+    p = 1 / (1 + np.exp(-logodds.astype(np.float64)))
+    return np.where(p > 0.65, 1.0, np.where(p < 0.196, 0.0, 0.5)).astype(np.float32)
+
+
+def test_write_map_files(tmp_path):
+    logodds, spec = _test_grid()
+    paths = write_map(tmp_path / "office", logodds, spec)
+    assert set(paths) == {"pgm", "yaml", "png"} and all(p.is_file() for p in paths.values())
+    data = paths["pgm"].read_bytes()
+    assert data.startswith(b"P5\n")
+    assert b"\n6 4\n255\n" in data
+    pixels = np.frombuffer(data[-24:], np.uint8).reshape(4, 6)
+    # Image rows are top-down: image row 3 is grid row 0.
+    assert pixels[3, 0] == 0 and pixels[0, 5] == 0
+    assert np.all(pixels[2] == 254) and pixels[1, 2] == 254
+    assert pixels[0, 4] == 205 and pixels[1, 1] == 205 and pixels[0, 0] == 205
+    assert set(np.unique(pixels)) == {0, 205, 254}
+    text = paths["yaml"].read_text()
+    assert "image: office.pgm\n" in text and "resolution: 0.05\n" in text
+    assert "origin: [-1.25, 2.5, 0.0]\n" in text and "negate: 0\n" in text
+    assert "occupied_thresh: 0.65\n" in text and "free_thresh: 0.196\n" in text
+
+
+def test_map_round_trip(tmp_path):
+    logodds, spec = _test_grid()
+    paths = write_map(tmp_path / "office", logodds, spec)
+    probability, read_spec = read_map(paths["yaml"])
+    assert read_spec == spec
+    assert probability.dtype == np.float32 and not np.any(np.isnan(probability))
+    np.testing.assert_array_equal(probability, _expected_probability(logodds))
+
+
+def test_png_matches_pgm(tmp_path):
+    logodds, spec = _test_grid()
+    paths = write_map(tmp_path / "office", logodds, spec)
+    png_yaml = tmp_path / "png.yaml"
+    png_yaml.write_text(paths["yaml"].read_text().replace("office.pgm", "office.png"))
+    from_png, png_spec = read_map(png_yaml)
+    from_pgm, _ = read_map(paths["yaml"])
+    np.testing.assert_array_equal(from_png, from_pgm)
+    assert png_spec == spec
+
+
+def test_map_round_trip_with_jax_input_and_custom_thresholds(tmp_path):
+    import jax.numpy as jnp
+
+    logodds, spec = _test_grid()
+    paths = write_map(tmp_path / "m", jnp.asarray(logodds), spec, occupied_thresh=0.9, free_thresh=0.1)
+    probability, _ = read_map(paths["yaml"])
+    p = 1 / (1 + np.exp(-logodds.astype(np.float64)))
+    np.testing.assert_array_equal(probability, np.where(p > 0.9, 1.0, np.where(p < 0.1, 0.0, 0.5)))
+
+
+def test_write_map_rejects_bad_input(tmp_path):
+    logodds, spec = _test_grid()
+    with pytest.raises(ValueError, match="shape"):
+        write_map(tmp_path / "m", logodds.T, spec)
+    with pytest.raises(ValueError, match="finite"):
+        write_map(tmp_path / "m", np.full(spec.shape, np.nan), spec)
+    with pytest.raises(ValueError, match="free_thresh"):
+        write_map(tmp_path / "m", logodds, spec, occupied_thresh=0.4)
+
+
+def test_standard_map_server_map(tmp_path):
+    """A hand-written map_server map: ASCII PGM with comments, negate 1, relative image path."""
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "maps" / "lab.pgm").write_text(
+        "P2\n# made by hand\n3 2\n# max\n255\n"
+        "255 0 128\n"
+        "0 200 30\n"
+    )
+    yaml_path = tmp_path / "lab.yaml"
+    yaml_path.write_text(
+        "image: maps/lab.pgm\nresolution: 0.1\norigin: [1.0, -2.0, 0.0]\nnegate: 1\n"
+        "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    probability, spec = read_map(yaml_path)
+    assert spec == GridSpec((2, 3), 0.1, (1.0, -2.0))
+    # negate 1: occupancy = v / 255. Image row 0 (top) is grid row 1.
+    np.testing.assert_array_equal(probability, [[0.0, 1.0, 0.0], [1.0, 0.0, 0.5]])
+
+
+def test_scale_mode(tmp_path):
+    (tmp_path / "s.pgm").write_bytes(b"P5 3 1 255\n" + bytes([0, 255, 166]))
+    yaml_path = tmp_path / "s.yaml"
+    yaml_path.write_text("image: s.pgm\nmode: scale\nresolution: 1\norigin: [0, 0, 0]\n"
+                         "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
+    probability, _ = read_map(yaml_path)
+    occ = (255 - 166) / 255
+    np.testing.assert_allclose(probability[0], [1.0, 0.0, (occ - 0.196) / (0.65 - 0.196)], rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "yaml_text, match",
+    [
+        ("resolution: 0.05\norigin: [0, 0, 0]\n", r"missing key\(s\) \['image'\]"),
+        ("image: m.pgm\norigin: [0, 0, 0]\n", r"missing key\(s\) \['resolution'\]"),
+        ("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nresoluton: 1\n", r"unknown key\(s\) \['resoluton'\]"),
+        ("image: m.pgm\nresolution: -1\norigin: [0, 0, 0]\n", r"'resolution' must be positive"),
+        ("image: m.pgm\nresolution: fine\norigin: [0, 0, 0]\n", r"'resolution' must be a finite number"),
+        ("image: m.pgm\nresolution: 0.05\norigin: [0, 0]\n", None),
+        ("image: m.pgm\nresolution: 0.05\norigin: 7\n", r"'origin' must be \[x, y, yaw\]"),
+        ("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0.5]\n", r"'origin' yaw 0\.5 is not 0; rotated maps are not supported"),
+        ("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nnegate: 2\n", r"'negate' must be 0 or 1"),
+        ("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nfree_thresh: 0.9\n", r"free_thresh 0\.9 must be below"),
+        ("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nmode: fancy\n", r"'mode' must be one of"),
+        ("image: m.pgm\nresolution: [0.05\n", r"not valid YAML"),
+        ("- just\n- a list\n", r"expected a mapping"),
+    ],
+)
+def test_read_map_bad_yaml(tmp_path, yaml_text, match):
+    (tmp_path / "m.pgm").write_bytes(b"P5\n2 1\n255\n" + bytes([0, 254]))
+    yaml_path = tmp_path / "m.yaml"
+    yaml_path.write_text(yaml_text)
+    if match is None:  # a 2-element origin is accepted (yaw 0)
+        assert read_map(yaml_path)[1].origin == (0.0, 0.0)
+        return
+    with pytest.raises(LogError, match=re.escape(str(yaml_path)) + ": " + match):
+        read_map(yaml_path)
+
+
+def test_read_map_bad_image(tmp_path):
+    yaml_path = tmp_path / "m.yaml"
+    yaml_path.write_text("image: nowhere.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(LogError, match=re.escape(str(yaml_path)) + r": the map image .*nowhere\.pgm.* does not exist"):
+        read_map(yaml_path)
+    with pytest.raises(LogError, match=r"no such map YAML file"):
+        read_map(tmp_path / "missing.yaml")
+    truncated = tmp_path / "t.pgm"
+    truncated.write_bytes(b"P5\n4 4\n255\n" + bytes(10))
+    yaml_path.write_text("image: t.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(LogError, match=r"t\.pgm: truncated PGM: 10 bytes of pixels, expected 16"):
+        read_map(yaml_path)
+    garbage = tmp_path / "g.png"
+    garbage.write_bytes(b"not an image at all")
+    yaml_path.write_text("image: g.png\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(LogError, match=r"g\.png: cannot read the map image"):
+        read_map(yaml_path)
+
+
+# --------------------------------------------------------------------------- trajectories
+
+
+def _odometry_log(num_scans=12, seed=0):
+    rng = np.random.default_rng(seed)
+    steps = np.column_stack([rng.uniform(0.0, 0.3, num_scans), rng.normal(0, 0.05, num_scans),
+                             rng.normal(0, 0.2, num_scans)])
+    odom = np.zeros((num_scans, 3))
+    for i in range(1, num_scans):
+        odom[i] = np.asarray(compose(odom[i - 1], steps[i]))
+    sensor = make_sensor(uniform_beams(3), range_max=10.0)
+    return LaserLog(100.0 + 0.1 * np.arange(num_scans), odom, np.ones((num_scans, 3)), sensor)
+
+
+def test_trajectory_with_odometry_poses_is_the_odometry():
+    log = _odometry_log()
+    idx = np.array([2, 5, 9])
+    traj = trajectory_per_scan(log, idx, log.odometry[idx])
+    np.testing.assert_allclose(traj, log.odometry, atol=1e-5)
+
+
+def test_trajectory_with_a_rigidly_moved_estimate():
+    """When every processed pose is the odometry moved by one rigid transform, so is every scan."""
+    log = _odometry_log()
+    offset = np.array([3.0, -1.0, 2.5])
+    moved = np.asarray(compose(offset, log.odometry), dtype=np.float64)
+    idx = np.array([3, 4, 10])
+    traj = trajectory_per_scan(log, idx, moved[idx])
+    np.testing.assert_allclose(traj, moved, atol=1e-5)
+
+
+def test_trajectory_fill_in_formula():
+    log = _odometry_log()
+    idx = np.array([3, 7])
+    processed = np.array([[1.0, 2.0, 0.3], [1.5, 2.5, -3.1]])
+    traj = trajectory_per_scan(log, idx, processed)
+    assert traj.shape == (log.num_scans, 3) and traj.dtype == np.float64
+    np.testing.assert_array_equal(traj[idx], processed)  # processed scans keep their poses exactly
+    odom = log.odometry
+    for i in range(log.num_scans):
+        k = 0 if i < 7 else 1  # scans 0..2 hang off the first processed scan too
+        expected = np.asarray(compose(processed[k], between(odom[idx[k]], odom[i])))
+        np.testing.assert_allclose(traj[i], expected, atol=1e-5)
+    assert np.all(np.abs(traj[:, 2]) <= math.pi)
+
+
+def test_trajectory_wraps_processed_headings():
+    log = _odometry_log()
+    traj = trajectory_per_scan(log, [0], [[0.0, 0.0, 2 * math.pi + 0.5]])
+    assert traj[0, 2] == pytest.approx(0.5)
+    assert np.all((traj[:, 2] > -math.pi) & (traj[:, 2] <= math.pi))
+
+
+def test_trajectory_rejects_bad_indices():
+    log = _odometry_log()
+    pose = np.zeros((2, 3))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        trajectory_per_scan(log, [4, 4], pose)
+    with pytest.raises(ValueError, match=r"must lie in \[0, 12\)"):
+        trajectory_per_scan(log, [4, 12], pose)
+    with pytest.raises(ValueError, match="shape"):
+        trajectory_per_scan(log, [4, 5], np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="at least one"):
+        trajectory_per_scan(log, [], np.zeros((0, 3)))
+
+
+def test_trajectory_file_round_trip(tmp_path):
+    timestamps = np.array([976052857.337530017, 976052857.348896027, 976052858.0])
+    poses = np.array([[0.0, 0.0, 0.0], [1.123456789, -2.5, 3.14159], [1e-9, 42.0, -1.0]])
+    path = tmp_path / "traj.txt"
+    write_trajectory(path, timestamps, poses)
+    text = path.read_text()
+    assert text.startswith("# ")
+    assert "976052857.337530017" in text or "976052857.337530" in text
+    read_ts, read_poses = read_trajectory(path)
+    np.testing.assert_array_equal(read_ts, timestamps)  # 9 decimals: a float64 round trip
+    np.testing.assert_allclose(read_poses, poses, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "body, line_no, match",
+    [
+        ("1.0 0 0 0\n2.0 0 0\n", 3, r"expected 4 fields"),
+        ("1.0 0 0 0\n2.0 0 zero 0\n", 3, r"non-numeric field"),
+        ("1.0 0 0 nan\n", 2, r"non-finite value"),
+        ("2.0 0 0 0\n\n1.0 0 0 0\n", 4, r"timestamp goes backwards"),
+    ],
+)
+def test_read_trajectory_errors(tmp_path, body, line_no, match):
+    path = tmp_path / "traj.txt"
+    path.write_text("# header\n" + body)
+    with pytest.raises(LogError, match=re.escape(f"{path}:{line_no}: ") + match):
+        read_trajectory(path)
+
+
+def test_read_trajectory_empty_or_missing(tmp_path):
+    path = tmp_path / "traj.txt"
+    path.write_text("# only a header\n")
+    with pytest.raises(LogError, match=r"holds no poses"):
+        read_trajectory(path)
+    with pytest.raises(LogError, match=r"no such trajectory file"):
+        read_trajectory(tmp_path / "missing.txt")
+
+
+def test_write_trajectory_rejects_bad_input(tmp_path):
+    with pytest.raises(ValueError, match="shape"):
+        write_trajectory(tmp_path / "t.txt", [1.0, 2.0], np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="finite"):
+        write_trajectory(tmp_path / "t.txt", [1.0], [[np.nan, 0, 0]])
+
+
+def test_poses_at():
+    times = np.array([0.0, 1.0, 1.0, 2.0])  # a repeated timestamp (as in the ACES odometry)
+    poses = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, math.pi / 2]])
+    result = poses_at([-0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5], times, poses)
+    np.testing.assert_array_equal(result.covered, [False, True, True, True, True, True, False])
+    np.testing.assert_allclose(result.poses[1:4], [[0, 0, 0], [0.5, 0, 0], [1, 0, 0]], atol=1e-6)
+    np.testing.assert_array_equal(result.poses[5], poses[3])
+    assert np.all(np.isfinite(result.poses))
+    # Half of a quarter turn along the arc-free relative motion: the pose of geometry.interpolate.
+    assert result.poses[4, 2] == pytest.approx(math.pi / 4, abs=1e-6)

@@ -1,0 +1,195 @@
+"""Relations files (Kümmerle et al. 2009) and the relation error metric."""
+
+from __future__ import annotations
+
+import math
+import re
+import warnings
+
+import numpy as np
+import pytest
+
+from jaxslam.geometry import between, compose
+from jaxslam.io import read_log, read_relations
+from jaxslam.io.relations import Relations
+from jaxslam.laserlog import LogError
+from jaxslam.metrics import lookup_poses, relation_error
+
+# --------------------------------------------------------------------------- relations files
+
+
+def test_read_relations(tmp_path):
+    path = tmp_path / "r.relations"
+    path.write_text(
+        "# t1 t2 x y z roll pitch yaw\n"
+        "976052905.167303 976052911.885496 -0.056990 -0.128430 0.000000 0.000000 0.000000 -1.682210\n"
+        "\n"
+        "1134864648.67354 1134864648.46323 0.31166 0.01278 0.00000  0.00000 0.00000 0.23840\n"
+    )
+    rel = read_relations(path)
+    assert rel.count == 2
+    np.testing.assert_array_equal(rel.t1, [976052905.167303, 1134864648.67354])
+    np.testing.assert_array_equal(rel.t2, [976052911.885496, 1134864648.46323])
+    np.testing.assert_array_equal(rel.motion, [[-0.056990, -0.128430, -1.682210], [0.31166, 0.01278, 0.23840]])
+    assert rel.t1.dtype == np.float64 and rel.motion.shape == (2, 3)
+
+
+@pytest.mark.parametrize(
+    "line, match",
+    [
+        ("1 2 0 0 0 0 0", r"expected 8 fields 't1 t2 x y z roll pitch yaw', got 7"),
+        ("1 2 0 0 0 0 0 0 0", r"expected 8 fields .*got 9"),
+        ("1 2 0.1 abc 0 0 0 0.2", r"field 4 is not a number: 'abc'"),
+        ("1 2 0.1 nan 0 0 0 0.2", r"non-finite value"),
+        ("1 2 0.1 0.2 0.5 0 0 0.2", r"z, roll, pitch must be 0"),
+        ("1 2 0.1 0.2 0 0 0.1 0.2", r"z, roll, pitch must be 0"),
+    ],
+)
+def test_relations_errors_name_the_line(tmp_path, line, match):
+    path = tmp_path / "bad.relations"
+    path.write_text("1 2 0.1 0.2 0 0 0 0.3\n" + line + "\n")
+    with pytest.raises(LogError, match=re.escape(f"{path}:2: ") + match):
+        read_relations(path)
+
+
+def test_relations_empty_or_missing(tmp_path):
+    path = tmp_path / "empty.relations"
+    path.write_text("# nothing\n\n")
+    with pytest.raises(LogError, match=r"empty\.relations: the relations file holds no relations"):
+        read_relations(path)
+    with pytest.raises(LogError, match="no such relations file"):
+        read_relations(tmp_path / "missing.relations")
+
+
+# --------------------------------------------------------------------------- relation error
+
+
+def _trajectory(num=40, seed=1):
+    """A wiggly path with timestamps 10.0, 10.1, ... (s)."""
+    rng = np.random.default_rng(seed)
+    poses = np.zeros((num, 3))
+    for i in range(1, num):
+        step = np.array([rng.uniform(0.1, 0.4), rng.normal(0, 0.05), rng.normal(0, 0.3)])
+        poses[i] = np.asarray(compose(poses[i - 1], step))
+    return 10.0 + 0.1 * np.arange(num), poses
+
+
+def _relations_from(timestamps, poses, pairs):
+    i, j = np.asarray(pairs).T
+    motion = np.asarray(between(poses[i], poses[j]), dtype=np.float64)
+    return Relations(timestamps[i], timestamps[j], motion)
+
+
+def test_relation_error_of_the_same_trajectory_is_zero():
+    ts, poses = _trajectory()
+    pairs = [(0, 1), (5, 30), (30, 5), (12, 39), (7, 7)]  # including t1 > t2 and t1 == t2
+    result = relation_error(ts, poses, _relations_from(ts, poses, pairs))
+    assert result.count == 5
+    np.testing.assert_allclose(result.trans, 0.0, atol=1e-12)
+    np.testing.assert_allclose(result.rot, 0.0, atol=1e-12)
+    assert result.trans_max < 1e-12 and result.rot_max < 1e-12
+
+
+def test_relation_error_is_invariant_to_a_rigid_motion_of_the_trajectory():
+    ts, poses = _trajectory()
+    rel = _relations_from(ts, poses, [(0, 10), (10, 0), (3, 25), (20, 39)])
+    moved = np.asarray(compose(np.array([5.0, -3.0, 2.0]), poses), dtype=np.float64)
+    result = relation_error(ts, moved, rel)
+    assert result.trans_max < 1e-4 and result.rot_max < 1e-5
+
+
+def test_relation_error_of_a_perturbed_trajectory():
+    # A straight path along x with heading 0: between() frames equal world axes.
+    ts = 10.0 + 0.1 * np.arange(6)
+    poses = np.column_stack([0.5 * np.arange(6), np.zeros(6), np.zeros(6)])
+    rel = _relations_from(ts, poses, [(0, 1), (1, 2), (2, 3), (3, 2), (4, 5)])
+    perturbed = poses.copy()
+    perturbed[2] += [0.0, 0.1, 0.05]  # 10 cm sideways and 0.05 rad at scan 2
+    result = relation_error(ts, perturbed, rel)
+    # (0, 1), (4, 5): untouched. (1, 2): the motion's end moves 0.1 sideways and turns 0.05.
+    # (2, 3) from the turned, shifted frame: d = (0.5, -0.1) rotated by -0.05, against (0.5, 0).
+    d = np.array([0.5, -0.1])
+    c, s = math.cos(0.05), math.sin(0.05)
+    rotated = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+    e23 = float(np.hypot(*(rotated - [0.5, 0.0])))
+    # (3, 2): the shifted pose seen from scan 3: (-0.5, 0.1) against (-0.5, 0).
+    expected_trans = np.array([0.0, 0.1, e23, 0.1, 0.0])
+    expected_rot = np.array([0.0, 0.05, 0.05, 0.05, 0.0])
+    np.testing.assert_allclose(result.trans, expected_trans, atol=2e-6)
+    np.testing.assert_allclose(result.rot, expected_rot, atol=2e-6)
+    assert result.trans_mean == pytest.approx(expected_trans.mean(), abs=2e-6)
+    assert result.trans_std == pytest.approx(expected_trans.std(), abs=2e-6)
+    assert result.trans_max == pytest.approx(e23, abs=2e-6)
+    assert result.rot_mean == pytest.approx(0.03, abs=2e-6)
+    assert result.trans2_mean == pytest.approx(np.mean(expected_trans**2), abs=1e-6)
+    assert result.trans2_std == pytest.approx(np.std(expected_trans**2), abs=1e-6)
+    assert result.rot2_mean == pytest.approx(np.mean(expected_rot**2), abs=1e-7)
+    assert result.rot2_std == pytest.approx(np.std(expected_rot**2), abs=1e-7)
+    summary = result.to_dict()
+    assert summary["count"] == 5
+    assert summary["rot_mean_deg"] == pytest.approx(math.degrees(0.03), abs=1e-4)
+    assert summary["rot_max_deg"] == pytest.approx(math.degrees(0.05), abs=1e-4)
+    assert summary["rot2_mean_deg2"] == pytest.approx(np.mean(expected_rot**2) * (180 / math.pi) ** 2, rel=1e-4)
+    assert all(isinstance(v, (int, float)) for v in summary.values())
+
+
+def test_rotational_error_wraps_around_pi():
+    ts = np.array([1.0, 2.0])
+    poses = np.array([[0.0, 0.0, 3.1], [0.0, 0.0, -3.1]])  # turned by 2 pi - 6.2 = 0.0832 rad
+    rel = Relations(np.array([1.0]), np.array([2.0]), np.array([[0.0, 0.0, 0.0]]))
+    assert relation_error(ts, poses, rel).rot[0] == pytest.approx(2 * math.pi - 6.2, abs=1e-6)
+
+
+def test_missing_timestamp_is_an_error():
+    ts, poses = _trajectory()
+    rel = Relations(np.array([10.0, 10.35]), np.array([10.1, 10.5]), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"timestamp 10\.350000 \(query 1\) is not in the trajectory"):
+        relation_error(ts, poses, rel)
+    # Within the tolerance it matches; a looser tolerance is the caller's choice.
+    near = Relations(np.array([10.00005]), np.array([10.1]), np.zeros((1, 3)))
+    assert relation_error(ts, poses, near).count == 1
+    with pytest.raises(ValueError, match=r"timestamp 10\.000050"):
+        relation_error(ts, poses, near, time_tolerance=1e-6)
+
+
+def test_lookup_poses_in_an_unsorted_trajectory():
+    ts = np.array([3.0, 1.0, 2.0])
+    poses = np.array([[3.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
+    np.testing.assert_array_equal(lookup_poses(ts, poses, [2.0, 1.0, 3.0])[:, 0], [2.0, 1.0, 3.0])
+
+
+# --------------------------------------------------------------------------- real data
+
+
+@pytest.mark.parametrize("name, count, backwards", [("intel", 2984, 6), ("aces", 1279, 0), ("mit-csail", 1172, 0)])
+def test_real_relations_files(shared_data, name, count, backwards):
+    rel = read_relations(shared_data / f"{name}.relations")
+    assert rel.count == count
+    assert int(np.sum(rel.t1 > rel.t2)) == backwards
+
+
+def test_mit_csail_relations_match_the_log(shared_data):
+    log = read_log(shared_data / "mit-csail.clf")
+    rel = read_relations(shared_data / "mit-csail.relations")
+    # Every relation timestamp is a FLASER ipc_timestamp (the relations carry 5 decimals).
+    result = relation_error(log.timestamps, log.odometry, rel)
+    assert result.count == 1172 and np.all(np.isfinite(result.trans))
+    # Raw odometry drifts: far worse than the published SLAM results (0.05 m), but finite.
+    assert 0.1 < result.trans_mean < 10.0
+
+
+def test_aces_relations_match_the_log(shared_data):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        log = read_log(shared_data / "aces.sort.bag")
+    rel = read_relations(shared_data / "aces.relations")
+    result = relation_error(log.timestamps, log.odometry, rel)
+    assert result.count == 1279
+
+
+def test_intel_relations_match_the_log(shared_data):
+    with pytest.warns(UserWarning, match="dropped 1"):
+        log = read_log(shared_data / "intel.sort.bag")
+    rel = read_relations(shared_data / "intel.relations")
+    result = relation_error(log.timestamps, log.odometry, rel)
+    assert result.count == 2984
