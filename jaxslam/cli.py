@@ -120,7 +120,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     from jaxslam.sim import office_scenario
 
-    scenario = office_scenario(jax.random.key(args.seed))
+    scenario = office_scenario(jax.random.key(args.seed), num_scans=args.scans)
     # The simulated office is small: process scans more often than GMapping's 1 m / 0.5 rad.
     args.set = list(DEMO_SETTINGS) + (args.set or [])
     config, params = build_config_and_params(args)
@@ -160,6 +160,7 @@ def make_parser() -> argparse.ArgumentParser:
     p_map.set_defaults(func=_cmd_map)
 
     p_demo = sub.add_parser("demo", help="map a simulated office (no download needed)")
+    p_demo.add_argument("--scans", type=int, default=500, help="scans along the simulated path (88 m)")
     _add_filter_options(p_demo, "smp", 20)
     p_demo.set_defaults(func=_cmd_demo, out="out/demo")
 

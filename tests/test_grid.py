@@ -208,13 +208,19 @@ def check_against_reference(spec, grid_map, pose, ranges, sensor, max_range=MAX_
 
 
 def test_insert_scan_matches_reference():
-    new, outside, inc = check_against_reference(SPEC, prior_map(), POSE, RANGES, SENSOR)
+    m = prior_map()
+    # Put the endpoint cells near the upper clamp, so that the occupied update saturates there.
+    _, _, _, inc = Reference(SPEC).insert(np.asarray(m.logodds), np.asarray(m.hit_dist2), POSE, RANGES, SENSOR,
+                                          PARAMS, MAX_RANGE, RADIUS)
+    m = m._replace(logodds=jnp.where(jnp.asarray(inc > 0), 3.2, m.logodds))
+    new, outside, inc = check_against_reference(SPEC, m, POSE, RANGES, SENSOR)
     # The scene exercises what it claims to.
     assert outside >= 3
     assert inc.max() >= 2 * float(PARAMS.logodds_occupied) - 1e-6  # two endpoints in one cell
-    assert np.any(np.isclose(inc, -0.4)) and np.any(inc < -0.4 - 1e-9)  # cells freed by several beams
-    prior = np.asarray(prior_map().logodds)
+    assert np.any(np.isclose(inc, -0.4)) and np.any(inc < -0.4 - 1e-6)  # cells freed by several beams
+    prior = np.asarray(m.logodds)
     assert np.any((prior + inc < -2.0) & (inc != 0)) and np.any((prior + inc > 3.5) & (inc != 0))  # clamping
+    assert np.asarray(new.hit_dist2).min() == 0 and (np.asarray(new.hit_dist2) != np.asarray(m.hit_dist2)).any()
 
 
 def test_insert_scan_into_empty_map_and_accumulation():

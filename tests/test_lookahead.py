@@ -153,13 +153,14 @@ def test_selection_is_normalised_per_slam_particle():
     future_u, future_z = jnp.zeros(3), TOY_FUTURE_Z
     shifted = jnp.array([[5.0, -3.0, 40.0], [0.0, 0.0, 0.0]])  # only particle 0's futures rescaled
 
+    @jax.jit
     def both(alpha, offsets):
         return jax.vmap(lambda k, c: toy_increment(k, alpha, TOY_Z_T, future_u, future_z, 50, 0.5, offsets=c)[0])(
             keys, offsets)
 
     for alpha in (0.0, 0.2):
-        base = both(alpha, jnp.zeros((2, 3)))
-        moved = both(alpha, shifted)
+        base = both(jnp.float32(alpha), jnp.zeros((2, 3)))
+        moved = both(jnp.float32(alpha), shifted)
         np.testing.assert_allclose(jax.scipy.special.logsumexp(base.log_p, axis=1), 0.0, atol=1e-5)
         np.testing.assert_array_equal(base.index, moved.index)
         np.testing.assert_allclose(base.log_weight_increment, moved.log_weight_increment, atol=1e-4)
@@ -206,13 +207,17 @@ def room_path(num):
     return np.stack([x, y, theta], axis=-1).astype(np.float32)
 
 
+_jit_explain = jax.jit(la.explain, static_argnames="config")
+_jit_propose = jax.jit(la.propose, static_argnames="config")
+
+
 @pytest.fixture(scope="module")
 def room_map():
     params = default_params()
     grid_map = empty_map(SPEC)
+    insert = jax.jit(insert_scan, static_argnums=(0, 6, 7))
     for pose in room_path(6)[:3]:
-        grid_map, _ = insert_scan(SPEC, grid_map, jnp.asarray(pose), scan_at(pose), SENSOR, params.insertion,
-                                  10.0, 4)
+        grid_map, _ = insert(SPEC, grid_map, jnp.asarray(pose), scan_at(pose), SENSOR, params.insertion, 10.0, 4)
     return grid_map
 
 
@@ -250,13 +255,12 @@ def test_grid_lp_k0_increment_is_log_mean_likelihood(room_map, alpha):
     params = default_params(**{"lookahead.alpha": alpha})
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0)
-    ex = jax.jit(la.explain, static_argnames="config")(jax.random.key(0), pose, room_map, inputs, SENSOR, params,
-                                                       config)
+    ex = _jit_explain(jax.random.key(0), pose, room_map, inputs, SENSOR, params, config)
     g = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
                                                    params.likelihood))(ex.poses_t)
     expected = jax.scipy.special.logsumexp(g) - math.log(config.num_localizers)
     np.testing.assert_allclose(ex.draw.log_weight_increment, expected, rtol=1e-5, atol=1e-3)
-    out = la.propose(jax.random.key(0), pose, room_map, inputs, SENSOR, params, config)
+    out = _jit_propose(jax.random.key(0), pose, room_map, inputs, SENSOR, params, config)
     np.testing.assert_allclose(out.pose, ex.poses_t[ex.draw.index], atol=1e-5)
     assert not bool(out.fallback)
 
@@ -269,9 +273,8 @@ def test_grid_lp_shrinking_horizon_equals_smaller_k(room_map):
     long_inputs = long_inputs._replace(
         future_motions=long_inputs.future_motions.at[2:].set(3.0),
         future_ranges=long_inputs.future_ranges.at[2:].set(0.7))
-    prop = jax.jit(la.propose, static_argnames="config")
-    short = prop(jax.random.key(5), pose, room_map, short_inputs, SENSOR, params, lp_config(horizon=2))
-    long = prop(jax.random.key(5), pose, room_map, long_inputs, SENSOR, params, lp_config(horizon=4))
+    short = _jit_propose(jax.random.key(5), pose, room_map, short_inputs, SENSOR, params, lp_config(horizon=2))
+    long = _jit_propose(jax.random.key(5), pose, room_map, long_inputs, SENSOR, params, lp_config(horizon=4))
     np.testing.assert_allclose(long.pose, short.pose, atol=1e-6)
     np.testing.assert_allclose(long.log_weight_increment, short.log_weight_increment, atol=1e-5)
 

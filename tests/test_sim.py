@@ -42,6 +42,9 @@ def wrap(theta):
     return np.pi - np.mod(np.pi - np.asarray(theta, np.float64), 2.0 * np.pi)
 
 
+# Jitted once per shape: eager dispatch would compile each primitive separately.
+jit_raycast = jax.jit(raycast)
+
 _NEAR = 1e-4  # float32 casts differ from float64 near these edges; such rays are not compared
 
 
@@ -78,7 +81,7 @@ def reference_raycast(segments, origin, angle, max_range):
 
 def compare_with_reference(segments, origins, angles, max_range):
     """Number of compared rays; asserts every unambiguous ray matches the reference."""
-    ranges, hit = raycast(jnp.asarray(segments, jnp.float32), jnp.asarray(origins, jnp.float32),
+    ranges, hit = jit_raycast(jnp.asarray(segments, jnp.float32), jnp.asarray(origins, jnp.float32),
                           jnp.asarray(angles, jnp.float32), max_range)
     ranges, hit = np.asarray(ranges), np.asarray(hit)
     # Compare against the float32 inputs the caster saw.
@@ -126,7 +129,7 @@ def test_raycast_axis_aligned_and_grid_angles():
     angles = np.linspace(-np.pi, np.pi, 73)
     origins = np.tile([[0.7, -0.4]], (angles.size, 1))
     assert compare_with_reference(room, origins, angles, max_range=20.0) >= 70
-    ranges, _ = raycast(room, jnp.array([0.7, -0.4]), jnp.array([0.0, np.pi / 2, np.pi, -np.pi / 2]), 20.0)
+    ranges, _ = jit_raycast(room, jnp.array([0.7, -0.4]), jnp.array([0.0, np.pi / 2, np.pi, -np.pi / 2]), 20.0)
     np.testing.assert_allclose(ranges, [3.3, 3.4, 4.7, 2.6], atol=1e-5)
 
 
@@ -141,10 +144,10 @@ def test_raycast_parallel_rays_miss():
     origins = segments[:, :2] + offset * normal - 0.5 * e
     for m in range(50):
         for angle in (direction[m], direction[m] + np.pi):
-            r, hit = raycast(segments[m:m + 1], origins[m], angle, 50.0)
+            r, hit = jit_raycast(segments[m:m + 1], origins[m], angle, 50.0)
             assert int(hit) == -1 and float(r) == 50.0
     # Exactly axis-aligned: the cross product is exactly zero.
-    r, hit = raycast(np.array([[1.0, 1.0, 5.0, 1.0]]), np.array([0.0, 0.5]), 0.0, 50.0)
+    r, hit = jit_raycast(np.array([[1.0, 1.0, 5.0, 1.0]]), np.array([0.0, 0.5]), 0.0, 50.0)
     assert int(hit) == -1
 
 
@@ -158,7 +161,7 @@ def test_raycast_ray_starting_on_segment_ignores_it():
     origins = segments[:, :2] + fraction * (segments[:, 2:] - segments[:, :2])
     angles = rng.uniform(-np.pi, np.pi, 200)
     for m in range(200):
-        _, hit = raycast(segments[m:m + 1], origins[m], angles[m], 30.0)
+        _, hit = jit_raycast(segments[m:m + 1], origins[m], angles[m], 30.0)
         assert int(hit) == -1, m
 
 
@@ -174,17 +177,17 @@ def test_raycast_collinear_ray_misses_or_hits_near_end():
     origins = segments[:, :2] - (gap / length)[:, None] * e
     angles = np.arctan2(e[:, 1], e[:, 0])
     for m in range(200):
-        r, hit = raycast(segments[m:m + 1], origins[m], angles[m], 30.0)
+        r, hit = jit_raycast(segments[m:m + 1], origins[m], angles[m], 30.0)
         assert int(hit) == -1 or abs(float(r) - gap[m]) < 1e-3, (m, float(r), gap[m])
 
 
 def test_raycast_active_mask_and_hit_index():
     segments = np.array([[2.0, -1.0, 2.0, 1.0], [4.0, -1.0, 4.0, 1.0]])
-    r, hit = raycast(segments, jnp.zeros(2), 0.0, 10.0)
+    r, hit = jit_raycast(segments, jnp.zeros(2), 0.0, 10.0)
     assert int(hit) == 0 and abs(float(r) - 2.0) < 1e-6
-    r, hit = raycast(segments, jnp.zeros(2), 0.0, 10.0, active=jnp.array([False, True]))
+    r, hit = jit_raycast(segments, jnp.zeros(2), 0.0, 10.0, active=jnp.array([False, True]))
     assert int(hit) == 1 and abs(float(r) - 4.0) < 1e-6
-    r, hit = raycast(segments, jnp.zeros(2), 0.0, 3.0, active=jnp.array([False, True]))
+    r, hit = jit_raycast(segments, jnp.zeros(2), 0.0, 3.0, active=jnp.array([False, True]))
     assert int(hit) == -1 and float(r) == 3.0
 
 
@@ -239,7 +242,7 @@ def test_simulate_scan_noise_statistics():
     num_scans = 400
     poses = np.tile([0.3, -0.2, 0.4], (num_scans, 1))
     ranges = np.asarray(simulate_scans(jax.random.key(0), world, poses, sensor, sigma), np.float64)
-    exact, hit = raycast(world.segments, jnp.array([0.3, -0.2]), 0.4 + sensor.beam_angles, 10.0)
+    exact, hit = jit_raycast(world.segments, jnp.array([0.3, -0.2]), 0.4 + sensor.beam_angles, 10.0)
     assert (np.asarray(hit) >= 0).all()
     errors = ranges - np.asarray(exact, np.float64)
     n = errors.size
@@ -259,7 +262,7 @@ def test_simulate_scan_no_return_clipping_and_consistency():
     sensor = make_sensor(uniform_beams(181), range_max=5.0)
     key = jax.random.key(3)
     ranges = np.asarray(simulate_scan(key, world, jnp.zeros(3), sensor, 0.01))
-    exact, hit = raycast(world.segments, jnp.zeros(2), sensor.beam_angles, 5.0)
+    exact, hit = jit_raycast(world.segments, jnp.zeros(2), sensor.beam_angles, 5.0)
     hit = np.asarray(hit)
     assert 0 < (hit >= 0).sum() < hit.size
     np.testing.assert_array_equal(ranges[hit < 0], np.float32(5.0))
@@ -288,7 +291,7 @@ def test_simulate_scan_uses_laser_pose():
     ranges = simulate_scan(jax.random.key(0), world, pose, sensor, 0.0)
     c, s = np.cos(0.7), np.sin(0.7)
     origin = np.array([1.0 + c * 0.2 - s * 0.1, -0.5 + s * 0.2 + c * 0.1])
-    exact, _ = raycast(world.segments, origin, 1.0 + sensor.beam_angles, 10.0)
+    exact, _ = jit_raycast(world.segments, origin, 1.0 + sensor.beam_angles, 10.0)
     np.testing.assert_allclose(ranges, exact, atol=1e-5)
 
 
@@ -456,7 +459,7 @@ def _hit_groups(scenario):
     sensor = scenario.log.sensor
     poses = jnp.asarray(scenario.true_poses, jnp.float32)
     angles = poses[:, 2:3] + sensor.beam_angles[None, :]
-    _, hit = raycast(scenario.world.segments, poses[:, None, :2], angles, sensor.range_max)
+    _, hit = jit_raycast(scenario.world.segments, poses[:, None, :2], angles, sensor.range_max)
     return np.asarray(hit)
 
 

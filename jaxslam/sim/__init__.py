@@ -1,6 +1,6 @@
 """Simulation: segment worlds, exact ray casting, noisy odometry, scenarios."""
 
-from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path
+from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path, waypoint_path_length
 from jaxslam.sim.raycast import raycast
 from jaxslam.sim.scenarios import (
     Scenario,
@@ -49,5 +49,6 @@ __all__ = [
     "simulate_scan",
     "simulate_scans",
     "waypoint_path",
+    "waypoint_path_length",
     "wall_segments",
 ]

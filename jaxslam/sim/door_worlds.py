@@ -165,7 +165,8 @@ def _build(key, name, walls, doors, true_open, poses, sensor, door_map, start_re
 
 def corridors_scenario(key, step_length: float = 0.2, num_beams: int = 61, range_noise_std: float = 0.03,
                        map_initial_open: float = 0.6, p_open_open: float = 0.997,
-                       p_open_closed: float = 0.003) -> DoorScenario:
+                       p_open_closed: float = 0.003, start_box: float = 0.3,
+                       start_heading: float = 0.15) -> DoorScenario:
     """Scenario (a): two corridors that differ only in their doors (see the module docstring).
 
     Doors: D1..D4 in corridor A (x = 3, 7.5, 11, 16 on its north wall y = 2), D5 in corridor B
@@ -191,9 +192,11 @@ def corridors_scenario(key, step_length: float = 0.2, num_beams: int = 61, range
     open_now = np.array([True, False, False, True, True])
     true_open = np.broadcast_to(open_now, (poses.shape[0], 5)).copy()
     door_map = make_door_map(walls, doors, map_initial_open, p_open_open, p_open_closed)
-    regions = [(0.5, 0.3, 5.0, 1.7), (0.5, 10.3, 5.0, 11.7)]
+    # The robot knows where it is up to the corridor: a box of +-start_box m around 1a in each.
+    x0, y0 = poses[0, :2]
+    regions = [(x0 - start_box, y0 + dy - start_box, x0 + start_box, y0 + dy + start_box) for dy in (0.0, 10.0)]
     return _build(key, "corridors", walls, doors, true_open, poses, door_sensor(num_beams), door_map, regions,
-                  (-np.pi, np.pi), (0.1, 0.1, 0.05), ("D1", "D2", "D3", "D4", "D5"), range_noise_std)
+                  (-start_heading, start_heading), (0.1, 0.1, 0.05), ("D1", "D2", "D3", "D4", "D5"), range_noise_std)
 
 
 def office_doors_scenario(key, step_length: float = 0.2, num_beams: int = 61, range_noise_std: float = 0.03,

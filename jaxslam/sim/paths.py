@@ -107,11 +107,6 @@ def waypoint_path(
       end, which is exactly the last waypoint), which is shorter; turns on the spot keep the
       position fixed.
     """
-    points = np.asarray(waypoints, np.float64).reshape(-1, 2)
-    keep = np.concatenate([[True], np.hypot(*np.diff(points, axis=0).T) > _TINY])
-    points = points[keep]
-    if points.shape[0] < 2:
-        raise ValueError("waypoint_path: need at least 2 distinct waypoints")
     if step_length <= 0 or max_turn_per_step <= 0:
         raise ValueError("waypoint_path: step_length and max_turn_per_step must be positive")
     min_radius = step_length / max_turn_per_step
@@ -119,7 +114,42 @@ def waypoint_path(
     if radius < min_radius * (1 - 1e-9):
         raise ValueError(f"waypoint_path: turn_radius {radius} is below step_length / max_turn_per_step "
                          f"= {min_radius}")
+    points, legs = _plan(waypoints, radius)
+    first_direction = legs[0][1][0].heading if legs[0][0] == "drive" else legs[0][2]
+    heading = first_direction if start_heading is None else float(start_heading)
+    poses = [np.array([[points[0, 0], points[0, 1], heading]])]
+    if start_heading is not None:
+        poses.append(_spin(points[0], heading, first_direction, max_turn_per_step))
+    for leg in legs:
+        if leg[0] == "drive":
+            poses.append(_drive(leg[1], step_length))
+        else:
+            poses.append(_spin(*leg[1:], max_turn_per_step))
+    out = np.concatenate(poses, axis=0)
+    out[:, 2] = _wrap(out[:, 2])
+    return out
 
+
+def waypoint_path_length(waypoints, turn_radius: float) -> float:
+    """Arc length (m) that :func:`waypoint_path` drives through ``waypoints`` with corner
+    arcs of ``turn_radius`` (m): divide it by the number of steps for a path that ends
+    exactly on a whole step."""
+    _, legs = _plan(waypoints, float(turn_radius))
+    return float(sum(piece.length for leg in legs if leg[0] == "drive" for piece in leg[1]))
+
+
+def _plan(waypoints, radius: float):
+    """The lines, corner arcs and turns on the spot through ``waypoints``.
+
+    Returns ``(points, legs)``: the (P, 2) waypoints without consecutive duplicates, and a
+    list of legs, each ``("drive", [pieces])`` or ``("spin", position, heading_from,
+    heading_to)``.
+    """
+    points = np.asarray(waypoints, np.float64).reshape(-1, 2)
+    keep = np.concatenate([[True], np.hypot(*np.diff(points, axis=0).T) > _TINY])
+    points = points[keep]
+    if points.shape[0] < 2:
+        raise ValueError("waypoint_path: need at least 2 distinct waypoints")
     vectors = np.diff(points, axis=0)
     lengths = np.hypot(vectors[:, 0], vectors[:, 1])
     directions = np.arctan2(vectors[:, 1], vectors[:, 0])
@@ -128,40 +158,35 @@ def waypoint_path(
     tangents: list[float | None] = [None] * (num_lines + 1)
     turns = np.zeros(num_lines + 1)
     for i in range(1, num_lines):
-        turn = float(_wrap(directions[i] - directions[i - 1]))
-        turns[i] = turn
-        tangent = radius * np.tan(0.5 * abs(turn))
+        turns[i] = float(_wrap(directions[i] - directions[i - 1]))
+        tangent = radius * np.tan(0.5 * abs(turns[i]))
+        # An arc may use half of a line (the other half may serve the line's other corner),
+        # or the whole first or last line.
         room_before = lengths[i - 1] * (1.0 if i == 1 else 0.5)
         room_after = lengths[i] * (1.0 if i == num_lines - 1 else 0.5)
         if tangent <= min(room_before, room_after):
             tangents[i] = tangent
 
-    poses = [np.array([[points[0, 0], points[0, 1], directions[0] if start_heading is None
-                        else float(start_heading)]])]
-    if start_heading is not None:
-        poses.append(_spin(points[0], float(start_heading), directions[0], max_turn_per_step))
+    legs: list[tuple] = []
     pieces: list[_Piece] = []
     for i in range(num_lines):
+        unit = np.array([np.cos(directions[i]), np.sin(directions[i])])
         begin = tangents[i] if (i > 0 and tangents[i] is not None) else 0.0
         end_cut = tangents[i + 1] if (i + 1 < num_lines and tangents[i + 1] is not None) else 0.0
-        line_start = points[i] + begin * np.array([np.cos(directions[i]), np.sin(directions[i])])
-        pieces.append(_Piece(line_start, directions[i], lengths[i] - begin - end_cut, 0.0))
+        pieces.append(_Piece(points[i] + begin * unit, directions[i], lengths[i] - begin - end_cut, 0.0))
         if i + 1 == num_lines:
             break
-        if tangents[i + 1] is not None:
-            if tangents[i + 1] > 0:
-                arc_start = points[i + 1] - end_cut * np.array([np.cos(directions[i]), np.sin(directions[i])])
-                turn = turns[i + 1]
-                pieces.append(_Piece(arc_start, directions[i], radius * abs(turn), np.sign(turn) / radius))
-        else:
+        if tangents[i + 1] is None:
             # Stop at the corner and turn on the spot.
-            poses.append(_drive(pieces, step_length))
+            legs.append(("drive", pieces))
+            legs.append(("spin", points[i + 1], directions[i], directions[i + 1]))
             pieces = []
-            poses.append(_spin(points[i + 1], directions[i], directions[i + 1], max_turn_per_step))
-    poses.append(_drive(pieces, step_length))
-    out = np.concatenate(poses, axis=0)
-    out[:, 2] = _wrap(out[:, 2])
-    return out
+        elif tangents[i + 1] > 0:
+            turn = turns[i + 1]
+            pieces.append(_Piece(points[i + 1] - end_cut * unit, directions[i], radius * abs(turn),
+                                 np.sign(turn) / radius))
+    legs.append(("drive", pieces))
+    return points, legs
 
 
 def circle_path(

@@ -23,7 +23,7 @@ from jaxtyping import PRNGKeyArray
 from jaxslam.laserlog import LaserLog
 from jaxslam.motion import MotionParams
 from jaxslam.sensor import make_sensor, uniform_beams
-from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path
+from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path, waypoint_path_length
 from jaxslam.sim.simulate import simulate_log
 from jaxslam.sim.world import (
     SegmentWorld,
@@ -174,17 +174,18 @@ def office_scenario(
       A :class:`Scenario`; metadata holds ``motion_params``, ``range_noise_std``,
       ``step_length``, ``dt``, ``turn_radius``, ``start`` ((2,) m) and ``path_length`` (m).
     """
+    if num_scans < 2:
+        raise ValueError(f"office_scenario: num_scans must be at least 2, got {num_scans}")
     if motion is None:
         motion = motion_params(0.05, 0.02, 0.05, 0.05, 0.001, 0.001)
     world = office_world()
     waypoints = office_waypoints()
-    # The corners' arcs make the path shorter than the polyline: sample it once finely to
-    # measure it, then choose the step that gives exactly num_scans poses.
-    fine = waypoint_path(waypoints, 0.01, 0.01 / OFFICE_TURN_RADIUS, turn_radius=OFFICE_TURN_RADIUS)
-    length = float(np.sum(np.hypot(*np.diff(fine[:, :2], axis=0).T)))
+    # The step that puts exactly num_scans poses on the path, the last one on its end.
+    length = waypoint_path_length(waypoints, OFFICE_TURN_RADIUS)
     step = length / (num_scans - 1)
     true_poses = waypoint_path(waypoints, step, step / OFFICE_TURN_RADIUS, turn_radius=OFFICE_TURN_RADIUS)
-    true_poses = _exactly(true_poses, num_scans)
+    if true_poses.shape[0] != num_scans:  # a guard: the office path has no turns on the spot
+        raise AssertionError(f"office path has {true_poses.shape[0]} poses, expected {num_scans}")
     sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
     dt = step / speed
     log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<office scenario>")
@@ -200,16 +201,6 @@ def office_scenario(
     return Scenario(log, world, log.ground_truth, metadata)
 
 
-def _exactly(poses: np.ndarray, count: int) -> np.ndarray:
-    """``poses`` with exactly ``count`` rows: the fine length estimate may be off by a hair,
-    which can add or drop the final (tiny) step."""
-    if poses.shape[0] > count:
-        return poses[:count]
-    if poses.shape[0] < count:
-        return np.concatenate([poses, np.repeat(poses[-1:], count - poses.shape[0], axis=0)])
-    return poses
-
-
 # -------------------------------------------------------------------------- box world
 
 BOX_SIZE = 1.0
@@ -217,7 +208,7 @@ BOX_SIZE = 1.0
 BOX1_CENTER = np.array([-6.0, 0.0])
 BOX2_CENTER = np.array([4.0, 0.0])
 CHECKPOINT_X = np.array([0.0, 0.0])
-"""Checkpoint X: 4 m from box 2's centre (3.5 m from its near face), 2.7 m from the hedge."""
+"""Checkpoint X: 4 m from box 2's centre (3.5 m from its near face), 3.1 m from the hedge."""
 TURNAROUND = np.array([-2.5, 0.0])
 """Where excursions from the circle turn back: 3 m from box 1, so box 1 and the hedge are seen."""
 _HEDGE_POINTS = np.array([
@@ -230,9 +221,9 @@ _HEDGE_POINTS = np.array([
 def box_world() -> SegmentWorld:
     """Open flat ground with two 1 m x 1 m boxes 10 m apart and a hedge near box 1.
 
-    Box 1 is centred at (-6, 0) and turned by 0.3 rad; box 2 is centred at (4, 0). Their
-    near faces are 9 m apart (box 1's nearest corner is a little closer, about 8.8 m), more
-    than twice the 4 m laser range plus a margin, so no scan sees both. The hedge (a ragged
+    Box 1 is centred at (-6, 0) and turned by 0.3 rad; box 2 is centred at (4, 0). Box 1's
+    nearest corner is 8.9 m from box 2, more than twice the 4 m laser range plus a margin,
+    so no scan sees both. The hedge (a ragged
     polyline from (-5.9, 1.45) to (-2.25, 2.3)) is visible from checkpoint X (0, 0), but not
     from anywhere within 2.1 m of box 2, so it is out of view while the robot circles box 2.
     No enclosing walls: beams into the open return nothing.
@@ -360,7 +351,8 @@ def box_world_scenario(
       A :class:`Scenario`. metadata: ``checkpoint_x`` ((2,) m), ``x_passages`` (indices of
       the scans at which the true path passes over X, within ``x_tolerance`` = 0.3 m: the
       start, out and back after every visit but the last, and the end), ``x_tolerance``,
-      ``box1_center``, ``box2_center``, ``circle_radius``, ``lap_end_indices``, ``laps``,
+      ``turnaround`` ((2,) m), ``box1_center``, ``box2_center``, ``circle_radius``,
+      ``lap_end_indices`` (the scan completing each lap), ``laps``, ``turn_radius``,
       ``motion_params``, ``range_noise_std``, ``step_length``, ``dt``.
     """
     if motion is None:
@@ -371,6 +363,7 @@ def box_world_scenario(
     log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<box world scenario>")
     metadata = dict(
         checkpoint_x=CHECKPOINT_X.copy(),
+        turnaround=TURNAROUND.copy(),
         x_passages=passage_indices(true_poses, CHECKPOINT_X, X_TOLERANCE),
         x_tolerance=X_TOLERANCE,
         box1_center=BOX1_CENTER.copy(),

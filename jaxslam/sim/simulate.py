@@ -133,6 +133,14 @@ def simulate_scans(
     return np.concatenate(batches)[:num_scans]
 
 
+@jax.jit
+def _noisy_motions(key, true_poses, params):
+    """(T-1, 3) true relative motions plus their noise."""
+    motions = between(true_poses[:-1], true_poses[1:])
+    noise = jax.random.normal(key, motions.shape, motions.dtype) * noise_std(motions, params)
+    return motions + noise
+
+
 def noisy_odometry(key: PRNGKeyArray, true_poses, params: MotionParams) -> np.ndarray:
     """Odometry that drifts: the true relative motions plus GMapping-style noise, composed.
 
@@ -154,10 +162,7 @@ def noisy_odometry(key: PRNGKeyArray, true_poses, params: MotionParams) -> np.nd
       (T, 3) float64 odometry poses; row 0 is the first true pose.
     """
     true_poses = np.asarray(true_poses, dtype=np.float64).reshape(-1, 3)
-    motions = jnp.asarray(between(true_poses[:-1], true_poses[1:]))  # (T-1, 3) float32
-    std = noise_std(motions, params)
-    noise = jax.random.normal(key, motions.shape, motions.dtype) * std
-    noisy = np.asarray(motions + noise, dtype=np.float64)
+    noisy = np.asarray(_noisy_motions(key, true_poses.astype(np.float32), params), dtype=np.float64)
     # Compose the chain x_{i+1} = x_i (+) u_i in closed form (float64, no loop): the heading
     # is the running sum of the rotations, and each translation is turned by the heading
     # of the pose it starts from.

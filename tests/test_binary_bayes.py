@@ -1,0 +1,156 @@
+"""The binary Bayes filter (jaxslam.binary_bayes): log-odds updates, transitions, measurement update."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxslam import binary_bayes as BB
+
+prob = st.floats(0.0, 1.0, width=32)
+predict_n = jax.jit(BB.predict_n)
+update = jax.jit(BB.update)
+
+
+def test_logodds_probability_round_trip():
+    p = np.linspace(0.001, 0.999, 101, dtype=np.float32)
+    l = np.asarray(BB.logodds(jnp.asarray(p)))
+    np.testing.assert_allclose(l, np.log(p / (1 - p)), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(BB.probability(jnp.asarray(l))), p, rtol=1e-5)
+    assert float(BB.logodds(jnp.float32(0.5))) == 0.0
+
+
+def test_update_logodds_sums_measurements():
+    rng = np.random.default_rng(0)
+    prior = rng.normal(size=50).astype(np.float32)
+    meas = rng.normal(size=(4, 50)).astype(np.float32)
+    l = jnp.asarray(prior)
+    for m in meas:
+        l = BB.update_logodds(l, jnp.asarray(m))
+    np.testing.assert_allclose(np.asarray(l), prior + meas.sum(axis=0), rtol=0, atol=1e-5)
+    # Order does not matter (a static state: the update is an addition).
+    l2 = jnp.asarray(prior)
+    for m in meas[::-1]:
+        l2 = BB.update_logodds(l2, jnp.asarray(m))
+    np.testing.assert_allclose(np.asarray(l2), np.asarray(l), atol=1e-5)
+
+
+def test_update_logodds_clamps():
+    got = np.asarray(BB.update_logodds(jnp.array([1.0, 1.0, 1.0]), jnp.array([5.0, -9.0, 0.5]), -2.0, 3.5))
+    np.testing.assert_allclose(got, [3.5, -2.0, 1.5])
+    # A clamped cell can change again right away (the point of clamping).
+    back = np.asarray(BB.update_logodds(jnp.asarray(got), jnp.array([-1.0, 1.0, 0.0]), -2.0, 3.5))
+    np.testing.assert_allclose(back, [2.5, -1.0, 1.5])
+
+
+def test_predict_formula():
+    p = jnp.array([0.0, 0.3, 1.0])
+    np.testing.assert_allclose(np.asarray(BB.predict(p, 0.9, 0.2)), [0.2, 0.9 * 0.3 + 0.2 * 0.7, 0.9], rtol=1e-6)
+    # Avots et al.'s memoryless baseline: p(open|open) = p(open|closed) = 0.5 forgets at once.
+    np.testing.assert_allclose(np.asarray(BB.predict(p, 0.5, 0.5)), 0.5)
+
+
+@settings(max_examples=80, deadline=None)
+@given(prob, prob, prob, st.integers(0, 40))
+def test_predict_n_equals_iterated_predict(p, p_stay, p_enter, steps):
+    if 1.0 - p_stay + p_enter < 1e-6:
+        return  # the static model p_stay = 1, p_enter = 0: see the dedicated test below
+    loop = np.float32(p)
+    for _ in range(steps):
+        loop = np.float32(BB.predict(loop, np.float32(p_stay), np.float32(p_enter)))
+    closed = float(predict_n(jnp.float32(p), jnp.float32(p_stay), jnp.float32(p_enter), jnp.int32(steps)))
+    # Each float32 step rounds by ~6e-8; 40 steps accumulate well under 1e-5.
+    assert closed == pytest.approx(float(loop), abs=1e-5)
+    assert 0.0 - 1e-6 <= closed <= 1.0 + 1e-6
+
+
+@pytest.mark.parametrize("steps", [0, 1, 7])
+def test_predict_n_python_int_and_float_steps(steps):
+    loop = 0.3
+    for _ in range(steps):
+        loop = 0.15 * loop + 0.8 * (1 - loop)  # p_stay = 0.15, p_enter = 0.8: oscillates (negative factor)
+    assert float(BB.predict_n(jnp.float32(0.3), 0.15, 0.8, steps)) == pytest.approx(loop, abs=1e-6)
+    assert float(BB.predict_n(jnp.float32(0.3), 0.15, 0.8, jnp.float32(steps))) == pytest.approx(loop, abs=1e-6)
+
+
+def test_predict_n_vectorised_over_doors():
+    p = jnp.array([0.1, 0.5, 0.9])
+    ps = jnp.array([0.9, 0.6, 0.2])
+    pe = jnp.array([0.05, 0.3, 0.7])
+    want = np.asarray(p)
+    for _ in range(5):
+        want = np.asarray(ps) * want + np.asarray(pe) * (1 - want)
+    np.testing.assert_allclose(np.asarray(predict_n(p, ps, pe, 5)), want, atol=1e-6)
+
+
+@pytest.mark.parametrize("p_stay,p_enter", [(0.9, 0.05), (0.2, 0.7), (0.5, 0.5), (0.999, 0.001)])
+def test_predict_converges_to_stationary(p_stay, p_enter):
+    s = float(BB.stationary(jnp.float32(p_stay), jnp.float32(p_enter)))
+    assert s == pytest.approx(p_enter / (1 - p_stay + p_enter), rel=1e-5)
+    # The stationary value is a fixed point of predict.
+    assert float(BB.predict(jnp.float32(s), p_stay, p_enter)) == pytest.approx(s, abs=1e-6)
+    # |p_stay - p_enter| < 1: the distance to it shrinks geometrically from any start.
+    for p0 in (0.0, 0.37, 1.0):
+        assert float(predict_n(jnp.float32(p0), jnp.float32(p_stay), jnp.float32(p_enter), jnp.int32(20000))) \
+            == pytest.approx(s, abs=1e-5)
+        loop = p0
+        for _ in range(200):
+            loop = p_stay * loop + p_enter * (1 - loop)
+        s64 = p_enter / (1 - p_stay + p_enter)
+        assert abs(loop - s64) == pytest.approx(abs(p0 - s64) * abs(p_stay - p_enter) ** 200, abs=1e-9)
+
+
+@pytest.mark.xfail(strict=True, reason="BUG: predict_n divides by 1 - p_stay + p_enter = 0 for the "
+                   "static model (p_stay = 1, p_enter = 0) and returns NaN instead of p")
+def test_predict_n_static_model_keeps_the_probability():
+    p = jnp.array([0.0, 0.3, 1.0])
+    np.testing.assert_allclose(np.asarray(BB.predict(p, 1.0, 0.0)), np.asarray(p))
+    got = np.asarray(predict_n(p, jnp.float32(1.0), jnp.float32(0.0), jnp.int32(5)))
+    np.testing.assert_allclose(got, np.asarray(p))
+
+
+def direct_update(p, l1, l0):
+    """posterior = L1 p / (L1 p + L0 (1 - p)), in float64 with a shared scale against underflow."""
+    m = max(l1, l0)
+    a, b = np.exp(l1 - m) * p, np.exp(l0 - m) * (1 - p)
+    return a / (a + b), m + np.log(a + b)
+
+
+def test_update_against_direct_formula():
+    rng = np.random.default_rng(1)
+    p = rng.uniform(0.01, 0.99, 200)
+    l1 = rng.uniform(-20, 5, 200)
+    l0 = rng.uniform(-20, 5, 200)
+    l1[:20] -= 1000.0  # tiny likelihoods: would underflow in probability space
+    l0[:20] -= 1000.0
+    post, ev = update(jnp.asarray(p, jnp.float32), jnp.asarray(l1, jnp.float32), jnp.asarray(l0, jnp.float32))
+    want = [direct_update(*args) for args in zip(p, l1, l0)]
+    np.testing.assert_allclose(np.asarray(post), [w[0] for w in want], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(ev), [w[1] for w in want], rtol=1e-5, atol=1e-4)
+
+
+def test_update_with_minus_inf_likelihoods():
+    ninf = -jnp.inf
+    p = jnp.array([0.3, 0.3, 0.3, 0.0, 1.0, 0.0, 1.0])
+    l1 = jnp.array([ninf, -1.0, ninf, -1.0, -1.0, ninf, ninf])
+    l0 = jnp.array([-2.0, ninf, ninf, -2.0, -2.0, -2.0, -2.0])
+    post, ev = update(p, l1, l0)
+    post, ev = np.asarray(post), np.asarray(ev)
+    assert not np.isnan(post).any() and not np.isnan(ev).any()
+    np.testing.assert_allclose(post, [0.0, 1.0, 0.3, 0.0, 1.0, 0.0, 1.0])  # both impossible: keep the prior
+    np.testing.assert_allclose(ev[:2], [-2.0 + np.log(0.7), -1.0 + np.log(0.3)], rtol=1e-6)
+    assert ev[2] == -np.inf  # reported, not hidden
+    np.testing.assert_allclose(ev[3:5], [-2.0, -1.0], rtol=1e-6)
+    assert ev[5] == pytest.approx(-2.0) and ev[6] == -np.inf
+
+
+def test_update_is_the_door_weight_of_eq_33():
+    """exp(log_evidence) = L1 p+ + L0 (1 - p+) after predict: the per-door factor of the particle weight."""
+    p_plus = float(BB.predict(jnp.float32(0.4), 0.8, 0.1))
+    post, ev = update(jnp.float32(p_plus), jnp.float32(np.log(0.6)), jnp.float32(np.log(0.15)))
+    assert float(jnp.exp(ev)) == pytest.approx(0.6 * p_plus + 0.15 * (1 - p_plus), rel=1e-6)
+    assert float(post) == pytest.approx(0.6 * p_plus / (0.6 * p_plus + 0.15 * (1 - p_plus)), rel=1e-6)

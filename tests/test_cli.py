@@ -1,0 +1,117 @@
+"""The command line: map, demo, eval, and clear errors for bad input."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from jaxslam.cli import main
+from jaxslam.sim import office_scenario
+
+
+def write_flaser_log(path, log, stop=None):
+    """A CARMEN text log with FLASER lines (odometry inside each line)."""
+    lines = ["# synthetic CARMEN log written by the tests"]
+    for i in range(log.num_scans if stop is None else stop):
+        r = " ".join(f"{v:.3f}" for v in log.ranges[i])
+        x, y, th = log.odometry[i]
+        t = 1000.0 + log.timestamps[i]
+        lines.append(f"FLASER {log.num_beams} {r} {x:.6f} {y:.6f} {th:.6f} {x:.6f} {y:.6f} {th:.6f} {t:.6f} host {t:.6f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def small_log():
+    return office_scenario(jax.random.key(0), num_scans=150, num_beams=181).log.subset(np.arange(50))
+
+
+def test_map_writes_every_output(tmp_path, small_log, capsys):
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log)
+    out = tmp_path / "out"
+    code = main(["map", str(log_path), "--particles", "4", "--proposal", "op", "--no-progress",
+                 "--set", "linear_update=0.3", "--set", "max_insert_range=8", "--set", "motion.srr=0.05",
+                 "--out", str(out)])
+    assert code == 0
+    for name in ("map.pgm", "map.yaml", "map.png", "trajectory.txt", "summary.json", "slam.png"):
+        assert (out / name).is_file(), name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scans_in_log"] == 50
+    assert summary["config"]["num_particles"] == 4
+    assert summary["config"]["linear_update"] == 0.3
+    assert summary["params"]["motion.srr"] == pytest.approx(0.05)
+    assert summary["timings"]["real_time_factor"] > 0
+    traj = np.loadtxt(out / "trajectory.txt")
+    assert traj.shape == (50, 4)  # one pose per scan of the log, skipped scans included
+    assert "processed" in capsys.readouterr().out
+
+
+def test_config_file_and_flags(tmp_path, small_log):
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=20)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"config": {"beam_stride": 2, "linear_update": 0.3}, "params": {"likelihood.sigma": 0.08}}))
+    out = tmp_path / "out"
+    assert main(["map", str(log_path), "--config", str(cfg), "--particles", "3", "--no-progress", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["config"]["beam_stride"] == 2
+    assert summary["params"]["likelihood.sigma"] == pytest.approx(0.08)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--set", "motion.nope=1"], "unknown parameter"),
+        (["--set", "linear_update"], "NAME=VALUE"),
+        (["--set", "num_particles=lots"], "num_particles"),
+        (["--set", "lookahead.alpha=1.5"], "alpha"),
+    ],
+)
+def test_bad_settings_name_the_problem(tmp_path, small_log, capsys, args, message):
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=5)
+    assert main(["map", str(log_path), "--no-progress", "--out", str(tmp_path / "o"), *args]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_bad_log_names_file_and_line(tmp_path, small_log, capsys):
+    log_path = tmp_path / "broken.clf"
+    write_flaser_log(log_path, small_log, stop=5)
+    lines = log_path.read_text().splitlines()
+    lines[3] = lines[3][: len(lines[3]) // 2]  # truncate the third FLASER line
+    log_path.write_text("\n".join(lines) + "\n")
+    assert main(["map", str(log_path), "--no-progress", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "broken.clf" in err and ":4" in err
+
+
+def test_missing_file_is_a_clear_error(tmp_path, capsys):
+    assert main(["map", str(tmp_path / "nope.bag"), "--no-progress"]) == 2
+    assert "nope.bag" in capsys.readouterr().err
+
+
+def test_demo_runs(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", "--scans", "60", "--particles", "4", "--no-progress", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scans_processed"] > 10
+    assert (out / "map.png").is_file()
+
+
+def test_eval_prints_and_writes_the_error_table(tmp_path, capsys):
+    t = np.arange(5, dtype=float)
+    poses = np.stack([t, np.zeros(5), np.zeros(5)], axis=1)
+    traj = tmp_path / "traj.txt"
+    traj.write_text("".join(f"{a:.6f} {p[0]} {p[1]} {p[2]}\n" for a, p in zip(t, poses)))
+    rel = tmp_path / "rel.txt"
+    # Relations that claim 1.1 m per second where the trajectory moved 1.0 m: error 0.1 m each.
+    rel.write_text("".join(f"{a:.6f} {a + 1:.6f} 1.1 0 0 0 0 0\n" for a in t[:-1]))
+    out = tmp_path / "errors.json"
+    assert main(["eval", str(traj), str(rel), "--out", str(out)]) == 0
+    table = json.loads(out.read_text())
+    assert table["count"] == 4
+    assert table["trans_mean"] == pytest.approx(0.1, abs=1e-5)
+    assert "trans_mean" in capsys.readouterr().out
