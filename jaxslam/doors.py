@@ -299,7 +299,7 @@ def step(key: PRNGKeyArray, state: DoorState, inputs: ScanInputs, door_map: Door
     k_motion, k_resample = jax.random.split(key)
     poses = motion_model.sample(k_motion, state.poses, inputs.motion, params.motion)
     if config.memory:
-        predicted = binary_bayes.predict(state.door_open, params.p_open_open, params.p_open_closed)
+        predicted = state.door_open
     else:
         predicted = jnp.full_like(state.door_open, 0.5)
     lik = jax.vmap(lambda p: scan_door_likelihoods(door_map, p, inputs.ranges, sensor, params,

@@ -52,6 +52,13 @@ def test_empty_log():
     assert "empty" in msg
 
 
+@pytest.mark.xfail(strict=True, reason="BUG: a 2-D timestamps array is reported as 'the log is empty' "
+                   "(one check covers ndim != 1 and zero length)")
+def test_timestamps_wrong_shape_is_not_called_empty():
+    msg = error_of(timestamps=np.zeros((6, 1)))
+    assert "timestamps" in msg and "(6, 1)" in msg and "empty" not in msg
+
+
 def test_mismatched_ranges_shape():
     msg = error_of(ranges=np.ones((6, 4)))
     assert "ranges" in msg and "(6, 4)" in msg and "(6, 3)" in msg

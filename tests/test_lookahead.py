@@ -327,3 +327,39 @@ def test_lp_run_end_to_end_on_a_simulated_log():
     # The LP path follows the truth far better than the odometry's drift allows to fail.
     error = np.hypot(*(result.best_path[:, :2] - truth[:, :2]).T)
     assert error.max() < 0.15, error
+
+
+# ---------------------------------------------------------------------------------------------
+# Revisiting accuracy.
+
+
+def test_checkpoint_passages_finds_closest_approaches():
+    from jaxslam.revisiting import checkpoint_passages
+
+    t = np.linspace(0.0, 4 * np.pi, 400)
+    path = np.stack([2.0 * np.cos(t), 2.0 * np.sin(t), t], axis=-1)  # two laps round the origin
+    passages = checkpoint_passages(path, (2.0, 0.0), 0.2)
+    np.testing.assert_array_equal(passages, [0, 200, 399])
+    assert checkpoint_passages(path, (10.0, 0.0), 0.5).size == 0
+
+
+def test_revisiting_accuracy_weights_particle_errors():
+    from jaxslam.revisiting import particle_paths, revisiting_accuracy
+
+    truth_first, truth_last = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0])
+    paths = np.zeros((3, 5, 3))
+    paths[1, -1] = [0.3, 0.4, 0.0]  # 0.5 m off
+    paths[2, -1] = [0.0, 0.0, 0.2]  # 0.2 rad off
+    log_w = np.log([0.5, 0.25, 0.25])
+    ra = revisiting_accuracy(paths, log_w, 0, 4, truth_first, truth_last, rotation_weight=2.0)
+    np.testing.assert_allclose(ra, 0.25 * 0.5 + 0.25 * 2.0 * 0.2, rtol=1e-6)
+    # Only the relative pose counts: a common offset of a particle's whole path changes nothing.
+    moved = paths.copy()
+    moved[1] += [5.0, -3.0, 0.0]
+    np.testing.assert_allclose(revisiting_accuracy(moved, log_w, 0, 4, truth_first, truth_last, 2.0), ra, rtol=1e-6)
+    # Ancestry: particle 0 of the final set descends from proposed particle 1 at step 0.
+    proposed = np.arange(2 * 2 * 3, dtype=float).reshape(2, 2, 3)
+    ancestors = np.array([[1, 1], [0, 0]])
+    paths = particle_paths(proposed, ancestors, np.zeros(3))
+    np.testing.assert_array_equal(paths[0, 1], proposed[0, 1])
+    np.testing.assert_array_equal(paths[0, 2], proposed[1, 0])

@@ -114,20 +114,20 @@ U_MAX = np.float32(1.0) - np.float32(2.0**-23)  # the largest value jax.random.u
 _ROUNDING_BUG = "BUG: (U_MAX + M - 1) / M rounds to 1.0; the clamp to N - 1 draws a zero-weight particle"
 
 
-@pytest.mark.parametrize("name", [
-    pytest.param("systematic", marks=pytest.mark.xfail(strict=True, reason=_ROUNDING_BUG)),
-    pytest.param("stratified", marks=pytest.mark.xfail(strict=True, reason=_ROUNDING_BUG)),
-    "multinomial",
-    "residual",
-])
-def test_zero_weight_end_particles_with_largest_uniform(name, monkeypatch):
-    """Every uniform at its largest possible value 1 - 2^-23: a legal output of
-    jax.random.uniform, for which the last systematic/stratified point rounds to 1.0."""
+@pytest.mark.parametrize("name,value", [
+    pytest.param("systematic", U_MAX, marks=pytest.mark.xfail(strict=True, reason=_ROUNDING_BUG)),
+    pytest.param("stratified", U_MAX, marks=pytest.mark.xfail(strict=True, reason=_ROUNDING_BUG)),
+    ("multinomial", U_MAX),
+    ("residual", U_MAX),
+] + [(name, np.float32(0.0)) for name in NAMES])
+def test_zero_weight_end_particles_with_extreme_uniforms(name, value, monkeypatch):
+    """Every uniform at an extreme legal output of jax.random.uniform: 0, or 1 - 2^-23, for
+    which the last systematic/stratified point rounds to 1.0."""
 
-    def largest_uniform(key, shape=(), dtype=jnp.float32, *args, **kwargs):
-        return jnp.full(shape, U_MAX, dtype)
+    def extreme_uniform(key, shape=(), dtype=jnp.float32, *args, **kwargs):
+        return jnp.full(shape, value, dtype)
 
-    monkeypatch.setattr(jax.random, "uniform", largest_uniform)
+    monkeypatch.setattr(jax.random, "uniform", extreme_uniform)
     n = N_BIG
     fn = R.RESAMPLERS[name]
     # A fresh lambda: no jit cache from another test can serve a trace without the patch.

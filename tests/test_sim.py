@@ -151,9 +151,6 @@ def test_raycast_parallel_rays_miss():
     assert int(hit) == -1
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "raycast bug: its absolute threshold t > 1e-9 is below float32 resolution, so a ray "
-    "starting on a segment often 'hits' that segment at ~1e-7 m (see the sim report)"))
 def test_raycast_ray_starting_on_segment_ignores_it():
     rng = np.random.default_rng(3)
     segments = rng.uniform(-10, 10, (200, 4)).astype(np.float32)
@@ -165,9 +162,6 @@ def test_raycast_ray_starting_on_segment_ignores_it():
         assert int(hit) == -1, m
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "raycast bug: a ray along a segment's line (float32 direction not exactly parallel) "
-    "reports hits at arbitrary distances (see the sim report)"))
 def test_raycast_collinear_ray_misses_or_hits_near_end():
     rng = np.random.default_rng(4)
     segments = rng.uniform(-10, 10, (200, 4)).astype(np.float32)

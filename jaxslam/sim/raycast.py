@@ -39,11 +39,16 @@ def raycast(
     e = segments[:, 2:] - a  # (M, 2)
     ap = a - origins  # (..., M, 2)
     denom = d[..., 0] * e[:, 1] - d[..., 1] * e[:, 0]  # cross(d, e)
-    ok = jnp.abs(denom) > _EPS
+    e_len = jnp.hypot(e[:, 0], e[:, 1])
+    # Tolerances relative to the segment's length, above float32 resolution: a ray parallel to
+    # a segment (sin < 1e-6) never hits it, nor does a ray starting on a segment's line.
+    ok = jnp.abs(denom) > 1e-6 * e_len
+    cross_ap_e = ap[..., 0] * e[:, 1] - ap[..., 1] * e[:, 0]
+    on_line = jnp.abs(cross_ap_e) <= 1e-5 * e_len
     safe = jnp.where(ok, denom, 1.0)
-    t = (ap[..., 0] * e[:, 1] - ap[..., 1] * e[:, 0]) / safe  # distance along the ray
+    t = cross_ap_e / safe  # distance along the ray
     s = (ap[..., 0] * d[..., 1] - ap[..., 1] * d[..., 0]) / safe  # position on the segment
-    hit = ok & (t > _EPS) & (s >= 0.0) & (s <= 1.0)
+    hit = ok & ~on_line & (t > _EPS) & (s >= 0.0) & (s <= 1.0)
     if active is not None:
         hit = hit & active
     t = jnp.where(hit, t, jnp.inf)

@@ -98,7 +98,7 @@ def simulate_scans(
     range_noise_std: float,
     max_range: float | None = None,
     active: Bool[Array, "M"] | Bool[Array, "T M"] | None = None,
-) -> Float[Array, "T B"]:
+) -> np.ndarray:
     """Scans from every pose of a path, vmapped over batches of scans.
 
     Row ``i`` is ``simulate_scan(jax.random.fold_in(key, i), world, poses[i], ...)``, so a
@@ -125,12 +125,13 @@ def simulate_scans(
     active = np.concatenate([active, np.repeat(active[:1], pad, axis=0)])
     segments = jnp.asarray(world.segments)
     noise, reach = jnp.float32(range_noise_std), _max_range(sensor, max_range)
+    # Dispatch every batch before reading any back, so the host work overlaps the casting.
     batches = [
-        np.asarray(_batch_jit(key, indices[i:i + _SCAN_BATCH], segments, poses[i:i + _SCAN_BATCH], sensor,
-                              noise, reach, active[i:i + _SCAN_BATCH]))
+        _batch_jit(key, indices[i:i + _SCAN_BATCH], segments, poses[i:i + _SCAN_BATCH], sensor,
+                   noise, reach, active[i:i + _SCAN_BATCH])
         for i in range(0, num_scans + pad, _SCAN_BATCH)
     ]
-    return np.concatenate(batches)[:num_scans]
+    return np.concatenate([np.asarray(batch) for batch in batches])[:num_scans]
 
 
 @jax.jit

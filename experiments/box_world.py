@@ -1,0 +1,314 @@
+"""The low-structure box-world experiment of Grzonka et al. (Figs. 4 and 5).
+
+The robot starts at checkpoint X, circles box 2 fifteen times (passing over X after
+every fifth lap) and returns over X (:func:`jaxslam.sim.box_world_scenario`). For each
+proposal and SLAM particle count we run R independent simulated runs (seed r draws the
+odometry and range noise of run r and the filter's randomness) and score each by the
+revisiting accuracy RA between the first and the last passage over X
+(:mod:`jaxslam.revisiting`); a run with RA < 0.2 counts as a success.
+
+Proposals: OP, SMP, and the look-ahead LP with L = 100 localizers and k = 5 once as
+in the paper (alpha = 0, Eq. 10) and once with the defensive share ``--alpha``, plus
+LP with L = 50, k = 3 (defensive). Particle counts 20 and 50.
+
+Writes ``DIR/results.json`` after every run (resumable: finished cells are skipped,
+a half-finished cell resumes at its next run), ``DIR/fig5.png`` (mean +- std of RA
+and success rate against N, like the paper's Fig. 5), ``DIR/maps/*.npz`` and
+``DIR/examples.png`` (the best particle's map and path, first run of each cell, like
+Fig. 4), and ``DIR/ra_distribution.png``.
+
+    python experiments/box_world.py --runs 30 --out results/box_world [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from jaxslam import rbpf
+from jaxslam.config import SlamConfig, default_params, params_to_dict
+from jaxslam.grid import GridSpec
+from jaxslam.revisiting import checkpoint_passages, particle_paths, passage_errors, revisiting_accuracy
+from jaxslam.sim import box_world_scenario
+
+SUCCESS_RA = 0.2
+"""RA (m) under which a run counts as a success (the paper's threshold)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    label: str
+    proposal: str
+    num_localizers: int = 0
+    horizon: int = 0
+    alpha: float = 0.0
+
+
+def methods(alpha: float) -> list[Method]:
+    return [
+        Method("OP", "op"),
+        Method("SMP", "smp"),
+        Method("LP a=0 L=100 k=5", "lp", 100, 5, 0.0),
+        Method(f"LP a={alpha:g} L=100 k=5", "lp", 100, 5, alpha),
+        Method(f"LP a={alpha:g} L=50 k=3", "lp", 50, 3, alpha),
+    ]
+
+
+def cell_key(method: Method, n: int) -> str:
+    return f"{method.label} | N={n}"
+
+
+def filter_setup(method: Method, n: int, scenario, args):
+    """The filter's config and params for one cell. The motion model is the simulator's
+    (its noise per 0.1 m step applied to the composed motion between processed scans:
+    conservative, since the stds add linearly while the true errors add in quadrature)."""
+    # One fixed grid for every run (the world's bounds plus a margin for drifting
+    # estimates), so that the filter compiles once per cell, not once per run.
+    xmin, ymin, xmax, ymax = scenario.world.bounds
+    margin = 6.0
+    grid = GridSpec.from_bounds(xmin - margin, ymin - margin, xmax + margin, ymax + margin, 0.05)
+    config = SlamConfig(
+        num_particles=n, proposal=method.proposal, grid=grid,
+        max_insert_range=scenario.log.sensor.range_max.item() + 0.5, beam_stride=args.beam_stride,
+        linear_update=args.linear_update, angular_update=args.angular_update,
+        num_localizers=max(method.num_localizers, 1), horizon=method.horizon,
+    )
+    m = scenario.metadata["motion_params"]
+    overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}
+    overrides["lookahead.alpha"] = method.alpha
+    return config, default_params(**overrides)
+
+
+def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
+    scenario = box_world_scenario(jax.random.key(seed), **scenario_kwargs)
+    config, params = filter_setup(method, n, scenario, args)
+    t0 = time.perf_counter()
+    result = rbpf.run(jax.random.key(10_000 + seed), scenario.log, config, params, progress=args.progress)
+    seconds = time.perf_counter() - t0
+    truth = scenario.true_poses
+    passages = scenario.metadata.get("x_passages")
+    if passages is None or len(passages) < 2:
+        passages = checkpoint_passages(truth, scenario.metadata["checkpoint_x"], 0.3)
+    idx = result.selection.indices
+    # The processed scans nearest to the first and last passage; RA compares the relative
+    # pose between them with the true one at the same scans.
+    first = int(np.argmin(np.abs(idx - passages[0])))
+    last = int(np.argmin(np.abs(idx - passages[-1])))
+    paths = particle_paths(result.info.proposed_poses, result.info.ancestors, scenario.log.odometry[0])
+    log_w = np.asarray(result.state.log_weights)
+    ra = revisiting_accuracy(paths, log_w, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
+    errors = passage_errors(paths, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
+    best = int(np.argmax(log_w))
+    run = {
+        "seed": seed, "ra": ra, "best_particle_error": float(errors[best]), "seconds": seconds,
+        "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
+        "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
+        "min_ess": float(result.info.ess.min()),
+    }
+    return run, result, scenario
+
+
+def save_example(path: Path, result, scenario, ra: float):
+    best = int(np.argmax(np.asarray(result.state.log_weights)))
+    spec = result.config.grid
+    np.savez_compressed(
+        path, logodds=np.asarray(result.state.maps.logodds[best]), best_path=result.best_path,
+        truth=scenario.true_poses[result.selection.indices], odometry=scenario.log.odometry[result.selection.indices],
+        segments=scenario.world.segments, extent=np.asarray(spec.extent), ra=ra,
+    )
+
+
+def load_results(path: Path) -> dict:
+    if path.exists():
+        return json.loads(path.read_text())
+    return {"cells": {}}
+
+
+def write_json(path: Path, data: dict):
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    tmp.replace(path)  # atomic: an interrupted write never leaves a broken results.json
+
+
+def summarize_cell(runs: list[dict]) -> dict:
+    ra = np.array([r["ra"] for r in runs])
+    return {"mean": float(ra.mean()), "std": float(ra.std(ddof=1)) if ra.size > 1 else 0.0,
+            "median": float(np.median(ra)), "success_rate": float(np.mean(ra < SUCCESS_RA)),
+            "num_runs": int(ra.size)}
+
+
+def make_figures(out: Path, data: dict):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = data["cells"]
+    labels = sorted({c["method"] for c in cells.values()}, key=lambda s: list(data["method_order"]).index(s))
+    fig, (ax_ra, ax_sr) = plt.subplots(1, 2, figsize=(11, 4))
+    for i, label in enumerate(labels):
+        rows = sorted((c for c in cells.values() if c["method"] == label and c["runs"]), key=lambda c: c["N"])
+        if not rows:
+            continue
+        ns = np.array([c["N"] for c in rows]) * (1 + 0.03 * (i - len(labels) / 2))  # dodge the error bars
+        stats = [summarize_cell(c["runs"]) for c in rows]
+        ax_ra.errorbar(ns, [s["mean"] for s in stats], yerr=[s["std"] for s in stats], marker="o", capsize=3,
+                       label=label)
+        ax_sr.plot([c["N"] for c in rows], [s["success_rate"] for s in stats], marker="o", label=label)
+    ax_ra.set_xlabel("SLAM particles N")
+    ax_ra.set_ylabel("revisiting accuracy RA (mean +- std)")
+    ax_ra.axhline(SUCCESS_RA, color="k", lw=0.5, ls=":")
+    ax_sr.set_xlabel("SLAM particles N")
+    ax_sr.set_ylabel(f"success rate (RA < {SUCCESS_RA})")
+    ax_sr.set_ylim(-0.05, 1.05)
+    ax_sr.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "fig5.png", dpi=120)
+    plt.close(fig)
+
+    # RA distribution of every cell.
+    keys = [k for k in cells if cells[k]["runs"]]
+    if keys:
+        fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(keys)), 4))
+        ax.boxplot([[r["ra"] for r in cells[k]["runs"]] for k in keys], showfliers=True)
+        for j, k in enumerate(keys):
+            ra = [r["ra"] for r in cells[k]["runs"]]
+            ax.scatter(np.full(len(ra), j + 1) + np.random.default_rng(j).uniform(-0.15, 0.15, len(ra)), ra, s=6)
+        ax.set_xticks(range(1, len(keys) + 1), [k.replace(" | ", "\n") for k in keys], fontsize=7)
+        ax.set_yscale("log")
+        ax.axhline(SUCCESS_RA, color="k", lw=0.5, ls=":")
+        ax.set_ylabel("RA per run")
+        fig.tight_layout()
+        fig.savefig(out / "ra_distribution.png", dpi=120)
+        plt.close(fig)
+
+    # Example maps (first run of each method at the largest N available), like Fig. 4.
+    examples = []
+    for label in labels:
+        rows = sorted((c for c in cells.values() if c["method"] == label and c.get("example")), key=lambda c: -c["N"])
+        if rows:
+            examples.append((label, rows[0]))
+    if examples:
+        fig, axes = plt.subplots(1, len(examples), figsize=(4.2 * len(examples), 3.4), squeeze=False)
+        for ax, (label, cell) in zip(axes[0], examples):
+            ex = np.load(out / cell["example"])
+            prob = 1.0 / (1.0 + np.exp(-ex["logodds"]))
+            ax.imshow(prob, origin="lower", extent=tuple(ex["extent"]), cmap="gray_r", vmin=0, vmax=1)
+            ax.plot(ex["truth"][:, 0], ex["truth"][:, 1], color="tab:green", lw=0.6, label="truth")
+            ax.plot(ex["best_path"][:, 0], ex["best_path"][:, 1], color="tab:red", lw=0.6, label="best particle")
+            ax.set_title(f"{label}, N={cell['N']}\nRA = {float(ex['ra']):.3f}", fontsize=8)
+            ax.set_aspect("equal")
+        axes[0][0].legend(fontsize=7, loc="lower left")
+        fig.tight_layout()
+        fig.savefig(out / "examples.png", dpi=120)
+        plt.close(fig)
+
+
+def print_table(data: dict):
+    print(f"{'method':24s} {'N':>3s} {'runs':>4s} {'RA mean':>8s} {'RA std':>8s} {'median':>8s} {'success':>8s}")
+    for key, cell in data["cells"].items():
+        if not cell["runs"]:
+            continue
+        s = summarize_cell(cell["runs"])
+        print(f"{cell['method']:24s} {cell['N']:3d} {s['num_runs']:4d} {s['mean']:8.3f} {s['std']:8.3f} "
+              f"{s['median']:8.3f} {s['success_rate']:8.2f}{'' if cell.get('complete') else '  (partial)'}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", type=int, default=30, help="independent runs per (proposal, N) cell")
+    ap.add_argument("--out", default="results/box_world")
+    ap.add_argument("--quick", action="store_true", help="3 laps, N in (4, 8), L = 20: a smoke test in minutes")
+    ap.add_argument("--particles", type=int, nargs="+", default=None, help="SLAM particle counts (default 20 50)")
+    ap.add_argument("--alpha", type=float, default=0.1, help="defensive share of the defensive LP")
+    ap.add_argument("--only", nargs="*", default=None, help="run only methods whose label contains one of these")
+    ap.add_argument("--rotation-weight", type=float, default=1.0, help="lambda of RA (m/rad)")
+    ap.add_argument("--beam-stride", type=int, default=2, help="use every k-th of the 180 beams in likelihoods")
+    ap.add_argument("--linear-update", type=float, default=1.0, help="process a scan after this travel (m)")
+    ap.add_argument("--angular-update", type=float, default=0.5, help="... or this rotation (rad)")
+    ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
+    args = ap.parse_args(argv)
+
+    out = Path(args.out)
+    (out / "maps").mkdir(parents=True, exist_ok=True)
+    scenario_kwargs = {}
+    particle_counts = args.particles or [20, 50]
+    method_list = methods(args.alpha)
+    if args.quick:
+        scenario_kwargs = dict(laps=3, laps_per_visit=3)
+        particle_counts = args.particles or [4, 8]
+        method_list = [dataclasses.replace(m, num_localizers=min(m.num_localizers, 20),
+                                           horizon=min(m.horizon, 3)) for m in method_list]
+    if args.only:
+        method_list = [m for m in method_list if any(s in m.label for s in args.only)]
+
+    path = out / "results.json"
+    data = load_results(path)
+    data["settings"] = {"runs": args.runs, "quick": args.quick, "scenario": scenario_kwargs,
+                        "alpha": args.alpha, "rotation_weight": args.rotation_weight,
+                        "beam_stride": args.beam_stride, "linear_update": args.linear_update,
+                        "angular_update": args.angular_update, "success_ra": SUCCESS_RA}
+    data["method_order"] = [m.label for m in methods(args.alpha)]
+    if args.quick:
+        data["method_order"] = [m.label for m in method_list]
+
+    from tqdm.auto import tqdm
+
+    cells = [(m, n) for n in particle_counts for m in method_list]
+    for method, n in cells:
+        key = cell_key(method, n)
+        cell = data["cells"].setdefault(key, {"method": method.label, "N": n, "runs": []})
+        cell.update({"proposal": method.proposal, "num_localizers": method.num_localizers,
+                     "horizon": method.horizon, "alpha": method.alpha})
+        if len(cell["runs"]) >= args.runs:
+            cell["complete"] = True
+            continue
+        done = {r["seed"] for r in cell["runs"]}
+        bar = tqdm(range(args.runs), desc=key, unit="run", file=sys.stdout)
+        bar.update(len(done))
+        for seed in range(args.runs):
+            if seed in done:
+                continue
+            run, result, scenario = run_once(method, n, seed, args, scenario_kwargs)
+            cell["runs"].append(run)
+            if "params" not in cell:
+                cell["params"] = params_to_dict(result_params(method, n, scenario, args))
+            if seed == 0 or "example" not in cell:
+                name = f"maps/{method.label.replace(' ', '_').replace('=', '')}_N{n}_seed{seed}.npz"
+                save_example(out / name, result, scenario, run["ra"])
+                cell["example"] = name
+            worst = max(cell["runs"], key=lambda r: r["ra"])
+            if worst["seed"] == seed and run["ra"] >= SUCCESS_RA:
+                name = f"maps/{method.label.replace(' ', '_').replace('=', '')}_N{n}_worst.npz"
+                save_example(out / name, result, scenario, run["ra"])
+                cell["worst_example"] = name
+            cell["summary"] = summarize_cell(cell["runs"])
+            cell["complete"] = len(cell["runs"]) >= args.runs
+            write_json(path, data)
+            bar.set_postfix(ra=f"{run['ra']:.3f}", s=f"{run['seconds']:.0f}")
+            bar.update(1)
+        bar.close()
+        cell["summary"] = summarize_cell(cell["runs"])
+        cell["complete"] = True
+        write_json(path, data)
+        make_figures(out, data)
+    write_json(path, data)
+    make_figures(out, data)
+    print_table(data)
+    print(f"wrote {path}")
+
+
+def result_params(method, n, scenario, args):
+    return filter_setup(method, n, scenario, args)[1]
+
+
+if __name__ == "__main__":
+    main()
