@@ -59,8 +59,10 @@ def stationary(p_stay, p_enter):
 def predict_n(p, p_stay, p_enter, steps):
     """``steps`` transition steps in closed form: the distance to the stationary value shrinks
     by (p_stay - p_enter) per step."""
-    s = stationary(p_stay, p_enter)
-    return s + (p - s) * (p_stay - p_enter) ** steps
+    lam = p_stay - p_enter
+    static = lam >= 1.0  # p_stay = 1, p_enter = 0: the state never changes (no stationary mix)
+    s = jnp.where(static, p, p_enter / jnp.where(static, 1.0, 1.0 - lam))
+    return s + (p - s) * lam**steps
 
 
 def update(p_prior, log_lik_true, log_lik_false):

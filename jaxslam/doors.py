@@ -299,7 +299,7 @@ def step(key: PRNGKeyArray, state: DoorState, inputs: ScanInputs, door_map: Door
     k_motion, k_resample = jax.random.split(key)
     poses = motion_model.sample(k_motion, state.poses, inputs.motion, params.motion)
     if config.memory:
-        predicted = state.door_open
+        predicted = binary_bayes.predict(state.door_open, params.p_open_open, params.p_open_closed)
     else:
         predicted = jnp.full_like(state.door_open, 0.5)
     lik = jax.vmap(lambda p: scan_door_likelihoods(door_map, p, inputs.ranges, sensor, params,
@@ -421,3 +421,26 @@ def door_state_accuracy(final_belief: np.ndarray, true_open: np.ndarray, observe
     right = np.where(true_open, final_belief > open_threshold, final_belief < closed_threshold)
     n = observed.sum()
     return float(right[observed].sum() / n) if n else float("nan")
+
+
+class DoorHistory(NamedTuple):
+    """Per-step particle sets of one run (for figures): after each step's resampling."""
+
+    poses: Float[Array, "T N 3"]
+    door_open: Float[Array, "T N K"]
+    log_weights: Float[Array, "T N"]
+
+
+def _run_history(key, state, inputs, door_map, sensor, params, config):
+    keys = jax.random.split(key, inputs.motion.shape[0])
+
+    def body(carry, xs):
+        k, inp = xs
+        new, info = step(k, carry, inp, door_map, sensor, params, config)
+        return new, (info, DoorHistory(new.poses, new.door_open, new.log_weights))
+
+    return jax.lax.scan(body, state, (keys, inputs))
+
+
+run_history = jax.jit(_run_history, static_argnames=("config",))
+"""As :func:`run`, returning ``(final, (infos, DoorHistory))``: every step's particles (T N (K+4) floats)."""

@@ -27,7 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
-from jaxslam import binary_bayes
 from jaxslam.geometry import compose
 
 if TYPE_CHECKING:
@@ -138,7 +137,7 @@ def _field_kernel(radius: int) -> tuple[np.ndarray, np.ndarray]:
     dr, dc = np.meshgrid(r, r, indexing="ij")
     d2 = dr**2 + dc**2
     keep = d2 <= radius**2
-    return np.stack([dr[keep], dc[keep]], axis=-1).astype(np.int32), d2[keep].astype(np.uint8)
+    return np.stack([dr[keep], dc[keep]], axis=-1).astype(np.int32), np.minimum(d2[keep], FAR).astype(np.uint8)
 
 
 def insert_scan(
@@ -176,33 +175,39 @@ def insert_scan(
 
     dist = jnp.arange(num_samples, dtype=jnp.float32) * res  # (S,)
     points = origin[:2] + dist[None, :, None] * direction[:, None, :]  # (B, S, 2)
-    cells = world_to_cell(spec, points)  # (B, S, 2)
-    end_points = origin[:2] + ranges[:, None] * direction
-    end_cells = world_to_cell(spec, end_points)  # (B, 2)
-
+    end_points = origin[:2] + ranges[:, None] * direction  # (B, 2)
+    # Cell coordinates as unclipped floats for the duplicate and endpoint tests (world_to_cell
+    # clips far-away points, which would merge distinct cells outside the map).
+    corner = jnp.asarray(spec.origin, jnp.float32)
+    sample_cells = jnp.floor((points - corner) / res)
+    end_cells_f = jnp.floor((end_points - corner) / res)
     same_as_prev = jnp.concatenate(
-        [jnp.zeros((cells.shape[0], 1), bool), jnp.all(cells[:, 1:] == cells[:, :-1], axis=-1)], axis=1
-    )
-    is_end = jnp.all(cells == end_cells[:, None, :], axis=-1) & returned[:, None]
+        [jnp.zeros((sample_cells.shape[0], 1), bool),
+         jnp.all(sample_cells[:, 1:] == sample_cells[:, :-1], axis=-1)], axis=1)
+    is_end = jnp.all(sample_cells == end_cells_f[:, None, :], axis=-1) & returned[:, None]
     free = (dist[None, :] < free_len[:, None]) & ~same_as_prev & ~is_end  # (B, S)
 
-    free_idx = flat_index(spec, cells)
-    end_idx = flat_index(spec, end_cells)
-    outside = jnp.sum(free & (free_idx == spec.num_cells)) + jnp.sum(returned & (end_idx == spec.num_cells))
+    free_cell_idx = flat_index(spec, world_to_cell(spec, points))
+    end_cell_idx = flat_index(spec, world_to_cell(spec, end_points))
+    outside = (jnp.sum(free & (free_cell_idx == spec.num_cells))
+               + jnp.sum(returned & (end_cell_idx == spec.num_cells)))
+    # Samples that update nothing get the out-of-map index, so the scatters skip them
+    # without touching memory (most of a short beam's samples lie past its end).
+    free_idx = jnp.where(free, free_cell_idx, spec.num_cells).reshape(-1)
+    end_idx = jnp.where(returned, end_cell_idx, spec.num_cells)
 
-    # Scatter straight into the flat map (out-of-map samples carry index num_cells and are
-    # dropped), then clamp only the touched cells: the cost is O(beams x samples), not O(H x W).
+    # The static-state binary Bayes update in log-odds (an addition, see binary_bayes), then
+    # the clamp as scatter-max / scatter-min on the touched cells: free cells only decrease
+    # and endpoint cells only increase, so each needs one bound. All in place, O(B x S).
     flat = grid_map.logodds.reshape(-1)
-    flat = flat.at[free_idx.reshape(-1)].add(
-        jnp.where(free, params.logodds_free, 0.0).reshape(-1), mode="drop")
-    flat = flat.at[end_idx].add(jnp.where(returned, params.logodds_occupied, 0.0), mode="drop")
-    touched = jnp.concatenate([free_idx.reshape(-1), end_idx])
-    clamped = binary_bayes.clamp_logodds(
-        flat.at[touched].get(mode="fill", fill_value=0.0), params.logodds_min, params.logodds_max)
-    logodds = flat.at[touched].set(clamped, mode="drop").reshape(spec.shape)
+    flat = flat.at[free_idx].add(params.logodds_free, mode="drop")
+    flat = flat.at[free_idx].max(params.logodds_min, mode="drop")
+    flat = flat.at[end_idx].add(params.logodds_occupied, mode="drop")
+    flat = flat.at[end_idx].min(params.logodds_max, mode="drop")
+    logodds = flat.reshape(spec.shape)
 
     offsets, d2 = _field_kernel(field_radius)
-    splat_cells = end_cells[:, None, :] + jnp.asarray(offsets)[None]  # (B, K, 2)
+    splat_cells = world_to_cell(spec, end_points)[:, None, :] + jnp.asarray(offsets)[None]  # (B, K, 2)
     splat_idx = jnp.where(returned[:, None], flat_index(spec, splat_cells), spec.num_cells)
     hit_dist2 = grid_map.hit_dist2.reshape(-1).at[splat_idx.reshape(-1)].min(
         jnp.broadcast_to(jnp.asarray(d2), splat_idx.shape).reshape(-1), mode="drop"

@@ -46,7 +46,9 @@ class LaserLog:
         object.__setattr__(self, "odometry", odom)
         object.__setattr__(self, "ranges", ranges)
         src = self.source
-        if ts.ndim != 1 or ts.shape[0] == 0:
+        if ts.ndim != 1:
+            raise LogError(f"{src}: timestamps have shape {ts.shape}, expected (T,) (one per scan)")
+        if ts.shape[0] == 0:
             raise LogError(f"{src}: the log is empty (no scans)")
         num_scans = ts.shape[0]
         num_beams = int(np.shape(self.sensor.beam_angles)[0])

@@ -40,6 +40,9 @@ def _cdf(log_weights: Float[Array, "N"]) -> Float[Array, "N"]:
 
 
 def _inverse_cdf(cdf: Float[Array, "N"], u: Float[Array, "M"]) -> Int[Array, "M"]:
+    # (u + M - 1) / M can round to exactly 1.0 in float32; keep u below 1 so that the
+    # clamp below never lands on a zero-weight last particle.
+    u = jnp.minimum(u, jnp.nextafter(jnp.float32(1.0), jnp.float32(0.0)))
     idx = jnp.searchsorted(cdf, u, side="right")
     return jnp.minimum(idx, cdf.shape[0] - 1).astype(jnp.int32)
 

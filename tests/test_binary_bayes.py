@@ -104,8 +104,6 @@ def test_predict_converges_to_stationary(p_stay, p_enter):
         assert abs(loop - s64) == pytest.approx(abs(p0 - s64) * abs(p_stay - p_enter) ** 200, abs=1e-9)
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: predict_n divides by 1 - p_stay + p_enter = 0 for the "
-                   "static model (p_stay = 1, p_enter = 0) and returns NaN instead of p")
 def test_predict_n_static_model_keeps_the_probability():
     p = jnp.array([0.0, 0.3, 1.0])
     np.testing.assert_allclose(np.asarray(BB.predict(p, 1.0, 0.0)), np.asarray(p))

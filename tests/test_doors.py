@@ -162,7 +162,7 @@ def test_beam_to_door_attribution_on_hand_made_geometry():
     door_segments = np.array([[5, -0.5, 5, 0.5], [8, -1, 8, 1], [6, 3, 9, 3]], np.float32)
     door_map = doors.make_door_map(walls, door_segments)
     angles = jnp.array([0.0, np.arctan2(3.0, 5.0), np.arctan2(0.4, 5.0), np.pi, np.arctan2(0.9, 8.0)])
-    att = doors.attribute_beams(door_map, jnp.zeros(2), angles, jnp.float32(20.0))
+    att = jax.jit(doors.attribute_beams)(door_map, jnp.zeros(2), angles, jnp.float32(20.0))
     np.testing.assert_array_equal(np.asarray(att.door), [0, -1, 0, -1, -1])
     # Beam 0: door 0 at 5 m; with door 0 open it meets door 1 (closed) at 8 m, not the wall at 10 m.
     np.testing.assert_allclose(np.asarray(att.range_closed[0]), 5.0, atol=1e-5)
@@ -178,7 +178,7 @@ def test_beam_to_door_attribution_on_hand_made_geometry():
     sensor = make_sensor(angles, 0.0, 20.0)
     params = doors.make_params(door_map, likelihood_gain=1.0)
     z = jnp.array([5.0, 5.8, 5.0, 20.0, 5.0])
-    lik = doors.scan_door_likelihoods(door_map, jnp.zeros(3), z, sensor, params)
+    lik = jax.jit(doors.scan_door_likelihoods)(door_map, jnp.zeros(3), z, sensor, params)
     np.testing.assert_array_equal(np.asarray(lik.num_beams), [2, 0, 0])
     per_beam_closed = beam_model_log_likelihood(att.range_closed, z, 20.0, params.beam)
     np.testing.assert_allclose(float(lik.log_closed[0]), float(per_beam_closed[0] + per_beam_closed[2]), rtol=1e-5)
@@ -202,31 +202,6 @@ def test_door_step_compiles_once():
         dmap = door_map._replace(initial_open=door_map.initial_open * 0.5)
         state, _ = stepper(jax.random.key(t), state, mcl.ScanInputs(inputs.motion[t], inputs.ranges[t]), dmap, params)
     chex.clear_trace_counter()
-
-
-def test_run_equals_stepping():
-    door_map, sensor, inputs, state = _small_run_setup(32)
-    config = doors.DoorConfig(32)
-    params = doors.make_params(door_map)
-    key = jax.random.key(5)
-    final, info = doors.run(key, state, inputs, door_map, sensor, params, config)
-    s = state
-    for t, k in enumerate(jax.random.split(key, inputs.motion.shape[0])):
-        s, i = doors.step_jit(k, s, mcl.ScanInputs(inputs.motion[t], inputs.ranges[t]), door_map, sensor, params,
-                              config)
-    chex.assert_trees_all_close(final, s, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(info.door_belief[-1]), np.asarray(i.door_belief), atol=1e-5)
-
-
-@pytest.mark.parametrize("kind", doors.FILTERS)
-def test_run_filter_shapes_and_finiteness(kind):
-    door_map, sensor, inputs, _ = _small_run_setup(16)
-    truth = jnp.zeros((inputs.motion.shape[0], 3))
-    out = doors.run_filter(jax.random.key(0), inputs, truth, jnp.array([[1.5, 1.5, 2.5, 2.5]]), door_map, sensor,
-                           doors.make_params(door_map), doors.DoorConfig(16), kind, (-0.6, -0.4))
-    t = inputs.motion.shape[0]
-    assert out.position_error.shape == (t,) and out.door_belief.shape == (t, 3)
-    assert np.all(np.isfinite(np.asarray(out.position_error)))
 
 
 def test_door_state_accuracy():

@@ -264,8 +264,6 @@ def test_scan_entirely_outside_leaves_logodds_unchanged_and_counts_samples(x):
         np.testing.assert_array_equal(np.asarray(new.hit_dist2), np.asarray(m.hit_dist2))
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: world_to_cell clips far-away cells to one value, so "
-                   "insert_scan's duplicate/endpoint tests merge all far samples and undercount `outside`")
 def test_scan_far_outside_counts_every_sample():
     m = prior_map()
     pose = np.array([100.0, 100.0, 0.1], np.float32)
@@ -283,8 +281,6 @@ def test_returned_endpoint_just_outside_registers_field_inside():
     assert (np.asarray(new.hit_dist2)[:, -1] == 1).any()
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: _field_kernel casts squared offsets to uint8, so 16**2 = 256 "
-                   "wraps to 0: cells 16 cells from an endpoint read as hits")
 def test_field_radius_larger_than_uint8_squares():
     """field_radius = 16 has squared offsets up to 256, which does not fit a uint8: the field
     must never claim an endpoint closer than it is (cells at distance 16 must read FAR, not 0)."""

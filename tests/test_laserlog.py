@@ -52,8 +52,6 @@ def test_empty_log():
     assert "empty" in msg
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: a 2-D timestamps array is reported as 'the log is empty' "
-                   "(one check covers ndim != 1 and zero length)")
 def test_timestamps_wrong_shape_is_not_called_empty():
     msg = error_of(timestamps=np.zeros((6, 1)))
     assert "timestamps" in msg and "(6, 1)" in msg and "empty" not in msg

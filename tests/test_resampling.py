@@ -93,8 +93,6 @@ def test_zero_weight_never_drawn_with_many_tiny_weights(name):
     assert idx.max() < n
 
 
-@pytest.mark.xfail(strict=True, reason="BUG: (u0 + M - 1) / M rounds to 1.0 in float32; "
-                   "the clamp to N - 1 then draws a zero-weight last particle")
 def test_systematic_never_draws_zero_weight_last_particle_for_real_keys():
     """Systematic points are (u0 + j) / M with u0 uniform in [0, 1). For u0 close to 1 the
     last point rounds to exactly 1.0 in float32 (about 1 key in 10,000 at M = 1000); no
@@ -111,12 +109,11 @@ def test_systematic_never_draws_zero_weight_last_particle_for_real_keys():
 
 
 U_MAX = np.float32(1.0) - np.float32(2.0**-23)  # the largest value jax.random.uniform returns
-_ROUNDING_BUG = "BUG: (U_MAX + M - 1) / M rounds to 1.0; the clamp to N - 1 draws a zero-weight particle"
 
 
 @pytest.mark.parametrize("name,value", [
-    pytest.param("systematic", U_MAX, marks=pytest.mark.xfail(strict=True, reason=_ROUNDING_BUG)),
-    pytest.param("stratified", U_MAX, marks=pytest.mark.xfail(strict=True, reason=_ROUNDING_BUG)),
+    ("systematic", U_MAX),
+    ("stratified", U_MAX),
     ("multinomial", U_MAX),
     ("residual", U_MAX),
 ] + [(name, np.float32(0.0)) for name in NAMES])

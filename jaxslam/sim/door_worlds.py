@@ -31,7 +31,7 @@
 (b) :func:`office_doors_scenario`, the office pass of Fig. 1: a corridor with
    six doors (three per side, each into a room). The robot drives out with every
    door closed; at the far end, while it turns, four doors open; it drives back.
-   The filter starts tracked (Gaussian around the true start).
+   The filter starts tracked (uniform within 0.3 m and 0.15 rad of the true start).
 
 Both return a :class:`DoorScenario`: the true world (and door states per step),
 the :class:`~jaxslam.doors.DoorMap` given to the filter, the true path and a
@@ -216,9 +216,10 @@ def office_doors_scenario(key, step_length: float = 0.2, num_beams: int = 61, ra
     true_open = np.zeros((poses.shape[0], 6), bool)
     true_open[turn_end - 8:, [0, 1, 3, 4]] = True  # opened during the turn
     door_map = make_door_map(walls, doors, 0.5, p_open_open, p_open_closed)
-    regions = [(0.5, 0.3, length - 0.5, 1.7)]
+    x0, y0 = poses[0, :2]
+    regions = [(x0 - 0.3, y0 - 0.3, x0 + 0.3, y0 + 0.3)]  # tracked: the start is known to +-0.3 m, +-0.15 rad
     return _build(key, "office", walls, doors, true_open, poses, door_sensor(num_beams), door_map, regions,
-                  (-np.pi, np.pi), (0.1, 0.1, 0.05), tuple(f"D{i}" for i in range(1, 7)), range_noise_std)
+                  (-0.15, 0.15), (0.1, 0.1, 0.05), tuple(f"D{i}" for i in range(1, 7)), range_noise_std)
 
 
 SCENARIOS = {"corridors": corridors_scenario, "office": office_doors_scenario}
