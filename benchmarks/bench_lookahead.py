@@ -229,7 +229,7 @@ def main(argv=None):
         "op_step": {"seconds": op_step["median"], "min_seconds": op_step["min"]},
         "step_rate_over_plain": main_row["step_beam_evals_per_s"] / plain_rate,
         "proposal_rate_over_plain": main_row["proposal_beam_evals_per_s"] / plain_rate,
-        "proposal_best_rate_over_plain_best": main_row["proposal_min_s"] and plain["min"] / main_row["proposal_min_s"],
+        "proposal_best_rate_over_plain_best": plain["min"] / main_row["proposal_min_s"],
         "target_beam_evals_per_s": 4e7,
         "scaling": scaling,
     }

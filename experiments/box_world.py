@@ -152,7 +152,8 @@ def make_figures(out: Path, data: dict):
     import matplotlib.pyplot as plt
 
     cells = data["cells"]
-    labels = sorted({c["method"] for c in cells.values()}, key=lambda s: list(data["method_order"]).index(s))
+    order = list(data.get("method_order", []))
+    labels = sorted({c["method"] for c in cells.values()}, key=lambda s: (order.index(s) if s in order else len(order), s))
     fig, (ax_ra, ax_sr) = plt.subplots(1, 2, figsize=(11, 4))
     for i, label in enumerate(labels):
         rows = sorted((c for c in cells.values() if c["method"] == label and c["runs"]), key=lambda c: c["N"])
@@ -256,9 +257,8 @@ def main(argv=None):
                         "alpha": args.alpha, "rotation_weight": args.rotation_weight,
                         "beam_stride": args.beam_stride, "linear_update": args.linear_update,
                         "angular_update": args.angular_update, "success_ra": SUCCESS_RA}
-    data["method_order"] = [m.label for m in methods(args.alpha)]
-    if args.quick:
-        data["method_order"] = [m.label for m in method_list]
+    known = list(data.get("method_order", []))
+    data["method_order"] = known + [m.label for m in methods(args.alpha) if m.label not in known]
 
     from tqdm.auto import tqdm
 

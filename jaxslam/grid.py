@@ -2,8 +2,11 @@
 
 A map is a pair of (H, W) arrays per particle (stacked (N, H, W) in a filter):
 
-* ``logodds`` float32: the occupancy log-odds of each cell (0 = unknown), updated
-  with the binary Bayes filter of :mod:`jaxslam.binary_bayes`;
+* ``logodds`` float16 (:data:`LOGODDS_DTYPE`): the occupancy log-odds of each cell
+  (0 = unknown), updated with the binary Bayes filter of :mod:`jaxslam.binary_bayes`.
+  Half precision (resolution 0.002 at the default clamp of 4) because maps are copied
+  at every resampling and the copies are memory-bound; the filter's weights never read
+  it (they read ``hit_dist2``), it is the map a user looks at;
 * ``hit_dist2`` uint8: the squared distance, in cells, from each cell to the
   nearest cell that has registered a laser endpoint, truncated at the field
   radius (:data:`FAR` beyond it). It is the likelihood field of the endpoint
@@ -31,6 +34,9 @@ from jaxslam.geometry import compose
 
 if TYPE_CHECKING:
     from jaxslam.sensor import SensorSpec
+
+LOGODDS_DTYPE = jnp.float16
+"""Storage type of the per-particle log-odds maps (see the module docstring)."""
 
 FAR = 255
 """Value of ``hit_dist2`` for a cell with no endpoint within the field radius."""
@@ -106,14 +112,14 @@ class GridMap(NamedTuple):
     """One occupancy grid map (or a stack of them along leading axes)."""
 
     logodds: Float[Array, "... H W"]
-    """Occupancy log-odds per cell (0 = unknown, > 0 occupied)."""
+    """Occupancy log-odds per cell (0 = unknown, > 0 occupied), float16."""
     hit_dist2: UInt8[Array, "... H W"]
     """Squared distance in cells to the nearest registered endpoint, ``FAR`` beyond the field radius."""
 
 
 def empty_map(spec: GridSpec) -> GridMap:
     """An all-unknown map with no registered endpoints."""
-    return GridMap(jnp.zeros(spec.shape, jnp.float32), jnp.full(spec.shape, FAR, jnp.uint8))
+    return GridMap(jnp.zeros(spec.shape, LOGODDS_DTYPE), jnp.full(spec.shape, FAR, jnp.uint8))
 
 
 class InsertionParams(NamedTuple):
@@ -199,11 +205,12 @@ def insert_scan(
     # The static-state binary Bayes update in log-odds (an addition, see binary_bayes), then
     # the clamp as scatter-max / scatter-min on the touched cells: free cells only decrease
     # and endpoint cells only increase, so each needs one bound. All in place, O(B x S).
+    dtype = grid_map.logodds.dtype
     flat = grid_map.logodds.reshape(-1)
-    flat = flat.at[free_idx].add(params.logodds_free, mode="drop")
-    flat = flat.at[free_idx].max(params.logodds_min, mode="drop")
-    flat = flat.at[end_idx].add(params.logodds_occupied, mode="drop")
-    flat = flat.at[end_idx].min(params.logodds_max, mode="drop")
+    flat = flat.at[free_idx].add(params.logodds_free.astype(dtype), mode="drop")
+    flat = flat.at[free_idx].max(params.logodds_min.astype(dtype), mode="drop")
+    flat = flat.at[end_idx].add(params.logodds_occupied.astype(dtype), mode="drop")
+    flat = flat.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
     logodds = flat.reshape(spec.shape)
 
     offsets, d2 = _field_kernel(field_radius)

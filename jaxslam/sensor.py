@@ -17,10 +17,13 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+from jax.scipy.special import ndtr as _ndtr
 from jaxtyping import Array, Bool, Float, UInt8
 
 from jaxslam.geometry import compose
 from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
+
+_LOG_2PI = 1.8378770664093453
 
 
 class SensorSpec(NamedTuple):
@@ -128,7 +131,6 @@ def match_score(
     return jnp.sum(jnp.where(valid, fit, 0.0)) / jnp.maximum(n, 1)
 
 
-from jax.scipy.special import ndtr as _ndtr  # noqa: E402  (appended section: the beam model)
 
 
 class BeamModelParams(NamedTuple):
@@ -216,4 +218,3 @@ def beam_model_log_likelihood(
     return jnp.where(r >= range_max, log_w_max + jnp.zeros_like(log_return), log_return)
 
 
-_LOG_2PI = 1.8378770664093453
