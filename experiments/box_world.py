@@ -83,6 +83,8 @@ def filter_setup(method: Method, n: int, scenario, args):
     )
     m = scenario.metadata["motion_params"]
     overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}
+    for name in ("srr", "srt", "str", "stt"):  # the proportional terms; the floors stay
+        overrides[f"motion.{name}"] *= args.motion_scale
     overrides["lookahead.alpha"] = method.alpha
     return config, default_params(**overrides)
 
@@ -235,6 +237,8 @@ def main(argv=None):
     ap.add_argument("--beam-stride", type=int, default=2, help="use every k-th of the 180 beams in likelihoods")
     ap.add_argument("--linear-update", type=float, default=1.0, help="process a scan after this travel (m)")
     ap.add_argument("--angular-update", type=float, default=0.5, help="... or this rotation (rad)")
+    ap.add_argument("--motion-scale", type=float, default=1.0,
+                    help="scale the filter's proportional odometry-noise coefficients (1: the simulator's)")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
     args = ap.parse_args(argv)
 
@@ -256,7 +260,8 @@ def main(argv=None):
     data["settings"] = {"runs": args.runs, "quick": args.quick, "scenario": scenario_kwargs,
                         "alpha": args.alpha, "rotation_weight": args.rotation_weight,
                         "beam_stride": args.beam_stride, "linear_update": args.linear_update,
-                        "angular_update": args.angular_update, "success_ra": SUCCESS_RA}
+                        "angular_update": args.angular_update, "motion_scale": args.motion_scale,
+                        "success_ra": SUCCESS_RA}
     known = list(data.get("method_order", []))
     data["method_order"] = known + [m.label for m in methods(args.alpha) if m.label not in known]
 

@@ -5,7 +5,7 @@ The public API, re-exported by name; submodules (``jaxslam.rbpf``, ``jaxslam.sim
 """
 
 from jaxslam import binary_bayes, geometry, grid, motion, resampling, sensor
-from jaxslam import rbpf
+from jaxslam import doors, mcl, rbpf
 from jaxslam.config import ConfigError, SlamConfig, SlamParams, default_params, params_from_dict
 from jaxslam.grid import GridMap, GridSpec
 from jaxslam.laserlog import LaserLog, LogError, select_updates
@@ -15,7 +15,7 @@ from jaxslam.sensor import SensorSpec, make_sensor, uniform_beams
 __version__ = "0.1.0"
 
 __all__ = [
-    "ConfigError", "GridMap", "GridSpec", "LaserLog", "LogError", "SensorSpec", "SlamConfig", "SlamInfo",
+    "ConfigError", "GridMap", "doors", "mcl", "GridSpec", "LaserLog", "LogError", "SensorSpec", "SlamConfig", "SlamInfo",
     "SlamParams", "SlamResult", "SlamState", "binary_bayes", "default_params", "geometry", "grid",
     "make_sensor", "motion", "params_from_dict", "rbpf", "resampling", "select_updates", "sensor",
     "uniform_beams",

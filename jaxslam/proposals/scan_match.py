@@ -3,7 +3,7 @@
 1. Scan-match z_t in m_{t-1} starting from the odometry prediction x_{t-1} (+) u_t.
 2. Around the mode, evaluate the 27 poses of a 3x3x3 stencil (spacing: the matcher's
    initial steps) weighted by p(z | x_j, m) p(x_j | x_{t-1}, u).
-3. Fit a Gaussian to them and draw x_t from it.
+3. Fit a Gaussian to them (with the untempered likelihood, gain 1) and draw x_t from it.
 4. The log-weight increment is log sum_j p(z | x_j, m) p(x_j | x_{t-1}, u) + log(cell volume):
    the Riemann sum of p(z_t | x_{t-1}, m, u) = int p(z | x, m) p(x | x_{t-1}, u) dx, the
    same quantity the OP's increment estimates, so that particles which fall back to the
@@ -42,12 +42,19 @@ def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> 
     offsets = _STENCIL * spacing
     candidates = result.pose + offsets
     candidates = candidates.at[:, 2].set(wrap_angle(candidates[:, 2]))
-    log_lik = jax.vmap(lambda x: endpoint_log_likelihood(spec, grid_map.hit_dist2, x, inputs.ranges, sensor,
-                                                         params.likelihood))(candidates)
-    log_terms = log_lik + motion.log_density(candidates, pose, inputs.motion, params.motion)
+    # The Gaussian is fitted to the untempered likelihood (gain 1: the scan's own sharpness);
+    # the weight uses the tempered one. Tempering the fit too would widen the draw to the
+    # stencil's size and bend the maps, for nothing: the gain only exists to keep weights
+    # of correlated beams from collapsing (GMapping likewise moves to the matched pose and
+    # tempers only the weights).
+    untempered = params.likelihood._replace(gain=jnp.float32(1.0))
+    raw_log_lik = jax.vmap(lambda x: endpoint_log_likelihood(spec, grid_map.hit_dist2, x, inputs.ranges, sensor,
+                                                             untempered))(candidates)
+    log_motion = motion.log_density(candidates, pose, inputs.motion, params.motion)
+    log_terms = params.likelihood.gain * raw_log_lik + log_motion
     log_eta = jax.scipy.special.logsumexp(log_terms) + jnp.sum(jnp.log(spacing))
 
-    w = jax.nn.softmax(log_terms)
+    w = jax.nn.softmax(raw_log_lik + log_motion)
     mean_offset = w @ offsets
     centred = offsets - mean_offset
     cov = (centred * w[:, None]).T @ centred + jnp.diag((_REGULARIZER * spacing) ** 2)

@@ -1,0 +1,167 @@
+"""Accuracy on the standard datasets (Intel, ACES, MIT CSAIL), OP / SMP / LP side by side with GMapping.
+
+For each log in ../shared/data and each proposal, runs ``jaxslam map`` with the same
+configuration and parameters for every log (``SETTINGS`` below; no per-dataset tuning)
+for several seeds, each in its own subprocess (its peak memory is its own), scores the
+per-scan trajectory with the relation metric of Kuemmerle et al. 2009, and writes
+``DIR/results.json``, ``DIR/results.md`` (the table, beside the published numbers and
+GMapping measured on this machine) and each run's map PNG. Finished runs are skipped on
+restart, so the script can be stopped and resumed.
+
+    python experiments/datasets.py --out results/datasets [--seeds 3] [--proposals op smp lp]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+
+DATASETS = {
+    "intel": ("intel.sort.bag", "intel.relations"),
+    "aces": ("aces.sort.bag", "aces.relations"),
+    "mit-csail": ("mit-csail.clf", "mit-csail.relations"),
+}
+
+# One configuration for all logs (see docs/tuning.md for what each does).
+SETTINGS = {
+    "particles": 30,
+    "localizers": 100,
+    "horizon": 5,
+    "set": [
+        "linear_update=0.5",
+        "angular_update=0.25",
+        "beam_stride=2",
+        "max_insert_range=15.0",
+        "likelihood.gain=0.1",
+        "lookahead.alpha=0.1",
+    ],
+}
+
+# Translational error (m), mean +- std.
+PUBLISHED = {  # Kuemmerle et al. 2009 as quoted in ../shared/data/README.md
+    "intel": {"scan matching": (0.220, 0.296), "RBPF (GMapping, 50 particles)": (0.070, 0.083), "graph mapping": (0.031, 0.026)},
+    "aces": {"scan matching": (0.173, 0.614), "RBPF (GMapping, 50 particles)": (0.060, 0.049), "graph mapping": (0.044, 0.044)},
+    "mit-csail": {"scan matching": (0.106, 0.325), "RBPF (GMapping, 50 particles)": (0.049, 0.049), "graph mapping": (0.004, 0.009)},
+}
+GMAPPING_HERE = {  # GMapping (C++, 30 particles, default parameters) on this machine
+    "intel": {"trans": (0.059, 0.057), "rot_deg": (2.18, 2.43), "wall_s": 81.5},
+    "aces": {"trans": (0.052, 0.066), "rot_deg": (1.12, 1.30), "wall_s": 36.7},
+    "mit-csail": {"trans": (0.058, 0.066), "rot_deg": (3.64, 4.10), "wall_s": 59.8},
+}
+
+
+def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path) -> dict:
+    """Map one log with one proposal and seed (subprocess), then score it. Cached in out."""
+    from jaxslam.io import read_relations, read_trajectory
+    from jaxslam.metrics import relation_error
+
+    log_name, rel_name = DATASETS[dataset]
+    run_dir = out / dataset / f"{proposal}-seed{seed}"
+    scored = run_dir / "errors.json"
+    if scored.is_file():
+        return json.loads(scored.read_text())
+    cmd = [sys.executable, "-m", "jaxslam.cli", "map", str(data / log_name), "--proposal", proposal,
+           "--particles", str(SETTINGS["particles"]), "--seed", str(seed), "--out", str(run_dir), "--no-progress"]
+    if proposal == "lp":
+        cmd += ["--localizers", str(SETTINGS["localizers"]), "--horizon", str(SETTINGS["horizon"])]
+    for item in SETTINGS["set"]:
+        cmd += ["--set", item]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True)
+    wall = time.perf_counter() - t0
+    summary = json.loads((run_dir / "summary.json").read_text())
+    timestamps, poses = read_trajectory(run_dir / "trajectory.txt")
+    err = relation_error(timestamps, poses, read_relations(data / rel_name)).to_dict()
+    record = {
+        "dataset": dataset, "proposal": proposal, "seed": seed,
+        "trans_mean": err["trans_mean"], "trans_std": err["trans_std"],
+        "rot_mean_deg": err["rot_mean_deg"], "rot_std_deg": err["rot_std_deg"],
+        "trans2_mean": err["trans2_mean"], "rot2_mean_deg2": err.get("rot2_mean_deg2"),
+        "relations": err["count"],
+        "wall_s": wall, "filter_s": summary["timings"]["total"],
+        "real_time_factor": summary["log_duration_s"] / wall,
+        "peak_memory_mb": summary["peak_memory_mb"],
+        "scans_processed": summary["scans_processed"], "scans_in_log": summary["scans_in_log"],
+        "warnings": summary["warnings"],
+        "map_png": str(run_dir / "map.png"),
+    }
+    scored.write_text(json.dumps(record, indent=2))
+    return record
+
+
+def aggregate(records: list[dict]) -> dict:
+    """Mean over seeds of each figure, per (dataset, proposal)."""
+    table: dict = {}
+    for r in records:
+        table.setdefault(r["dataset"], {}).setdefault(r["proposal"], []).append(r)
+    out: dict = {}
+    for dataset, by_prop in table.items():
+        for proposal, runs in by_prop.items():
+            keys = ["trans_mean", "trans_std", "rot_mean_deg", "rot_std_deg", "wall_s", "real_time_factor",
+                    "peak_memory_mb"]
+            out.setdefault(dataset, {})[proposal] = {
+                **{k: float(np.mean([r[k] for r in runs])) for k in keys},
+                "trans_mean_over_seeds_std": float(np.std([r["trans_mean"] for r in runs])),
+                "seeds": len(runs),
+            }
+    return out
+
+
+def markdown(summary: dict) -> str:
+    lines = [
+        "| dataset | method | trans. error [m] | rot. error [deg] | wall [s] | real-time factor | peak memory [MB] |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for dataset in DATASETS:
+        for proposal, s in summary.get(dataset, {}).items():
+            lines.append(
+                f"| {dataset} | jaxslam {proposal.upper()} ({s['seeds']} seeds) | {s['trans_mean']:.3f} ± {s['trans_std']:.3f} "
+                f"| {s['rot_mean_deg']:.2f} ± {s['rot_std_deg']:.2f} | {s['wall_s']:.1f} | {s['real_time_factor']:.1f} "
+                f"| {s['peak_memory_mb']:.0f} |")
+        g = GMAPPING_HERE[dataset]
+        lines.append(f"| {dataset} | GMapping, this machine (30 particles) | {g['trans'][0]:.3f} ± {g['trans'][1]:.3f} "
+                     f"| {g['rot_deg'][0]:.2f} ± {g['rot_deg'][1]:.2f} | {g['wall_s']:.1f} | | |")
+        for name, (m, sd) in PUBLISHED[dataset].items():
+            lines.append(f"| {dataset} | {name} (published) | {m:.3f} ± {sd:.3f} | | | | |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", default="results/datasets")
+    parser.add_argument("--data", default=str(DATA))
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
+    parser.add_argument("--proposals", nargs="+", default=["op", "smp", "lp"], choices=["op", "smp", "lp"])
+    args = parser.parse_args(argv)
+    data, out = Path(args.data), Path(args.out)
+    if not data.is_dir():
+        print(f"datasets not found at {data}", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    from tqdm import tqdm
+
+    jobs = [(d, p, s) for d in args.datasets for p in args.proposals for s in range(args.seeds)]
+    records = []
+    for dataset, proposal, seed in tqdm(jobs, desc="runs", unit="run"):
+        records.append(run_one(dataset, proposal, seed, out, data))
+        summary = aggregate(records)
+        (out / "results.json").write_text(json.dumps({"settings": SETTINGS, "runs": records, "summary": summary,
+                                                     "gmapping_this_machine": GMAPPING_HERE, "published": PUBLISHED},
+                                                    indent=2))
+        (out / "results.md").write_text(markdown(summary))
+    print(markdown(aggregate(records)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
