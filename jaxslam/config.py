@@ -49,7 +49,7 @@ class SlamConfig:
     """Beams are inserted into the map up to this range (m); sets samples per beam."""
     field_radius: int = 4
     """Radius (cells) of the likelihood field around each registered endpoint."""
-    beam_stride: int = 1
+    beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     linear_update: float = 1.0
     """Process a scan after this much travel (m) since the last processed one (GMapping)."""
@@ -130,7 +130,7 @@ _DEFAULTS: dict[str, float] = {
     "motion.srr": 0.1, "motion.srt": 0.2, "motion.str": 0.1, "motion.stt": 0.2,
     "motion.min_translation_std": 0.01, "motion.min_rotation_std": 0.005,
     "likelihood.sigma": 0.05, "likelihood.z_hit": 0.9, "likelihood.z_rand": 0.05,
-    "likelihood.gain": 0.33,
+    "likelihood.gain": 0.1,
     "insertion.logodds_occupied": 0.85, "insertion.logodds_free": -0.4,
     "insertion.logodds_min": -4.0, "insertion.logodds_max": 4.0,
     "insertion.no_return_free_range": 5.0,
