@@ -26,7 +26,7 @@ def office_log():
 
 def small_config(**kw) -> SlamConfig:
     base = dict(num_particles=8, proposal="smp", linear_update=0.3, angular_update=0.25,
-                max_insert_range=10.0, map_padding=4.0)
+                max_insert_range=10.0, map_padding=4.0, beam_stride=1)
     base.update(kw)
     return SlamConfig(**base)
 
