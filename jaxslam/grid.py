@@ -108,6 +108,19 @@ def flat_index(spec: GridSpec, cell: Int[Array, "... 2"]) -> Int[Array, "..."]:
     return jnp.where(in_bounds(spec, cell), idx, spec.num_cells)
 
 
+def _flat_index_of_float_cells(spec: GridSpec, cell_xy: Float[Array, "... 2"]) -> Int[Array, "..."]:
+    """Flat index of cells given as floored float (col, row) = (x, y) cell coordinates;
+    out-of-map cells get ``num_cells``. Same result as ``flat_index(world_to_cell(...))``
+    without computing the cell coordinates twice (the insertion's hot loop)."""
+    h, w = spec.shape
+    col, row = cell_xy[..., 0], cell_xy[..., 1]
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    # Integer arithmetic on clipped values: float32 row * w + col is inexact past 2^24 cells.
+    row_i = jnp.clip(row, 0, h - 1).astype(jnp.int32)
+    col_i = jnp.clip(col, 0, w - 1).astype(jnp.int32)
+    return jnp.where(inside, row_i * w + col_i, spec.num_cells)
+
+
 class GridMap(NamedTuple):
     """One occupancy grid map (or a stack of them along leading axes)."""
 
@@ -193,8 +206,8 @@ def insert_scan(
     is_end = jnp.all(sample_cells == end_cells_f[:, None, :], axis=-1) & returned[:, None]
     free = (dist[None, :] < free_len[:, None]) & ~same_as_prev & ~is_end  # (B, S)
 
-    free_cell_idx = flat_index(spec, world_to_cell(spec, points))
-    end_cell_idx = flat_index(spec, world_to_cell(spec, end_points))
+    free_cell_idx = _flat_index_of_float_cells(spec, sample_cells)
+    end_cell_idx = _flat_index_of_float_cells(spec, end_cells_f)
     outside = (jnp.sum(free & (free_cell_idx == spec.num_cells))
                + jnp.sum(returned & (end_cell_idx == spec.num_cells)))
     # Samples that update nothing get the out-of-map index, so the scatters skip them
