@@ -15,7 +15,7 @@ import numpy as np
 from jaxslam.geometry import between, wrap_angle
 from jaxslam.io.relations import Relations
 
-__all__ = ["RelationError", "lookup_poses", "relation_error"]
+__all__ = ["RelationError", "absolute_trajectory_error", "lookup_poses", "relation_error"]
 
 
 # ---------------------------------------------------------------------------
@@ -160,3 +160,36 @@ def relation_error(timestamps, poses, relations: Relations, time_tolerance: floa
         rot2_std=float(np.std(rot**2)),
         count=int(t1.size),
     )
+
+
+# ---------------------------------------------------------------------------
+# Absolute trajectory error (simulated runs, where the truth is known)
+# ---------------------------------------------------------------------------
+
+
+def absolute_trajectory_error(estimated, truth, align: bool = True) -> dict:
+    """Position RMSE (m) and mean heading error (rad) of a trajectory against the truth.
+
+    Args:
+      estimated, truth: (T, 3) poses at the same instants.
+      align: first move ``estimated`` by the rigid SE(2) motion that best fits it to the
+        truth in least squares (a SLAM map's frame is arbitrary up to such a motion).
+
+    Returns:
+      ``{"rmse", "mean", "max"}`` of the position errors (m) and ``"rot_mean"`` (rad).
+    """
+    est = np.asarray(estimated, np.float64)
+    ref = np.asarray(truth, np.float64)
+    if est.shape != ref.shape or est.ndim != 2 or est.shape[1] != 3:
+        raise ValueError(f"trajectories must both be (T, 3), got {est.shape} and {ref.shape}")
+    if align:
+        mu_e, mu_r = est[:, :2].mean(axis=0), ref[:, :2].mean(axis=0)
+        cross = (est[:, :2] - mu_e).T @ (ref[:, :2] - mu_r)  # 2x2
+        angle = math.atan2(cross[0, 1] - cross[1, 0], cross[0, 0] + cross[1, 1])
+        c, s = math.cos(angle), math.sin(angle)
+        xy = (est[:, :2] - mu_e) @ np.array([[c, s], [-s, c]]) + mu_r
+        est = np.column_stack([xy, est[:, 2] + angle])
+    dist = np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
+    rot = np.abs(np.asarray(wrap_angle(est[:, 2] - ref[:, 2]), np.float64))
+    return {"rmse": float(np.sqrt(np.mean(dist**2))), "mean": float(dist.mean()), "max": float(dist.max()),
+            "rot_mean": float(rot.mean())}

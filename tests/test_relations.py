@@ -193,3 +193,19 @@ def test_intel_relations_match_the_log(shared_data):
     rel = read_relations(shared_data / "intel.relations")
     result = relation_error(log.timestamps, log.odometry, rel)
     assert result.count == 2984
+
+
+def test_absolute_trajectory_error_is_invariant_to_a_rigid_motion():
+    from jaxslam.geometry import compose
+    from jaxslam.metrics import absolute_trajectory_error
+
+    rng = np.random.default_rng(0)
+    truth = np.cumsum(rng.normal(0, 0.3, (50, 3)), axis=0)
+    moved = np.asarray(compose(np.array([2.0, -1.0, 0.7]), truth), np.float64)
+    aligned = absolute_trajectory_error(moved, truth)
+    assert aligned["rmse"] < 1e-4 and aligned["rot_mean"] < 1e-5
+    assert absolute_trajectory_error(moved, truth, align=False)["rmse"] > 1.0
+    noisy = truth + np.column_stack([rng.normal(0, 0.1, (50, 2)), np.zeros(50)])
+    # Alignment can only lower the RMSE, and here it should be close to the noise level (0.1 * sqrt 2).
+    assert absolute_trajectory_error(noisy, truth)["rmse"] <= absolute_trajectory_error(noisy, truth, align=False)["rmse"] + 1e-12
+    assert 0.08 < absolute_trajectory_error(noisy, truth)["rmse"] < 0.2
