@@ -37,8 +37,8 @@ SETTINGS = {
     "localizers": 100,
     "horizon": 5,
     "set": [
-        "linear_update=0.5",
-        "angular_update=0.25",
+        "linear_update=1.0",
+        "angular_update=0.5",
         "beam_stride=2",
         "max_insert_range=15.0",
         "likelihood.gain=0.1",
@@ -76,8 +76,11 @@ def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path) -> di
     for item in SETTINGS["set"]:
         cmd += ["--set", item]
     t0 = time.perf_counter()
-    subprocess.run(cmd, check=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        # Recorded (not cached) so that the table shows the failure and a rerun retries it.
+        return {"dataset": dataset, "proposal": proposal, "seed": seed, "failed": proc.stderr[-2000:]}
     summary = json.loads((run_dir / "summary.json").read_text())
     timestamps, poses = read_trajectory(run_dir / "trajectory.txt")
     err = relation_error(timestamps, poses, read_relations(data / rel_name)).to_dict()
@@ -102,6 +105,8 @@ def aggregate(records: list[dict]) -> dict:
     """Mean over seeds of each figure, per (dataset, proposal)."""
     table: dict = {}
     for r in records:
+        if "failed" in r:
+            continue
         table.setdefault(r["dataset"], {}).setdefault(r["proposal"], []).append(r)
     out: dict = {}
     for dataset, by_prop in table.items():

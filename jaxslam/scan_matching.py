@@ -20,7 +20,8 @@ from jaxtyping import Array, Float, UInt8
 
 from jaxslam.geometry import wrap_angle
 from jaxslam.grid import GridSpec
-from jaxslam.sensor import LikelihoodParams, SensorSpec, endpoint_log_likelihood, match_score
+from jaxslam.sensor import (LikelihoodParams, SensorSpec, endpoint_log_likelihood, endpoint_log_likelihoods,
+                            match_score)
 
 # NumPy, not jnp: module-level jnp values created while a trace is active would leak tracers.
 _MOVES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float32)
@@ -56,7 +57,7 @@ def match(
         pose, best, scale = carry
         candidates = pose + _MOVES * (step_scale * scale)
         candidates = candidates.at[:, 2].set(wrap_angle(candidates[:, 2]))
-        values = jax.vmap(log_lik)(candidates)
+        values = endpoint_log_likelihoods(spec, hit_dist2, candidates, ranges, sensor, likelihood)
         j = jnp.argmax(values)
         better = values[j] > best
         pose = jnp.where(better, candidates[j], pose)

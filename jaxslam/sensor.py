@@ -110,11 +110,48 @@ def endpoint_log_likelihood(
     """log p(z | x, m) of one scan at one robot pose in one map, in nats.
 
     ``gain * sum_b log(z_hit * fit_b + z_rand)`` over the beams that count (see
-    :func:`endpoint_fit`). vmap it over poses (particles, localizers) and maps.
+    :func:`endpoint_fit`). vmap it over poses and maps, or call
+    :func:`endpoint_log_likelihoods` for many poses in one map.
     """
-    fit, valid = endpoint_fit(spec, hit_dist2, pose, ranges, sensor, params.sigma)
-    per_beam = jnp.log(params.z_hit * fit + params.z_rand)
-    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0))
+    return endpoint_log_likelihoods(spec, hit_dist2, pose[None], ranges, sensor, params)[0]
+
+
+def endpoint_log_likelihoods(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    params: LikelihoodParams,
+) -> Float[Array, "L"]:
+    """:func:`endpoint_log_likelihood` of one scan at L robot poses in one map (nats).
+
+    The hot loop of every proposal, so it is fused: the beam endpoints are computed once
+    in the robot frame (B trig calls, shared by all poses and, under vmap, by all SLAM
+    particles), after which a pose costs one rotation per beam; and the per-beam term only
+    depends on the stored squared cell distance (uint8), so it is read from a 256-entry
+    table (:func:`per_beam_log_likelihood_table`) instead of evaluating exp and log per beam.
+    """
+    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
+    beam_x = ranges * jnp.cos(sensor.beam_angles)  # (B,) endpoints in the laser frame (m)
+    beam_y = ranges * jnp.sin(sensor.beam_angles)
+    lc, ls = jnp.cos(sensor.laser_pose[2]), jnp.sin(sensor.laser_pose[2])
+    robot_x = sensor.laser_pose[0] + lc * beam_x - ls * beam_y  # laser -> robot frame, once per scan
+    robot_y = sensor.laser_pose[1] + ls * beam_x + lc * beam_y
+    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])  # (L, 1)
+    ends = jnp.stack([poses[:, 0:1] + c * robot_x - s * robot_y,
+                      poses[:, 1:2] + s * robot_x + c * robot_y], axis=-1)  # (L, B, 2)
+    idx = flat_index(spec, world_to_cell(spec, ends))
+    d2 = hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR)  # (L, B) uint8
+    per_beam = per_beam_log_likelihood_table(spec, params)[d2.astype(jnp.int32)]
+    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+
+
+def per_beam_log_likelihood_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:
+    """log(z_hit * fit + z_rand) for every uint8 squared cell distance (``FAR``: fit 0)."""
+    d2 = jnp.arange(FAR + 1, dtype=jnp.float32)
+    fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2 * spec.resolution**2 / params.sigma**2))
+    return jnp.log(params.z_hit * fit + params.z_rand)
 
 
 def match_score(

@@ -23,7 +23,7 @@ from jaxslam.geometry import compose, wrap_angle
 from jaxslam.proposals import odometry
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.scan_matching import match
-from jaxslam.sensor import endpoint_log_likelihood
+from jaxslam.sensor import endpoint_log_likelihoods
 
 _STENCIL = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float32)  # (27, 3), NumPy: see scan_matching
 _REGULARIZER = 0.1  # floor of the fitted std, as a fraction of the stencil spacing
@@ -48,8 +48,7 @@ def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> 
     # of correlated beams from collapsing (GMapping likewise moves to the matched pose and
     # tempers only the weights).
     untempered = params.likelihood._replace(gain=jnp.float32(1.0))
-    raw_log_lik = jax.vmap(lambda x: endpoint_log_likelihood(spec, grid_map.hit_dist2, x, inputs.ranges, sensor,
-                                                             untempered))(candidates)
+    raw_log_lik = endpoint_log_likelihoods(spec, grid_map.hit_dist2, candidates, inputs.ranges, sensor, untempered)
     log_motion = motion.log_density(candidates, pose, inputs.motion, params.motion)
     log_terms = params.likelihood.gain * raw_log_lik + log_motion
     log_eta = jax.scipy.special.logsumexp(log_terms) + jnp.sum(jnp.log(spacing))
