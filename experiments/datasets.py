@@ -42,7 +42,7 @@ SETTINGS = {
         "beam_stride=2",
         "max_insert_range=15.0",
         "likelihood.gain=0.1",
-        "lookahead.alpha=0.1",
+        "lookahead.alpha=0.5",
     ],
 }
 

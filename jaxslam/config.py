@@ -135,7 +135,7 @@ _DEFAULTS: dict[str, float] = {
     "insertion.logodds_min": -4.0, "insertion.logodds_max": 4.0,
     "insertion.no_return_free_range": 5.0,
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
-    "lookahead.alpha": 0.1, "lookahead.resample_threshold": 0.5,
+    "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5,
     "resample_threshold": 0.5,
 }
 

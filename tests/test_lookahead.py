@@ -239,15 +239,22 @@ def room_inputs(horizon, valid=None):
     ), jnp.asarray(path[1])
 
 
-def test_fused_likelihood_equals_sensor_model(room_map):
+def test_fused_likelihood_equals_direct_formula(room_map):
+    """The table-based many-pose likelihood the LP uses equals the per-beam formula on endpoint_fit."""
+    from jaxslam.sensor import endpoint_fit, endpoint_log_likelihoods
+
     params = default_params()
+    lik = params.likelihood
     poses = jnp.asarray(room_path(6)[:, None, :] + np.random.default_rng(0).normal(0, 0.1, (6, 20, 3)),
                         jnp.float32).reshape(-1, 3)
     ranges = scan_at(room_path(6)[2])
-    fused = la.scan_log_likelihoods(SPEC, room_map.hit_dist2, poses, ranges, SENSOR, params.likelihood)
-    reference = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, ranges, SENSOR,
-                                                           params.likelihood))(poses)
-    np.testing.assert_allclose(fused, reference, rtol=1e-5, atol=1e-3)
+    fused = endpoint_log_likelihoods(SPEC, room_map.hit_dist2, poses, ranges, SENSOR, lik)
+
+    def direct(pose):
+        fit, valid = endpoint_fit(SPEC, room_map.hit_dist2, pose, ranges, SENSOR, lik.sigma)
+        return lik.gain * jnp.sum(jnp.where(valid, jnp.log(lik.z_hit * fit + lik.z_rand), 0.0))
+
+    np.testing.assert_allclose(fused, jax.vmap(direct)(poses), rtol=1e-5, atol=1e-3)
 
 
 @pytest.mark.parametrize("alpha", [0.0, 0.3])

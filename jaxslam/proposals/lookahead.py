@@ -43,9 +43,9 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion, resampling
 from jaxslam.geometry import compose
-from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
+from jaxslam.grid import GridSpec
 from jaxslam.proposals.base import ProposalOutput, StepInputs
-from jaxslam.sensor import LikelihoodParams, SensorSpec
+from jaxslam.sensor import SensorSpec, endpoint_log_likelihoods
 
 # Fixed fold-in tags so that the random numbers of horizon step s do not depend on
 # the horizon length K: a run whose last steps are invalid then equals a shorter run.
@@ -262,49 +262,6 @@ def lookahead_core(
 # The grid-map model.
 
 
-def scan_log_likelihoods(
-    spec: GridSpec,
-    hit_dist2: Array,
-    poses: Float[Array, "L 3"],
-    ranges: Float[Array, "B"],
-    sensor: SensorSpec,
-    params: LikelihoodParams,
-) -> Float[Array, "L"]:
-    """log p(z | x^(i), m) of one scan at L robot poses in one map (nats); equals
-    ``vmap(sensor.endpoint_log_likelihood)`` but fused for the look-ahead's hot loop.
-
-    The beam endpoints are computed once in the laser frame (B trig calls, shared by
-    every pose and, under the RBPF's vmap, by every SLAM particle); a pose then costs one
-    rotation per beam. The per-beam term log(z_hit exp(-d^2 / 2 sigma^2) + z_rand) only
-    depends on the stored squared cell distance (uint8), so it is read from a 256-entry
-    table instead of evaluating exp and log per beam.
-    """
-    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
-    beam_x = ranges * jnp.cos(sensor.beam_angles)  # (B,) endpoints in the laser frame (m)
-    beam_y = ranges * jnp.sin(sensor.beam_angles)
-    # Laser frame -> robot frame, once per scan.
-    lc, ls = jnp.cos(sensor.laser_pose[2]), jnp.sin(sensor.laser_pose[2])
-    robot_x = sensor.laser_pose[0] + lc * beam_x - ls * beam_y
-    robot_y = sensor.laser_pose[1] + ls * beam_x + lc * beam_y
-
-    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])  # (L, 1)
-    ends = jnp.stack([poses[:, 0:1] + c * robot_x - s * robot_y,
-                      poses[:, 1:2] + s * robot_x + c * robot_y], axis=-1)  # (L, B, 2)
-    idx = flat_index(spec, world_to_cell(spec, ends))
-    d2 = hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR)  # (L, B) uint8
-
-    table = per_beam_table(spec, params)
-    per_beam = table[d2.astype(jnp.int32)]
-    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
-
-
-def per_beam_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:
-    """log(z_hit * fit + z_rand) for every uint8 squared cell distance (FAR: fit 0)."""
-    d2 = jnp.arange(FAR + 1, dtype=jnp.float32)
-    fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2 * spec.resolution**2 / params.sigma**2))
-    return jnp.log(params.z_hit * fit + params.z_rand)
-
-
 def _grid_model(pose_params: motion.MotionParams, spec: GridSpec, hit_dist2, sensor, lik_params):
     def move(key, poses, step_input):
         step_motion, _ = step_input
@@ -312,7 +269,7 @@ def _grid_model(pose_params: motion.MotionParams, spec: GridSpec, hit_dist2, sen
 
     def log_likelihood(poses, step_input):
         _, ranges = step_input
-        return scan_log_likelihoods(spec, hit_dist2, poses, ranges, sensor, lik_params)
+        return endpoint_log_likelihoods(spec, hit_dist2, poses, ranges, sensor, lik_params)
 
     return move, log_likelihood
 
