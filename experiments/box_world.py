@@ -5,7 +5,7 @@ every fifth lap) and returns over X (:func:`jaxslam.sim.box_world_scenario`). Fo
 proposal and SLAM particle count we run R independent simulated runs (seed r draws the
 odometry and range noise of run r and the filter's randomness) and score each by the
 revisiting accuracy RA between the first and the last passage over X
-(:mod:`jaxslam.revisiting`); a run with RA < 0.2 counts as a success.
+(:func:`jaxslam.metrics.revisiting_accuracy`); a run with RA < 0.2 counts as a success.
 
 Proposals: OP, SMP, and the look-ahead LP with L = 100 localizers and k = 5 once as
 in the paper (alpha = 0, Eq. 10) and once with the defensive share ``--alpha``, plus
@@ -36,7 +36,8 @@ import numpy as np
 from jaxslam import rbpf
 from jaxslam.config import SlamConfig, default_params, params_to_dict
 from jaxslam.grid import GridSpec
-from jaxslam.revisiting import checkpoint_passages, particle_paths, passage_errors, revisiting_accuracy
+from jaxslam.metrics import checkpoint_passages, passage_errors, revisiting_accuracy
+from jaxslam.rbpf import particle_paths
 from jaxslam.sim import box_world_scenario
 
 SUCCESS_RA = 0.2

@@ -281,16 +281,26 @@ def _noop_inputs(inputs: StepInputs, sensor: SensorSpec) -> StepInputs:
     )
 
 
+def particle_paths(proposed_poses: np.ndarray, ancestors: np.ndarray, initial_pose) -> np.ndarray:
+    """Every final particle's path (N, S, 3) from a filter's per-step proposed poses and
+    ancestors (``SlamInfo.proposed_poses`` (S-1, N, 3), ``SlamInfo.ancestors`` (S-1, N)),
+    with the shared initial pose prepended."""
+    proposed = np.asarray(proposed_poses)
+    anc = np.asarray(ancestors)
+    steps, n = anc.shape
+    paths = np.empty((n, steps + 1, 3), proposed.dtype)
+    paths[:, 0] = np.asarray(initial_pose)
+    idx = np.arange(n)
+    for t in range(steps - 1, -1, -1):
+        idx = anc[t, idx]
+        paths[:, t + 1] = proposed[t, idx]
+    return paths
+
+
 def backtrack_path(info: SlamInfo, final_index: int) -> np.ndarray:
     """Poses (S-1, 3) along the ancestry of particle ``final_index`` of the final set."""
-    proposed = np.asarray(info.proposed_poses)
-    ancestors = np.asarray(info.ancestors)
-    path = np.empty((proposed.shape[0], 3), proposed.dtype)
-    i = final_index
-    for t in range(proposed.shape[0] - 1, -1, -1):
-        i = ancestors[t, i]
-        path[t] = proposed[t, i]
-    return path
+    zero = np.zeros(3, np.asarray(info.proposed_poses).dtype)
+    return particle_paths(info.proposed_poses, info.ancestors, zero)[final_index, 1:]
 
 
 def run(

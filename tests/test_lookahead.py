@@ -341,7 +341,7 @@ def test_lp_run_end_to_end_on_a_simulated_log():
 
 
 def test_checkpoint_passages_finds_closest_approaches():
-    from jaxslam.revisiting import checkpoint_passages
+    from jaxslam.metrics import checkpoint_passages
 
     t = np.linspace(0.0, 4 * np.pi, 400)
     path = np.stack([2.0 * np.cos(t), 2.0 * np.sin(t), t], axis=-1)  # two laps round the origin
@@ -351,7 +351,8 @@ def test_checkpoint_passages_finds_closest_approaches():
 
 
 def test_revisiting_accuracy_weights_particle_errors():
-    from jaxslam.revisiting import particle_paths, revisiting_accuracy
+    from jaxslam.metrics import revisiting_accuracy
+    from jaxslam.rbpf import particle_paths
 
     truth_first, truth_last = np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.0])
     paths = np.zeros((3, 5, 3))

@@ -238,23 +238,9 @@ def concat_paths(*paths, atol: float = 1e-6) -> np.ndarray:
 
 
 def passage_indices(poses, point, tolerance: float) -> np.ndarray:
-    """Indices of the poses at which a path passes over ``point``.
+    """Indices of the poses at which a path passes over ``point`` (closest pose of each run of
+    poses within ``tolerance`` metres); the rule of :func:`jaxslam.metrics.checkpoint_passages`."""
+    from jaxslam.metrics import checkpoint_passages
 
-    A passage is a maximal run of consecutive poses within ``tolerance`` metres of
-    ``point``; each gives the index of its closest pose (the first, on a tie such as a
-    turn on the spot).
+    return checkpoint_passages(poses, point, tolerance)
 
-    Args:
-      poses: (T, 3) or (T, 2) path (m).
-      point: (2,) position (m).
-      tolerance: radius (m) of the disc that counts as "over" the point.
-
-    Returns:
-      (K,) int64 indices, increasing.
-    """
-    xy = np.asarray(poses, np.float64)[:, :2]
-    dist = np.hypot(*(xy - np.asarray(point, np.float64)).T)
-    inside = dist <= tolerance
-    edges = np.diff(np.concatenate([[0], inside.astype(np.int8), [0]]))
-    starts, stops = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
-    return np.array([a + int(np.argmin(dist[a:b])) for a, b in zip(starts, stops)], dtype=np.int64)
