@@ -51,6 +51,7 @@ class Method:
     num_localizers: int = 0
     horizon: int = 0
     alpha: float = 0.0
+    initial: str = "odometry"
 
 
 def methods(alpha: float) -> list[Method]:
@@ -60,6 +61,8 @@ def methods(alpha: float) -> list[Method]:
         Method("LP a=0 L=100 k=5", "lp", 100, 5, 0.0),
         Method(f"LP a={alpha:g} L=100 k=5", "lp", 100, 5, alpha),
         Method(f"LP a={alpha:g} L=50 k=3", "lp", 50, 3, alpha),
+        # Not in the paper: localizers drawn around the scan-matched pose (importance-corrected).
+        Method(f"LP-SM a={alpha:g} L=100 k=5", "lp", 100, 5, alpha, "scan_match"),
     ]
 
 
@@ -81,6 +84,7 @@ def filter_setup(method: Method, n: int, scenario, args):
         max_insert_range=scenario.log.sensor.range_max.item() + 0.5, beam_stride=args.beam_stride,
         linear_update=args.linear_update, angular_update=args.angular_update,
         num_localizers=max(method.num_localizers, 1), horizon=method.horizon,
+        lookahead_initial=method.initial,
     )
     m = scenario.metadata["motion_params"]
     overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}

@@ -63,6 +63,9 @@ class SlamConfig:
     """L, localizer particles per SLAM particle in the look-ahead proposal."""
     horizon: int = 5
     """k, the look-ahead horizon in processed scans (0: the LP's weights reduce to an average)."""
+    lookahead_initial: str = "odometry"
+    """Where the LP draws its L time-t localizers: "odometry" (the motion model, as in the paper)
+    or "scan_match" (a Gaussian fitted around the scan-matched pose, importance-corrected)."""
 
     def __post_init__(self):
         checks = [
@@ -77,6 +80,8 @@ class SlamConfig:
             (self.match_iterations >= 0, "match_iterations must be >= 0"),
             (self.num_localizers >= 1, "num_localizers must be >= 1"),
             (self.horizon >= 0, "horizon must be >= 0"),
+            (self.lookahead_initial in ("odometry", "scan_match"),
+             f"lookahead_initial must be 'odometry' or 'scan_match', got {self.lookahead_initial!r}"),
         ]
         for ok, message in checks:
             if not ok:

@@ -272,6 +272,33 @@ def test_grid_lp_k0_increment_is_log_mean_likelihood(room_map, alpha):
     assert not bool(out.fallback)
 
 
+def test_scan_matched_localizers_are_importance_weighted(room_map):
+    """lookahead_initial="scan_match": the time-t localizers come from the matched Gaussian q and
+    g_i = log p(z | x_i) + log p(x_i | x_{t-1}, u) - log q(x_i); with k = 0 the increment is
+    log mean exp(g), an importance-sampling estimate of the same p(z_t | x_{t-1}, m, u_t)."""
+    from jaxslam import motion
+    from jaxslam.proposals import scan_match
+
+    params = default_params()
+    inputs, pose = room_inputs(0)
+    config = lp_config(horizon=0, lookahead_initial="scan_match")
+    ex = _jit_explain(jax.random.key(3), pose, room_map, inputs, SENSOR, params, config)
+    gaussian = scan_match.matched_gaussian(pose, room_map, inputs, SENSOR, params, config,
+                                           fit_gain=params.likelihood.gain)
+    assert bool(gaussian.matched)
+    lik = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
+                                                     params.likelihood))(ex.poses_t)
+    g = (lik + motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
+         - scan_match.gaussian_log_density(ex.poses_t, gaussian))
+    np.testing.assert_allclose(ex.log_lik_t, g, rtol=1e-5, atol=1e-3)
+    expected = jax.scipy.special.logsumexp(g) - math.log(config.num_localizers)
+    np.testing.assert_allclose(ex.draw.log_weight_increment, expected, rtol=1e-5, atol=1e-3)
+    # The cloud sits around the match, not spread like the motion model's.
+    spread_sm = float(np.std(np.asarray(ex.poses_t)[:, :2]))
+    odo = _jit_explain(jax.random.key(3), pose, room_map, inputs, SENSOR, params, lp_config(horizon=0))
+    assert spread_sm < float(np.std(np.asarray(odo.poses_t)[:, :2]))
+
+
 def test_grid_lp_shrinking_horizon_equals_smaller_k(room_map):
     params = default_params()
     short_inputs, pose = room_inputs(2)

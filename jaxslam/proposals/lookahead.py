@@ -44,6 +44,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from jaxslam import motion, resampling
 from jaxslam.geometry import compose
 from jaxslam.grid import GridSpec
+from jaxslam.proposals import scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.sensor import SensorSpec, endpoint_log_likelihoods
 
@@ -294,8 +295,22 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
     num = config.num_localizers
     move, log_likelihood = _grid_model(params.motion, spec, grid_map.hit_dist2, sensor, params.likelihood)
     start = jnp.broadcast_to(pose, (num, 3))
-    poses_t = motion.sample(jax.random.fold_in(key, _TAG_INITIAL), start, inputs.motion, params.motion)
+    key_initial = jax.random.fold_in(key, _TAG_INITIAL)
+    poses_t = motion.sample(key_initial, start, inputs.motion, params.motion)
     log_lik_t = log_likelihood(poses_t, (inputs.motion, inputs.ranges))
+    if config.lookahead_initial == "scan_match":
+        # Draw the time-t localizers from a Gaussian around the scan-matched pose instead, and
+        # make g an importance weight: g_i = log p(z_t | x_i) + log p(x_i | x_{t-1}, u_t) - log q(x_i).
+        # Steps 2-5 hold unchanged for any proposal q with g so defined (the increment then
+        # estimates the same p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
+        gaussian = scan_match.matched_gaussian(pose, grid_map, inputs, sensor, params, config,
+                                               fit_gain=params.likelihood.gain)
+        matched_t = scan_match.sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
+        log_weight_t = (log_likelihood(matched_t, (inputs.motion, inputs.ranges))
+                        + motion.log_density(matched_t, pose, inputs.motion, params.motion)
+                        - scan_match.gaussian_log_density(matched_t, gaussian))
+        poses_t = jnp.where(gaussian.matched, matched_t, poses_t)
+        log_lik_t = jnp.where(gaussian.matched, log_weight_t, log_lik_t)
     draw, horizon, history = lookahead_core(
         key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
         move, log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,

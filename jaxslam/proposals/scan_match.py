@@ -13,12 +13,15 @@
 from __future__ import annotations
 
 import itertools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool, Float
 
 from jaxslam import motion
+from jaxslam.motion import _LOG_2PI
 from jaxslam.geometry import compose, wrap_angle
 from jaxslam.proposals import odometry
 from jaxslam.proposals.base import ProposalOutput, StepInputs
@@ -29,42 +32,77 @@ _STENCIL = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.floa
 _REGULARIZER = 0.1  # floor of the fitted std, as a fraction of the stencil spacing
 
 
-def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
-    """One SMP draw for one particle (see the module docstring)."""
+class MatchedGaussian(NamedTuple):
+    """A Gaussian over x_t fitted around the scan-matched pose (steps 1-3 of the SMP)."""
+
+    mean: Float[Array, "3"]
+    """Mean pose (m, m, rad)."""
+    chol: Float[Array, "3 3"]
+    """Lower Cholesky factor of the covariance."""
+    log_eta: Float[Array, ""]
+    """log sum_j p(z | x_j, m)^gain p(x_j | x_{t-1}, u) + log(cell volume): the SMP's weight increment."""
+    matched: Bool[Array, ""]
+    """The match succeeded (score >= ``scan_match.min_score``, finite weight)."""
+
+
+def matched_gaussian(pose, grid_map, inputs: StepInputs, sensor, params, config, fit_gain) -> MatchedGaussian:
+    """Scan-match z_t from the odometry prediction and fit a Gaussian on the 27-pose stencil.
+
+    The stencil weights are p(z | x_j, m)^fit_gain p(x_j | x_{t-1}, u): the SMP fits with
+    fit_gain = 1 (the scan's own sharpness; tempering the fit too would widen the draws to
+    the stencil's size and bend the maps, for nothing: the likelihood gain only exists to
+    keep the weights of correlated beams from collapsing, and GMapping likewise moves to the
+    matched pose and tempers only the weights); the scan-matched look-ahead fits with the
+    tempered gain, for a wider cloud of localizers.
+    """
     spec = config.grid
     sm = params.scan_match
-    key_sample, key_fallback = jax.random.split(key)
     predicted = compose(pose, inputs.motion)
     result = match(spec, grid_map.hit_dist2, predicted, inputs.ranges, sensor, params.likelihood,
                    sm.linear_step, sm.angular_step, config.match_iterations)
-
     spacing = jnp.stack([sm.linear_step, sm.linear_step, sm.angular_step])
     offsets = _STENCIL * spacing
     candidates = result.pose + offsets
     candidates = candidates.at[:, 2].set(wrap_angle(candidates[:, 2]))
-    # The Gaussian is fitted to the untempered likelihood (gain 1: the scan's own sharpness);
-    # the weight uses the tempered one. Tempering the fit too would widen the draw to the
-    # stencil's size and bend the maps, for nothing: the gain only exists to keep weights
-    # of correlated beams from collapsing (GMapping likewise moves to the matched pose and
-    # tempers only the weights).
     untempered = params.likelihood._replace(gain=jnp.float32(1.0))
     raw_log_lik = endpoint_log_likelihoods(spec, grid_map.hit_dist2, candidates, inputs.ranges, sensor, untempered)
     log_motion = motion.log_density(candidates, pose, inputs.motion, params.motion)
-    log_terms = params.likelihood.gain * raw_log_lik + log_motion
-    log_eta = jax.scipy.special.logsumexp(log_terms) + jnp.sum(jnp.log(spacing))
+    log_eta = jax.scipy.special.logsumexp(params.likelihood.gain * raw_log_lik + log_motion) + jnp.sum(jnp.log(spacing))
 
-    w = jax.nn.softmax(raw_log_lik + log_motion)
+    w = jax.nn.softmax(fit_gain * raw_log_lik + log_motion)
     mean_offset = w @ offsets
     centred = offsets - mean_offset
     cov = (centred * w[:, None]).T @ centred + jnp.diag((_REGULARIZER * spacing) ** 2)
-    draw = mean_offset + jnp.linalg.cholesky(cov) @ jax.random.normal(key_sample, (3,))
-    smp_pose = result.pose + draw
-    smp_pose = smp_pose.at[2].set(wrap_angle(smp_pose[2]))
+    mean = result.pose + mean_offset
+    mean = mean.at[2].set(wrap_angle(mean[2]))
+    matched = (result.score >= sm.min_score) & jnp.isfinite(log_eta)
+    return MatchedGaussian(mean, jnp.linalg.cholesky(cov), log_eta, matched)
 
-    fallback = ~(result.score >= sm.min_score) | ~jnp.isfinite(log_eta)
+
+def gaussian_log_density(poses: Float[Array, "... 3"], gaussian: MatchedGaussian) -> Float[Array, "..."]:
+    """log N(poses; mean, L L^T) with the angle residual wrapped (density in m^-2 rad^-1)."""
+    residual = poses - gaussian.mean
+    residual = residual.at[..., 2].set(wrap_angle(residual[..., 2]))
+    z = jax.scipy.linalg.solve_triangular(gaussian.chol, residual[..., None], lower=True)[..., 0]
+    log_det = jnp.sum(jnp.log(jnp.diag(gaussian.chol)))
+    return -0.5 * jnp.sum(z**2, axis=-1) - log_det - 1.5 * _LOG_2PI
+
+
+def sample_gaussian(key, gaussian: MatchedGaussian, shape=()) -> Float[Array, "... 3"]:
+    """Draws from a :class:`MatchedGaussian` (angles wrapped)."""
+    draw = gaussian.mean + jax.random.normal(key, shape + (3,)) @ gaussian.chol.T
+    return draw.at[..., 2].set(wrap_angle(draw[..., 2]))
+
+
+def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
+    """One SMP draw for one particle (see the module docstring)."""
+    key_sample, key_fallback = jax.random.split(key)
+    gaussian = matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain=1.0)
+    smp_pose = sample_gaussian(key_sample, gaussian)
+    fallback = ~gaussian.matched
     op = odometry.propose(key_fallback, pose, grid_map, inputs, sensor, params, config)
     return ProposalOutput(
         jnp.where(fallback, op.pose, smp_pose),
-        jnp.where(fallback, op.log_weight_increment, log_eta),
+        jnp.where(fallback, op.log_weight_increment, gaussian.log_eta),
         fallback,
     )
