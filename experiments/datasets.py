@@ -41,6 +41,9 @@ SETTINGS = {
         "angular_update=0.5",
         "beam_stride=2",
         "max_insert_range=15.0",
+        # Odometry's extent plus 15 m: the MIT CSAIL path leaves odometry's extent plus 8 m
+        # (the default) by several metres; poses and beams that leave the grid are lost.
+        "map_padding=15.0",
         "likelihood.gain=0.1",
         "lookahead.alpha=0.5",
     ],
