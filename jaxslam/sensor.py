@@ -20,7 +20,6 @@ import jax.numpy as jnp
 from jax.scipy.special import ndtr as _ndtr
 from jaxtyping import Array, Bool, Float, UInt8
 
-from jaxslam.geometry import compose
 from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
 
 _LOG_2PI = 1.8378770664093453
@@ -88,14 +87,9 @@ def endpoint_fit(
     the map; the fit is 0 beyond the field radius and outside the map. Beams without a
     return or below range_min do not count.
     """
-    origin = compose(pose, sensor.laser_pose)
-    angle = origin[2] + sensor.beam_angles
-    ends = origin[:2] + ranges[:, None] * jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
-    idx = flat_index(spec, world_to_cell(spec, ends))
-    d2 = hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR)
-    d2_m = d2.astype(jnp.float32) * (spec.resolution**2)
-    fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2_m / sigma**2))
-    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
+    d2, valid = endpoint_cell_distances(spec, hit_dist2, pose[None], ranges, sensor)
+    d2_m = d2[0].astype(jnp.float32) * (spec.resolution**2)
+    fit = jnp.where(d2[0] == FAR, 0.0, jnp.exp(-0.5 * d2_m / sigma**2))
     return fit, valid
 
 
@@ -132,6 +126,20 @@ def endpoint_log_likelihoods(
     depends on the stored squared cell distance (uint8), so it is read from a 256-entry
     table (:func:`per_beam_log_likelihood_table`) instead of evaluating exp and log per beam.
     """
+    d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
+    per_beam = per_beam_log_likelihood_table(spec, params)[d2.astype(jnp.int32)]
+    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+
+
+def endpoint_cell_distances(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+) -> tuple[UInt8[Array, "L B"], Bool[Array, "B"]]:
+    """The stored squared cell distance at every beam's endpoint for L robot poses (``FAR``
+    outside the map or the field radius), and which beams count (a return within range)."""
     valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
     beam_x = ranges * jnp.cos(sensor.beam_angles)  # (B,) endpoints in the laser frame (m)
     beam_y = ranges * jnp.sin(sensor.beam_angles)
@@ -142,9 +150,7 @@ def endpoint_log_likelihoods(
     ends = jnp.stack([poses[:, 0:1] + c * robot_x - s * robot_y,
                       poses[:, 1:2] + s * robot_x + c * robot_y], axis=-1)  # (L, B, 2)
     idx = flat_index(spec, world_to_cell(spec, ends))
-    d2 = hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR)  # (L, B) uint8
-    per_beam = per_beam_log_likelihood_table(spec, params)[d2.astype(jnp.int32)]
-    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+    return hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR), valid
 
 
 def per_beam_log_likelihood_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:
