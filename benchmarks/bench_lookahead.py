@@ -31,7 +31,7 @@ import numpy as np
 from jaxslam import rbpf
 from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between, compose
-from jaxslam.grid import GridSpec, empty_map, flat_index, insert_scan, world_to_cell
+from jaxslam.grid import GridSpec, empty_map, insert_scan
 from jaxslam.proposals import lookahead
 from jaxslam.proposals.base import StepInputs
 from jaxslam.sensor import make_sensor, uniform_beams

@@ -256,7 +256,7 @@ def _run_chunk(state, keys, inputs, valid, sensor, params, config):
         # A padding step past the end of the log sees a scan with no usable beam (nothing
         # enters the maps, every weight increment is 0) and may not resample; its pose
         # draws are discarded. Masking, not lax.cond: a cond over the state would copy maps.
-        inp = jax.tree.map(lambda a, b: jnp.where(ok, a, b), inp, _noop_inputs(inp, sensor))
+        inp = jax.tree.map(lambda a, b: jnp.where(ok, a, b), inp, _noop_inputs(inp))
         noop_params = params._replace(resample_threshold=jnp.where(ok, params.resample_threshold, 0.0))
         new_state, info = step(key, state, inp, sensor, noop_params, config)
         new_state = new_state._replace(
@@ -269,7 +269,7 @@ def _run_chunk(state, keys, inputs, valid, sensor, params, config):
     return jax.lax.scan(body, state, (keys, inputs, valid))
 
 
-def _noop_inputs(inputs: StepInputs, sensor: SensorSpec) -> StepInputs:
+def _noop_inputs(inputs: StepInputs) -> StepInputs:
     """Inputs of a padding step: no motion and only invalid (below range_min) beams."""
     invalid = jnp.full_like(inputs.ranges, -1.0)
     return StepInputs(

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from jaxslam import motion as M
-from jaxslam.geometry import between
 
 PARAMS = M.MotionParams(*(jnp.float32(v) for v in (0.1, 0.2, 0.1, 0.2, 0.01, 0.005)))
 POSE = np.array([1.0, 2.0, 0.7], np.float32)

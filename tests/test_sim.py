@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxslam.geometry import between, wrap_angle
+from jaxslam.geometry import between
 from jaxslam.motion import noise_std
 from jaxslam.sensor import make_sensor, uniform_beams
 from jaxslam.sim import (

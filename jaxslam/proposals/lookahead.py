@@ -42,7 +42,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion, resampling
-from jaxslam.geometry import compose
 from jaxslam.grid import GridSpec
 from jaxslam.proposals import scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
