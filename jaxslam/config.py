@@ -102,6 +102,8 @@ class ScanMatchParams(NamedTuple):
     """Initial step (rad) of the hill climber and the stencil spacing in theta."""
     min_score: Float[Array, ""]
     """Mean per-beam match quality (0..1) under which the match counts as failed (fall back to OP)."""
+    min_std_fraction: Float[Array, ""]
+    """Floor of the SMP Gaussian's std, as a fraction of the stencil spacing (sets particle diversity)."""
 
 
 class LookaheadParams(NamedTuple):
@@ -140,6 +142,7 @@ _DEFAULTS: dict[str, float] = {
     "insertion.logodds_min": -4.0, "insertion.logodds_max": 4.0,
     "insertion.no_return_free_range": 5.0,
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
+    "scan_match.min_std_fraction": 0.1,
     "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5,
     "resample_threshold": 0.5,
 }

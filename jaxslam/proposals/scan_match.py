@@ -29,7 +29,6 @@ from jaxslam.scan_matching import match
 from jaxslam.sensor import endpoint_log_likelihoods
 
 _STENCIL = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float32)  # (27, 3), NumPy: see scan_matching
-_REGULARIZER = 0.1  # floor of the fitted std, as a fraction of the stencil spacing
 
 
 class MatchedGaussian(NamedTuple):
@@ -72,7 +71,7 @@ def matched_gaussian(pose, grid_map, inputs: StepInputs, sensor, params, config,
     w = jax.nn.softmax(fit_gain * raw_log_lik + log_motion)
     mean_offset = w @ offsets
     centred = offsets - mean_offset
-    cov = (centred * w[:, None]).T @ centred + jnp.diag((_REGULARIZER * spacing) ** 2)
+    cov = (centred * w[:, None]).T @ centred + jnp.diag((sm.min_std_fraction * spacing) ** 2)
     mean = result.pose + mean_offset
     mean = mean.at[2].set(wrap_angle(mean[2]))
     matched = (result.score >= sm.min_score) & jnp.isfinite(log_eta)
