@@ -8,12 +8,24 @@ broadcasts over leading axes and works on both JAX and NumPy inputs (it uses
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 
 def wrap_angle(theta: Float[Array, "..."]) -> Float[Array, "..."]:
     """Wrap angles (rad) to the half-open interval (-pi, pi]."""
     return jnp.pi - jnp.mod(jnp.pi - theta, 2.0 * jnp.pi)
+
+
+def wrap_angle_np(theta) -> np.ndarray:
+    """:func:`wrap_angle` on the host in float64 NumPy (the JAX version computes in float32).
+
+    Angles already in (-pi, pi] are returned bit for bit. For readers, writers, the simulator's
+    path builders and other host code where float32 would cost precision.
+    """
+    theta = np.asarray(theta, np.float64)
+    inside = (theta > -np.pi) & (theta <= np.pi)
+    return np.where(inside, theta, np.pi - np.mod(np.pi - theta, 2.0 * np.pi))
 
 
 def make_pose(x, y, theta) -> Float[Array, "... 3"]:

@@ -21,8 +21,8 @@ from jax.scipy.special import ndtr as _ndtr
 from jaxtyping import Array, Bool, Float, UInt8
 
 from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
+from jaxslam.motion import _LOG_2PI
 
-_LOG_2PI = 1.8378770664093453
 
 
 class SensorSpec(NamedTuple):

@@ -163,3 +163,17 @@ def test_leading_axes_broadcast(fn):
     for i in range(2):
         for j in range(5):
             np.testing.assert_allclose(got[i, j], np.asarray(fn(a[i, 0], b[0, j])), atol=1e-6)
+
+
+def test_wrap_angle_np_matches_jax_version_in_float64():
+    from jaxslam.geometry import wrap_angle, wrap_angle_np
+
+    theta = np.concatenate([np.linspace(-20.0, 20.0, 2001), [np.pi, -np.pi, 3 * np.pi, -3 * np.pi, 0.0]])
+    wrapped = wrap_angle_np(theta)
+    assert wrapped.dtype == np.float64
+    assert np.all(wrapped > -np.pi) and np.all(wrapped <= np.pi)
+    np.testing.assert_allclose(np.cos(wrapped), np.cos(theta), atol=1e-9)
+    np.testing.assert_allclose(np.sin(wrapped), np.sin(theta), atol=1e-9)
+    np.testing.assert_allclose(wrapped, np.asarray(wrap_angle(theta.astype(np.float32)), np.float64), atol=1e-5)
+    inside = theta[(theta > -np.pi) & (theta <= np.pi)]
+    np.testing.assert_array_equal(wrap_angle_np(inside), inside)  # bit for bit in range

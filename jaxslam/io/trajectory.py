@@ -19,7 +19,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxslam.geometry import between, compose, interpolate
+from jaxslam.geometry import between, compose, interpolate, wrap_angle_np
 from jaxslam.laserlog import LaserLog, LogError
 
 __all__ = [
@@ -117,15 +117,8 @@ def trajectory_per_scan(log: LaserLog, processed_indices, processed_poses) -> np
     result = np.asarray(compose(poses[anchor], motion), dtype=np.float64)
     # Processed scans keep their pose exactly (compose runs in float32).
     result[idx] = poses
-    result[idx, 2] = np.asarray(_wrap(poses[:, 2]))
+    result[idx, 2] = np.asarray(wrap_angle_np(poses[:, 2]))
     return result
-
-
-def _wrap(theta: np.ndarray) -> np.ndarray:
-    """Angles (rad) wrapped to (-pi, pi] in float64 (the jnp version is float32); angles
-    already in range are returned bit for bit."""
-    inside = (theta > -np.pi) & (theta <= np.pi)
-    return np.where(inside, theta, np.pi - np.mod(np.pi - theta, 2.0 * np.pi))
 
 
 def write_trajectory(path, timestamps, poses) -> None:

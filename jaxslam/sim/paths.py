@@ -11,11 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxslam.geometry import wrap_angle_np
+
 _TINY = 1e-9
-
-
-def _wrap(theta):
-    return np.pi - np.mod(np.pi - theta, 2.0 * np.pi)
 
 
 def _direction_angle(v) -> float:
@@ -69,7 +67,7 @@ def _drive(pieces: list[_Piece], step_length: float) -> np.ndarray:
 def _spin(position, heading_from: float, heading_to: float, max_turn_per_step: float) -> np.ndarray:
     """Poses turning on the spot in equal increments of at most ``max_turn_per_step``,
     excluding the start; the shorter way round."""
-    delta = float(_wrap(heading_to - heading_from))
+    delta = float(wrap_angle_np(heading_to - heading_from))
     count = int(np.ceil(abs(delta) / max_turn_per_step - 1e-9))
     if count == 0:
         return np.zeros((0, 3))
@@ -126,7 +124,7 @@ def waypoint_path(
         else:
             poses.append(_spin(*leg[1:], max_turn_per_step))
     out = np.concatenate(poses, axis=0)
-    out[:, 2] = _wrap(out[:, 2])
+    out[:, 2] = wrap_angle_np(out[:, 2])
     return out
 
 
@@ -158,7 +156,7 @@ def _plan(waypoints, radius: float):
     tangents: list[float | None] = [None] * (num_lines + 1)
     turns = np.zeros(num_lines + 1)
     for i in range(1, num_lines):
-        turns[i] = float(_wrap(directions[i] - directions[i - 1]))
+        turns[i] = float(wrap_angle_np(directions[i] - directions[i - 1]))
         tangent = radius * np.tan(0.5 * abs(turns[i]))
         # An arc may use half of a line (the other half may serve the line's other corner),
         # or the whole first or last line.
@@ -218,7 +216,7 @@ def circle_path(
     alpha = start_angle + sign * sweep * np.arange(count + 1) / count
     x = center[0] + radius * np.cos(alpha)
     y = center[1] + radius * np.sin(alpha)
-    return np.stack([x, y, _wrap(alpha + sign * 0.5 * np.pi)], axis=-1)
+    return np.stack([x, y, wrap_angle_np(alpha + sign * 0.5 * np.pi)], axis=-1)
 
 
 def concat_paths(*paths, atol: float = 1e-6) -> np.ndarray:
@@ -229,7 +227,7 @@ def concat_paths(*paths, atol: float = 1e-6) -> np.ndarray:
         path = np.asarray(path, np.float64).reshape(-1, 3)
         last, first = out[-1][-1], path[0]
         gap = np.hypot(*(first[:2] - last[:2]))
-        turn = abs(float(_wrap(first[2] - last[2])))
+        turn = abs(float(wrap_angle_np(first[2] - last[2])))
         if gap > atol or turn > atol:
             raise ValueError(f"concat_paths: a path starts {gap:.3g} m and {turn:.3g} rad away from where "
                              "the previous one ended")

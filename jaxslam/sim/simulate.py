@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from jaxslam.geometry import between, compose
+from jaxslam.geometry import between, compose, wrap_angle_np
 from jaxslam.laserlog import LaserLog
 from jaxslam.motion import MotionParams, noise_std
 from jaxslam.sensor import SensorSpec
@@ -171,7 +171,7 @@ def noisy_odometry(key: PRNGKeyArray, true_poses, params: MotionParams) -> np.nd
     c, s = np.cos(headings[:-1]), np.sin(headings[:-1])
     steps = np.stack([c * noisy[:, 0] - s * noisy[:, 1], s * noisy[:, 0] + c * noisy[:, 1]], axis=-1)
     xy = true_poses[0, :2] + np.concatenate([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
-    wrapped = np.pi - np.mod(np.pi - headings, 2.0 * np.pi)  # (-pi, pi], as geometry.wrap_angle
+    wrapped = wrap_angle_np(headings)
     return np.concatenate([xy, wrapped[:, None]], axis=1)
 
 
