@@ -17,7 +17,8 @@ from pathlib import Path
 from jaxslam.config import ConfigError
 
 
-def _parse_assignments(items: list[str]) -> dict[str, str]:
+def parse_assignments(items: list[str]) -> dict[str, str]:
+    """``["a.b=1", ...]`` (the ``--set`` flags) -> ``{"a.b": "1"}``; a malformed item raises ``ConfigError``."""
     out = {}
     for item in items:
         if "=" not in item:
@@ -53,7 +54,7 @@ def build_config_and_params(args: argparse.Namespace):
     config_values.update({k: v for k, v in flags.items() if v is not None})
     if getattr(args, "alpha", None) is not None:
         param_values["lookahead.alpha"] = args.alpha
-    for name, value in _parse_assignments(args.set or []).items():
+    for name, value in parse_assignments(args.set or []).items():
         if name in config_fields:
             config_values[name] = value
         else:
@@ -75,6 +76,8 @@ def _add_filter_options(p: argparse.ArgumentParser, default_proposal: str, defau
     p.add_argument("--chunk-size", type=int, default=32, help="steps per compiled chunk (progress granularity)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.add_argument("--out", default="out", help="output folder")
+    p.add_argument("--refine", action="store_true",
+                   help="also localise every scan in the final map: trajectory_refined.txt (jaxslam.refine)")
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
@@ -102,7 +105,17 @@ def _map_and_write(log, config, params, args, source: str, world=None) -> int:
 
     result = run(jax.random.key(args.seed), log, config, params, chunk_size=args.chunk_size,
                  progress=not args.no_progress)
-    summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world)
+    refined = None
+    if getattr(args, "refine", False):
+        import numpy as np
+
+        from jaxslam.refine import refine_trajectory
+
+        best = int(np.argmax(np.asarray(result.state.log_weights)))
+        refined = refine_trajectory(result.config.grid, result.state.maps.hit_dist2[best], result.trajectory,
+                                    log.ranges, log.sensor, params, result.config)
+    summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
+                                 refined=refined)
     t = summary["timings"]
     print(f"processed {summary['scans_processed']} of {summary['scans_in_log']} scans in {t['total']:.1f} s "
           f"(compile {t['compile']:.1f} s, real-time factor {t['real_time_factor']:.1f}); "

@@ -104,6 +104,10 @@ class ScanMatchParams(NamedTuple):
     """Mean per-beam match quality (0..1) under which the match counts as failed (fall back to OP)."""
     min_std_fraction: Float[Array, ""]
     """Floor of the SMP Gaussian's std, as a fraction of the stencil spacing (sets particle diversity)."""
+    start_noise: Float[Array, ""]
+    """The SMP's hill climber starts from a draw of the motion model with its stds times this
+    (GMapping: 1, each particle matches from its own odometry sample, so particles that share a
+    map can land in different optima); 0 starts every particle from the odometry prediction."""
 
 
 class LookaheadParams(NamedTuple):
@@ -113,6 +117,11 @@ class LookaheadParams(NamedTuple):
     """Defensive share in [0, 1): 0 is the paper's Eq. 10; > 0 makes the weights unbiased."""
     resample_threshold: Float[Array, ""]
     """Localizers are resampled inside the horizon when their ESS < this * L."""
+    localizer_gain: Float[Array, ""]
+    """Likelihood gain inside the localizer filter (its weights a, g and so the selection).
+    1 uses each scan's own sharpness, as the SMP's fit does. The SLAM weight increment is
+    then scaled by ``likelihood.gain / localizer_gain`` (the tempered evidence), so setting
+    it equal to ``likelihood.gain`` tempers the localizers and leaves the increment as is."""
 
 
 class SlamParams(NamedTuple):
@@ -142,8 +151,8 @@ _DEFAULTS: dict[str, float] = {
     "insertion.logodds_min": -4.0, "insertion.logodds_max": 4.0,
     "insertion.no_return_free_range": 5.0,
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
-    "scan_match.min_std_fraction": 0.1,
-    "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5,
+    "scan_match.min_std_fraction": 0.1, "scan_match.start_noise": 1.0,
+    "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
     "resample_threshold": 0.5,
 }
 
@@ -167,6 +176,8 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
             raise ConfigError(f"parameter {name} must be a number, got {value!r}") from None
     if not 0.0 <= merged["lookahead.alpha"] < 1.0:
         raise ConfigError(f"parameter lookahead.alpha must be in [0, 1), got {merged['lookahead.alpha']}")
+    if merged["lookahead.localizer_gain"] <= 0:
+        raise ConfigError(f"parameter lookahead.localizer_gain must be > 0, got {merged['lookahead.localizer_gain']}")
     if merged["likelihood.z_rand"] <= 0:
         raise ConfigError("parameter likelihood.z_rand must be > 0 (it keeps log-likelihoods finite)")
 

@@ -49,6 +49,19 @@ def test_map_writes_every_output(tmp_path, small_log, capsys):
     assert "processed" in capsys.readouterr().out
 
 
+def test_map_refine_writes_a_refined_trajectory(tmp_path, small_log):
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=20)
+    out = tmp_path / "out"
+    assert main(["map", str(log_path), "--particles", "3", "--no-progress", "--refine", "--set", "linear_update=0.3",
+                 "--set", "max_insert_range=8", "--out", str(out)]) == 0
+    plain, refined = np.loadtxt(out / "trajectory.txt"), np.loadtxt(out / "trajectory_refined.txt")
+    assert refined.shape == plain.shape == (20, 4)
+    np.testing.assert_array_equal(refined[:, 0], plain[:, 0])  # the same scans, the same stamps
+    summary = json.loads((out / "summary.json").read_text())
+    assert 0.5 < summary["refinement"]["matched_fraction"] <= 1.0
+
+
 def test_config_file_and_flags(tmp_path, small_log):
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=20)
@@ -68,6 +81,7 @@ def test_config_file_and_flags(tmp_path, small_log):
         (["--set", "linear_update"], "NAME=VALUE"),
         (["--set", "num_particles=lots"], "num_particles"),
         (["--set", "lookahead.alpha=1.5"], "alpha"),
+        (["--set", "lookahead.localizer_gain=0"], "localizer_gain"),
     ],
 )
 def test_bad_settings_name_the_problem(tmp_path, small_log, capsys, args, message):

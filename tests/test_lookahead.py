@@ -257,15 +257,21 @@ def test_fused_likelihood_equals_direct_formula(room_map):
     np.testing.assert_allclose(fused, jax.vmap(direct)(poses), rtol=1e-5, atol=1e-3)
 
 
-@pytest.mark.parametrize("alpha", [0.0, 0.3])
-def test_grid_lp_k0_increment_is_log_mean_likelihood(room_map, alpha):
-    params = default_params(**{"lookahead.alpha": alpha})
+@pytest.mark.parametrize("alpha,localizer_gain", [(0.0, 1.0), (0.3, 1.0), (0.3, 0.1), (0.3, 0.5)])
+def test_grid_lp_k0_increment_is_log_mean_likelihood(room_map, alpha, localizer_gain):
+    """k = 0: the localizers weigh with ``lookahead.localizer_gain``; the SLAM increment is the
+    log mean of their likelihoods scaled by likelihood.gain / localizer_gain (the evidence
+    tempered to the filter's gain; equal gains leave it as is)."""
+    params = default_params(**{"lookahead.alpha": alpha, "lookahead.localizer_gain": localizer_gain})
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0)
     ex = _jit_explain(jax.random.key(0), pose, room_map, inputs, SENSOR, params, config)
+    localizer_lik = params.likelihood._replace(gain=jnp.float32(localizer_gain))
     g = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
-                                                   params.likelihood))(ex.poses_t)
-    expected = jax.scipy.special.logsumexp(g) - math.log(config.num_localizers)
+                                                   localizer_lik))(ex.poses_t)
+    np.testing.assert_allclose(ex.log_lik_t, g, rtol=1e-5, atol=1e-3)
+    scale = float(params.likelihood.gain) / localizer_gain
+    expected = scale * (jax.scipy.special.logsumexp(g) - math.log(config.num_localizers))
     np.testing.assert_allclose(ex.draw.log_weight_increment, expected, rtol=1e-5, atol=1e-3)
     out = _jit_propose(jax.random.key(0), pose, room_map, inputs, SENSOR, params, config)
     np.testing.assert_allclose(out.pose, ex.poses_t[ex.draw.index], atol=1e-5)
@@ -279,12 +285,15 @@ def test_scan_matched_localizers_are_importance_weighted(room_map):
     from jaxslam import motion
     from jaxslam.proposals import scan_match
 
-    params = default_params()
+    # Equal gains: the increment is the localizers' own log mean weight, unscaled. No start
+    # noise, so that the Gaussian recomputed here is the one the proposal drew from.
+    params = default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1,
+                               "scan_match.start_noise": 0.0})
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0, lookahead_initial="scan_match")
     ex = _jit_explain(jax.random.key(3), pose, room_map, inputs, SENSOR, params, config)
     gaussian = scan_match.matched_gaussian(pose, room_map, inputs, SENSOR, params, config,
-                                           fit_gain=params.likelihood.gain)
+                                           fit_gain=params.lookahead.localizer_gain)
     assert bool(gaussian.matched)
     lik = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
                                                      params.likelihood))(ex.poses_t)
@@ -398,3 +407,24 @@ def test_revisiting_accuracy_weights_particle_errors():
     paths = particle_paths(proposed, ancestors, np.zeros(3))
     np.testing.assert_array_equal(paths[0, 1], proposed[0, 1])
     np.testing.assert_array_equal(paths[0, 2], proposed[1, 0])
+
+
+def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
+    """scan_match.start_noise: 0 starts the hill climber at the prediction (bit for bit the same
+    as no start key); 1 starts each particle from its own odometry draw, as GMapping does: the
+    matches differ (the particles keep diversity) but stay on the same optimum."""
+    from jaxslam.proposals import scan_match
+
+    inputs, pose = room_inputs(0)
+    config = lp_config(horizon=0)
+
+    def fit(noise, key=None):
+        params = default_params(**{"scan_match.start_noise": noise})
+        return scan_match.matched_gaussian(pose, room_map, inputs, SENSOR, params, config, 1.0, start_key=key)
+
+    reference = fit(0.0)
+    np.testing.assert_array_equal(fit(0.0, jax.random.key(1)).mean, reference.mean)
+    means = np.stack([np.asarray(fit(1.0, jax.random.key(k)).mean) for k in range(12)])
+    assert np.ptp(means[:, 0]) + np.ptp(means[:, 1]) > 1e-4  # the start matters
+    np.testing.assert_allclose(means[:, :2], np.broadcast_to(reference.mean[:2], (12, 2)), atol=0.03)
+    np.testing.assert_allclose(means[:, 2], np.full(12, float(reference.mean[2])), atol=0.03)

@@ -23,6 +23,14 @@ p(z_t | x_{t-1}, m, u_t): E_J[exp(g_J) / (L p_J)] = mean_i exp(g_i) whenever eve
 sample with g_i > -inf has p_i > 0, and alpha bounds the weight by
 sum(exp(g)) / (L alpha).
 
+Gains. :func:`propose` weighs the localizers with ``lookahead.localizer_gain`` (default
+1: each scan's own likelihood, the sharpness the SMP fits with) and multiplies the increment
+by ``likelihood.gain / localizer_gain``, so that the SLAM weights get the evidence tempered
+to the filter's gain like every other proposal's. Tempering the localizers too (the gains
+equal) flattens their weights until the selection barely prefers the poses that explain
+the scans: in the box world that LP drifted like the OP (median RA 1.0 m with 50 SLAM
+particles, against 0.27 m untempered, same six seeds and settings).
+
 The model-independent core (:func:`run_horizon`, :func:`back_propagate`,
 :func:`selection_log_probs`, :func:`select`, :func:`lookahead_core`) takes the
 time-t samples, their log-likelihoods and two callables for the future steps, so it
@@ -97,7 +105,8 @@ class LookaheadDraw(NamedTuple):
     log_p: Float[Array, "L"]
     """log p_i, the selection probabilities (logsumexp = 0)."""
     log_weight_increment: Float[Array, ""]
-    """g_J - log L - log p_J (-inf when alpha = 0 and every V is zero)."""
+    """g_J - log L - log p_J (-inf when alpha = 0 and every V is zero). The grid model
+    (:func:`propose`, :func:`explain`) multiplies it by ``likelihood.gain / lookahead.localizer_gain``."""
     fallback: Bool[Array, ""]
     """Every V_i is zero: the draw used the defensive component alone."""
 
@@ -292,7 +301,12 @@ class LookaheadExplanation(NamedTuple):
 def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, config, return_history):
     spec = config.grid
     num = config.num_localizers
-    move, log_likelihood = _grid_model(params.motion, spec, grid_map.hit_dist2, sensor, params.likelihood)
+    # The localizer filter weighs with its own gain (default 1: the scan's own sharpness, as the
+    # SMP's fit); the SLAM weight gets the evidence tempered to the filter's likelihood gain.
+    localizer_gain = params.lookahead.localizer_gain
+    evidence_scale = params.likelihood.gain / localizer_gain
+    localizer_lik = params.likelihood._replace(gain=localizer_gain)
+    move, log_likelihood = _grid_model(params.motion, spec, grid_map.hit_dist2, sensor, localizer_lik)
     start = jnp.broadcast_to(pose, (num, 3))
     key_initial = jax.random.fold_in(key, _TAG_INITIAL)
     poses_t = motion.sample(key_initial, start, inputs.motion, params.motion)
@@ -302,8 +316,11 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
         # make g an importance weight: g_i = log p(z_t | x_i) + log p(x_i | x_{t-1}, u_t) - log q(x_i).
         # Steps 2-5 hold unchanged for any proposal q with g so defined (the increment then
         # estimates the same p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
+        # The matcher's random start (scan_match.start_noise) only picks which q is used; drawn
+        # independently of the samples, it leaves the estimate unbiased.
         gaussian = scan_match.matched_gaussian(pose, grid_map, inputs, sensor, params, config,
-                                               fit_gain=params.likelihood.gain)
+                                               fit_gain=localizer_gain,
+                                               start_key=jax.random.fold_in(key_initial, 2))
         matched_t = scan_match.sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
         log_weight_t = (log_likelihood(matched_t, (inputs.motion, inputs.ranges))
                         + motion.log_density(matched_t, pose, inputs.motion, params.motion)
@@ -315,6 +332,7 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
         move, log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,
         resampling.RESAMPLERS[config.resampler], return_history,
     )
+    draw = draw._replace(log_weight_increment=evidence_scale * draw.log_weight_increment)
     return poses_t, log_lik_t, draw, horizon, history
 
 

@@ -44,19 +44,26 @@ class MatchedGaussian(NamedTuple):
     """The match succeeded (score >= ``scan_match.min_score``, finite weight)."""
 
 
-def matched_gaussian(pose, grid_map, inputs: StepInputs, sensor, params, config, fit_gain) -> MatchedGaussian:
+def matched_gaussian(pose, grid_map, inputs: StepInputs, sensor, params, config, fit_gain,
+                     start_key=None) -> MatchedGaussian:
     """Scan-match z_t from the odometry prediction and fit a Gaussian on the 27-pose stencil.
 
     The stencil weights are p(z | x_j, m)^fit_gain p(x_j | x_{t-1}, u): the SMP fits with
     fit_gain = 1 (the scan's own sharpness; tempering the fit too would widen the draws to
     the stencil's size and bend the maps, for nothing: the likelihood gain only exists to
     keep the weights of correlated beams from collapsing, and GMapping likewise moves to the
-    matched pose and tempers only the weights); the scan-matched look-ahead fits with the
-    tempered gain, for a wider cloud of localizers.
+    matched pose and tempers only the weights); the scan-matched look-ahead fits with
+    ``lookahead.localizer_gain``.
+
+    With ``start_key`` the hill climber starts from a motion-model draw whose stds are scaled
+    by ``scan_match.start_noise`` (0: the prediction itself, as without a key).
     """
     spec = config.grid
     sm = params.scan_match
     predicted = compose(pose, inputs.motion)
+    if start_key is not None:
+        start_std = motion.noise_std(inputs.motion, params.motion) * sm.start_noise
+        predicted = compose(pose, inputs.motion + jax.random.normal(start_key, (3,), pose.dtype) * start_std)
     result = match(spec, grid_map.hit_dist2, predicted, inputs.ranges, sensor, params.likelihood,
                    sm.linear_step, sm.angular_step, config.match_iterations)
     spacing = jnp.stack([sm.linear_step, sm.linear_step, sm.angular_step])
@@ -96,7 +103,8 @@ def sample_gaussian(key, gaussian: MatchedGaussian, shape=()) -> Float[Array, ".
 def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
     """One SMP draw for one particle (see the module docstring)."""
     key_sample, key_fallback = jax.random.split(key)
-    gaussian = matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain=1.0)
+    key_start = jax.random.fold_in(key, 1)  # a separate stream: the other two draws stay as they were
+    gaussian = matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain=1.0, start_key=key_start)
     smp_pose = sample_gaussian(key_sample, gaussian)
     fallback = ~gaussian.matched
     op = odometry.propose(key_fallback, pose, grid_map, inputs, sensor, params, config)
