@@ -28,8 +28,9 @@ Gains. :func:`propose` weighs the localizers with ``lookahead.localizer_gain`` (
 by ``likelihood.gain / localizer_gain``, so that the SLAM weights get the evidence tempered
 to the filter's gain like every other proposal's. Tempering the localizers too (the gains
 equal) flattens their weights until the selection barely prefers the poses that explain
-the scans: in the box world that LP drifted like the OP (median RA 1.0 m with 50 SLAM
-particles, against 0.27 m untempered, same six seeds and settings).
+the scans: in the box world (50 SLAM particles, alpha 0.5, 1 m / 0.5 rad updates, seeds 0-5)
+the tempered LP drifted like the OP, median RA 8.8 m and no success, against 0.27 m and 2 of 6
+successes with untempered localizers.
 
 The model-independent core (:func:`run_horizon`, :func:`back_propagate`,
 :func:`selection_log_probs`, :func:`select`, :func:`lookahead_core`) takes the
