@@ -79,6 +79,15 @@ def methods(alpha: float, lp_sm: bool = False) -> list[Method]:
     return out
 
 
+def _capped(method: Method, max_localizers: int, max_horizon: int) -> Method:
+    """``--quick``: at most this many localizers and horizon steps; the label says what runs."""
+    if method.proposal != "lp":
+        return method
+    num, horizon = min(method.num_localizers, max_localizers), min(method.horizon, max_horizon)
+    label = method.label.replace(f"L={method.num_localizers} k={method.horizon}", f"L={num} k={horizon}")
+    return dataclasses.replace(method, label=label, num_localizers=num, horizon=horizon)
+
+
 def cell_key(method: Method, n: int) -> str:
     return f"{method.label} | N={n}"
 
@@ -273,8 +282,7 @@ def main(argv=None):
     if args.quick:
         scenario_kwargs = dict(laps=3, laps_per_visit=3)
         particle_counts = args.particles or [4, 8]
-        method_list = [dataclasses.replace(m, num_localizers=min(m.num_localizers, 20),
-                                           horizon=min(m.horizon, 3)) for m in method_list]
+        method_list = [_capped(m, 20, 3) for m in method_list]
     if args.only:
         method_list = [m for m in method_list if any(s in m.label for s in args.only)]
 
