@@ -113,7 +113,7 @@ def _map_and_write(log, config, params, args, source: str, world=None) -> int:
 
         best = int(np.argmax(np.asarray(result.state.log_weights)))
         refined = refine_trajectory(result.config.grid, result.state.maps.hit_dist2[best], result.trajectory,
-                                    log.ranges, log.sensor, params, result.config)
+                                    log.ranges, log.sensor, params, result.config, odometry=log.odometry)
     summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
                                  refined=refined)
     t = summary["timings"]

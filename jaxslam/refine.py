@@ -11,6 +11,18 @@ localisation in a fixed map, not a second SLAM pass: the map is not changed.
 
 The matching is vmapped over a fixed-size chunk of scans (the last chunk padded), so it
 compiles once per map and scan shape, whatever the number of scans.
+
+A match alone is noisy: in a corridor the scan fits almost as well a few centimetres along
+it, and on the likelihood field's 5 cm cells the hill climber's optimum jitters by about a
+cell from scan to scan, while the odometry between two consecutive scans is good to about a
+centimetre. So, given the log's odometry, :func:`smooth_with_odometry` fuses the two: every
+match is a measurement of its scan's pose with the covariance of the tempered likelihood on
+the matcher's 27-pose stencil, every odometry step a measurement of the relative motion with
+the motion model's stds, and the trajectory is the least-squares (maximum a posteriori)
+solution of that chain, by Gauss-Newton on its block-tridiagonal normal equations, with
+Huber weights on the matches so that a match caught in a wrong optimum cannot pull the
+chain far. Where the match is weak (along a corridor) the odometry carries the trajectory;
+where it is sharp the match does.
 """
 
 from __future__ import annotations
@@ -23,21 +35,28 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, UInt8
 
-from jaxslam.geometry import wrap_angle_np
+from jaxslam import motion
+from jaxslam.geometry import weighted_mean_and_covariance, wrap_angle_np
 from jaxslam.grid import GridSpec
+from jaxslam.proposals.scan_match import stencil_poses
 from jaxslam.scan_matching import match
-from jaxslam.sensor import SensorSpec, subsample_beams
+from jaxslam.sensor import SensorSpec, endpoint_log_likelihoods, subsample_beams
 
 
 class RefinedTrajectory(NamedTuple):
     """A trajectory after localisation in the final map."""
 
     poses: np.ndarray
-    """(T, 3) float64 poses (m, m, rad): the matched pose where the match held, else the input."""
+    """(T, 3) float64 poses (m, m, rad): without odometry the matched pose where the match
+    held, else the input; with odometry the matches and the odometry fused."""
     matched: np.ndarray
     """(T,) bool: the scan's match held (score >= ``min_score``)."""
     scores: np.ndarray
     """(T,) float: the match score (mean per-beam fit, 0..1) at the matched pose."""
+    matched_poses: np.ndarray
+    """(T, 3) float64: the match of every scan (the input pose where it failed)."""
+    match_covariances: np.ndarray
+    """(T, 3, 3) float64: each match's covariance (tempered likelihood on the stencil)."""
 
 
 def refine_trajectory(
@@ -48,6 +67,7 @@ def refine_trajectory(
     sensor: SensorSpec,
     params,
     config,
+    odometry: Float[np.ndarray, "T 3"] | None = None,
     chunk_size: int = 256,
 ) -> RefinedTrajectory:
     """Scan-match every scan against one map, starting at its trajectory pose.
@@ -60,6 +80,8 @@ def refine_trajectory(
       sensor: the laser.
       params: ``SlamParams``: the likelihood and the scan matcher's steps and ``min_score``.
       config: ``SlamConfig``: ``beam_stride`` and ``match_iterations``.
+      odometry: (T, 3) the log's odometry poses, one per scan; when given, the matches are
+        fused with it (:func:`smooth_with_odometry`, motion stds from ``params.motion``).
       chunk_size: scans matched per compiled call (static).
 
     Returns:
@@ -76,19 +98,26 @@ def refine_trajectory(
     pose_in[:num] = poses
     ranges_in = np.zeros((padded, lik_ranges.shape[1]), np.float32)
     ranges_in[:num] = lik_ranges
-    out_pose, out_score = [], []
+    if odometry is not None and np.shape(odometry) != poses.shape:
+        raise ValueError(f"refine_trajectory: odometry {np.shape(odometry)} and poses {poses.shape} do not match")
+    out_pose, out_score, out_cov = [], [], []
     for start in range(0, padded, chunk_size):
         sl = slice(start, start + chunk_size)
-        p, s = _match_chunk(spec, hit_dist2, jnp.asarray(pose_in[sl]), jnp.asarray(ranges_in[sl]), lik_sensor,
-                            params, config.match_iterations)
+        p, s, c = _match_chunk(spec, hit_dist2, jnp.asarray(pose_in[sl]), jnp.asarray(ranges_in[sl]), lik_sensor,
+                               params, config.match_iterations)
         out_pose.append(np.asarray(p))
         out_score.append(np.asarray(s))
+        out_cov.append(np.asarray(c))
     matched_pose = np.concatenate(out_pose)[:num].astype(np.float64)
     scores = np.concatenate(out_score)[:num]
+    covariances = np.concatenate(out_cov)[:num].astype(np.float64)
     ok = scores >= float(params.scan_match.min_score)
-    refined = np.where(ok[:, None], matched_pose, poses)
-    refined[:, 2] = wrap_angle_np(refined[:, 2])
-    return RefinedTrajectory(refined, ok, scores)
+    matched_pose = np.where(ok[:, None], matched_pose, poses)
+    matched_pose[:, 2] = wrap_angle_np(matched_pose[:, 2])
+    refined = matched_pose
+    if odometry is not None:
+        refined = smooth_with_odometry(poses, matched_pose, covariances, ok, odometry, params.motion)
+    return RefinedTrajectory(refined, ok, scores, matched_pose, covariances)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
@@ -98,7 +127,128 @@ def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations):
     def one(pose, scan):
         result = match(spec, hit_dist2, pose, scan, sensor, params.likelihood, sm.linear_step, sm.angular_step,
                        iterations)
-        return result.pose, result.score
+        # The match's covariance: the tempered likelihood (the gain that makes the beams'
+        # evidence honest) normalised over the stencil, plus the proposal's floor.
+        candidates, _, spacing = stencil_poses(result.pose, sm)
+        log_lik = endpoint_log_likelihoods(spec, hit_dist2, candidates, scan, sensor, params.likelihood)
+        _, cov = weighted_mean_and_covariance(candidates, jax.nn.softmax(log_lik))
+        cov = cov + jnp.diag((sm.min_std_fraction * spacing) ** 2)
+        return result.pose, result.score, cov
 
     return jax.vmap(one)(poses, ranges)
+
+
+# ---------------------------------------------------------------------------
+# Fusing the matches with the odometry
+# ---------------------------------------------------------------------------
+
+
+def smooth_with_odometry(
+    initial: Float[np.ndarray, "T 3"],
+    measured: Float[np.ndarray, "T 3"],
+    measured_cov: Float[np.ndarray, "T 3 3"],
+    measured_ok: np.ndarray,
+    odometry: Float[np.ndarray, "T 3"],
+    motion_params,
+    iterations: int = 20,
+    huber: float = 3.0,
+    tolerance: float = 1e-6,
+) -> np.ndarray:
+    """The least-squares trajectory through pose measurements and odometry steps.
+
+    Minimises, over the poses x_0 .. x_{T-1},
+
+        sum_t h(||x_t - m_t||_{C_t^-1})  +  sum_t ||(x_{t-1}^-1 (+) x_t) - u_t||^2_{S_t^-1}
+
+    where m_t and C_t are the measured poses and their covariances (only where
+    ``measured_ok``), u_t = o_{t-1}^-1 (+) o_t the odometry steps with S_t = diag(std^2) of the
+    motion model, and h the Huber loss (quadratic up to ``huber`` standard deviations, then
+    linear): Gauss-Newton with iteratively reweighted matches, each step one solve of the
+    block-tridiagonal (3 x 3 blocks) normal equations.
+
+    Args:
+      initial: (T, 3) the starting trajectory (m, m, rad), e.g. the filter's.
+      measured: (T, 3) pose measurements; measured_cov: (T, 3, 3) their covariances.
+      measured_ok: (T,) bool, which measurements to use. With none, ``initial`` is returned.
+      odometry: (T, 3) the odometry poses.
+      motion_params: the motion model's ``MotionParams``.
+      iterations: at most this many Gauss-Newton steps; stops earlier once no pose moves by
+        more than ``tolerance`` (m or rad).
+
+    Returns:
+      (T, 3) float64 poses, angles in (-pi, pi].
+    """
+    x = np.array(initial, np.float64)
+    measured = np.asarray(measured, np.float64)
+    ok = np.asarray(measured_ok, bool)
+    num = x.shape[0]
+    if not ok.any() or num == 0:
+        return x
+    info_measured = np.linalg.inv(np.asarray(measured_cov, np.float64)) * ok[:, None, None]
+    steps = _between_np(np.asarray(odometry[:-1], np.float64), np.asarray(odometry[1:], np.float64))
+    std = np.asarray(motion.noise_std(jnp.asarray(steps, jnp.float32), motion_params), np.float64)
+    info_step = 1.0 / std**2  # (T-1, 3): diagonal
+    for _ in range(iterations):
+        # Matches: residual x_t - m_t, Jacobian I, Huber weight on the Mahalanobis distance.
+        r_m = x - measured
+        r_m[:, 2] = wrap_angle_np(r_m[:, 2])
+        d = np.sqrt(np.maximum(np.einsum("ti,tij,tj->t", r_m, info_measured, r_m), 0.0))
+        w = np.where(d <= huber, 1.0, huber / np.maximum(d, 1e-12))
+        diag = info_measured * w[:, None, None]
+        rhs = np.einsum("tij,tj->ti", diag, r_m)
+        # Odometry: residual between(x_{t-1}, x_t) - u_t with Jacobians A (x_{t-1}) and B (x_t).
+        a, b = x[:-1], x[1:]
+        c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+        dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+        r_o = np.stack([c * dx + s * dy, -s * dx + c * dy, b[:, 2] - a[:, 2]], axis=-1) - steps
+        r_o[:, 2] = wrap_angle_np(r_o[:, 2])
+        jac_a = np.zeros((num - 1, 3, 3))
+        jac_a[:, 0, 0], jac_a[:, 0, 1], jac_a[:, 0, 2] = -c, -s, -s * dx + c * dy
+        jac_a[:, 1, 0], jac_a[:, 1, 1], jac_a[:, 1, 2] = s, -c, -c * dx - s * dy
+        jac_a[:, 2, 2] = -1.0
+        jac_b = np.zeros((num - 1, 3, 3))
+        jac_b[:, 0, 0], jac_b[:, 0, 1], jac_b[:, 1, 0], jac_b[:, 1, 1], jac_b[:, 2, 2] = c, s, -s, c, 1.0
+        wa = jac_a * info_step[:, :, None]  # S^-1 A
+        wb = jac_b * info_step[:, :, None]
+        diag = diag.copy()
+        diag[:-1] += np.einsum("tki,tkj->tij", jac_a, wa)
+        diag[1:] += np.einsum("tki,tkj->tij", jac_b, wb)
+        upper = np.einsum("tki,tkj->tij", jac_a, wb)  # block (t-1, t)
+        rhs[:-1] += np.einsum("tki,tk->ti", wa, r_o)
+        rhs[1:] += np.einsum("tki,tk->ti", wb, r_o)
+        diag += 1e-9 * np.eye(3)  # a pose no term pins (a gap without odometry) stays put
+        delta = _solve_block_tridiagonal(diag, upper, -rhs)
+        x += delta
+        x[:, 2] = wrap_angle_np(x[:, 2])
+        if np.max(np.abs(delta)) < tolerance:
+            break
+    return x
+
+
+def _between_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """:func:`jaxslam.geometry.between` in float64 NumPy (odometry poses can be far from 0)."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle_np(b[..., 2] - a[..., 2])], axis=-1)
+
+
+def _solve_block_tridiagonal(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve the symmetric block-tridiagonal system (block Thomas algorithm).
+
+    Args:
+      diag: (T, n, n) diagonal blocks; upper: (T-1, n, n) blocks (t, t+1) (the lower ones are
+        their transposes); rhs: (T, n).
+    """
+    num = diag.shape[0]
+    d = diag.copy()
+    y = rhs.copy()
+    for t in range(1, num):
+        gain = np.linalg.solve(d[t - 1], upper[t - 1]).T  # upper^T d^-1 (d symmetric)
+        d[t] -= gain @ upper[t - 1]
+        y[t] -= gain @ y[t - 1]
+    out = np.empty_like(y)
+    out[-1] = np.linalg.solve(d[-1], y[-1])
+    for t in range(num - 2, -1, -1):
+        out[t] = np.linalg.solve(d[t], y[t] - upper[t] @ out[t + 1])
+    return out
 

@@ -61,3 +61,113 @@ def test_mismatched_shapes_are_named(mapped_office):
     with pytest.raises(ValueError, match="do not match"):
         refine_trajectory(SPEC, grid_map.hit_dist2, np.zeros((4, 3)), scenario.log.ranges[:5],
                           scenario.log.sensor, params, SlamConfig(grid=SPEC))
+
+
+# --- fusing the matches with the odometry --------------------------------------------------
+
+from jaxslam.refine import _solve_block_tridiagonal, smooth_with_odometry  # noqa: E402
+
+
+def _motion(translation_std=1e-3, rotation_std=1e-3):
+    """Motion params with only the floors: the odometry steps are (nearly) exact."""
+    return default_params(**{"motion.srr": 0.0, "motion.srt": 0.0, "motion.str": 0.0, "motion.stt": 0.0,
+                             "motion.min_translation_std": translation_std,
+                             "motion.min_rotation_std": rotation_std}).motion
+
+
+def _arc(num=60):
+    t = np.linspace(0.0, 3.0, num)
+    return np.column_stack([4.0 * np.cos(t), 4.0 * np.sin(t), t + np.pi / 2])
+
+
+def test_block_tridiagonal_solve_matches_a_dense_solve():
+    rng = np.random.default_rng(1)
+    num, n = 7, 3
+    dense = np.zeros((num * n, num * n))
+    for t in range(num):
+        a = rng.normal(size=(n, n))
+        dense[t * n:(t + 1) * n, t * n:(t + 1) * n] = a @ a.T + 4.0 * np.eye(n)
+    upper = rng.normal(size=(num - 1, n, n))
+    for t in range(num - 1):
+        dense[t * n:(t + 1) * n, (t + 1) * n:(t + 2) * n] = upper[t]
+        dense[(t + 1) * n:(t + 2) * n, t * n:(t + 1) * n] = upper[t].T
+    rhs = rng.normal(size=(num, n))
+    diag = np.stack([dense[t * n:(t + 1) * n, t * n:(t + 1) * n] for t in range(num)])
+    got = _solve_block_tridiagonal(diag, upper, rhs)
+    np.testing.assert_allclose(got.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10, atol=1e-12)
+
+
+def test_exact_odometry_averages_the_measurement_noise():
+    truth = _arc()
+    rng = np.random.default_rng(2)
+    sigma = np.array([0.05, 0.05, 0.02])
+    measured = truth + rng.normal(0.0, sigma, truth.shape)
+    cov = np.broadcast_to(np.diag(sigma**2), (truth.shape[0], 3, 3))
+    # The odometry frame is arbitrary: a rigid motion of the truth.
+    c, s = np.cos(1.0), np.sin(1.0)
+    odometry = np.column_stack([c * truth[:, 0] - s * truth[:, 1] + 7.0, s * truth[:, 0] + c * truth[:, 1] - 2.0,
+                                truth[:, 2] + 1.0])
+    start = measured.copy()
+    smoothed = smooth_with_odometry(start, measured, cov, np.ones(truth.shape[0], bool), odometry, _motion())
+    before = np.hypot(*(measured[:, :2] - truth[:, :2]).T)
+    after = np.hypot(*(smoothed[:, :2] - truth[:, :2]).T)
+    # With exact odometry the chain is rigid and 60 measurements pin it: the error shrinks
+    # by about sqrt(60) in translation (less near the ends, where the heading error acts).
+    assert np.median(after) < 0.25 * np.median(before)
+    assert np.max(np.abs(np.angle(np.exp(1j * (smoothed[:, 2] - truth[:, 2]))))) < 0.01
+
+
+def test_a_wrong_match_barely_moves_the_chain():
+    truth = _arc()
+    measured = truth.copy()
+    measured[30, :2] += 2.0  # a match caught in a wrong optimum, 2 m off
+    cov = np.broadcast_to(np.diag([0.02**2, 0.02**2, 0.01**2]), (truth.shape[0], 3, 3))
+    ok = np.ones(truth.shape[0], bool)
+    smoothed = smooth_with_odometry(truth, measured, cov, ok, truth, _motion(0.01, 0.005))
+    assert np.max(np.hypot(*(smoothed[:, :2] - truth[:, :2]).T)) < 0.05
+    # Without the Huber weights the same outlier drags its neighbourhood much further.
+    plain = smooth_with_odometry(truth, measured, cov, ok, truth, _motion(0.01, 0.005), huber=np.inf)
+    assert np.max(np.hypot(*(plain[:, :2] - truth[:, :2]).T)) > 0.1
+
+
+def test_weak_match_directions_follow_the_odometry():
+    """A corridor: the matches pin y and theta, not x; the odometry carries x."""
+    num = 40
+    truth = np.column_stack([np.linspace(0.0, 4.0, num), np.zeros(num), np.zeros(num)])
+    rng = np.random.default_rng(3)
+    measured = truth + np.column_stack([rng.normal(0.0, 0.3, num), rng.normal(0.0, 0.01, num), np.zeros(num)])
+    cov = np.broadcast_to(np.diag([1.0, 0.01**2, 0.005**2]), (num, 3, 3))
+    smoothed = smooth_with_odometry(truth + [0.5, 0.0, 0.0], measured, cov, np.ones(num, bool), truth,
+                                    _motion(0.002, 0.001))
+    steps = np.diff(smoothed[:, 0])
+    np.testing.assert_allclose(steps, np.diff(truth[:, 0]), atol=0.01)  # the odometry's spacing, not the jitter
+    assert np.max(np.abs(smoothed[:, 1])) < 0.01
+
+
+def test_no_usable_match_returns_the_input():
+    truth = _arc(10)
+    out = smooth_with_odometry(truth + 0.1, truth, np.broadcast_to(np.eye(3), (10, 3, 3)), np.zeros(10, bool),
+                               truth, _motion())
+    np.testing.assert_array_equal(out, truth + 0.1)
+
+
+def test_refinement_with_odometry_stays_on_the_truth(mapped_office):
+    """The fused trajectory is as close to the truth as the matches (the simulated odometry
+    is no better than a match here: its gain shows on real logs, see docs/tuning.md)."""
+    scenario, grid_map, params = mapped_office
+    truth = np.asarray(scenario.true_poses, np.float64)
+    rng = np.random.default_rng(0)
+    noisy = truth + rng.normal(0.0, [0.04, 0.04, 0.02], truth.shape)
+    config = SlamConfig(grid=SPEC, beam_stride=1)
+    params = params._replace(motion=scenario.metadata["motion_params"])  # the odometry's true noise
+    refined = refine_trajectory(SPEC, grid_map.hit_dist2, noisy, scenario.log.ranges, scenario.log.sensor,
+                                params, config, odometry=scenario.log.odometry, chunk_size=16)
+    fused = np.hypot(*(refined.poses[:, :2] - truth[:, :2]).T)
+    assert np.median(fused) < 0.02 < np.median(np.hypot(*(noisy[:, :2] - truth[:, :2]).T))
+    cov = refined.match_covariances
+    assert cov.shape == (NUM_SCANS, 3, 3)
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2), atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    with pytest.raises(ValueError, match="odometry"):
+        refine_trajectory(SPEC, grid_map.hit_dist2, noisy, scenario.log.ranges, scenario.log.sensor, params, config,
+                          odometry=scenario.log.odometry[:-1])

@@ -31,6 +31,21 @@ from jaxslam.sensor import endpoint_log_likelihoods
 _STENCIL = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.float32)  # (27, 3), NumPy: see scan_matching
 
 
+def stencil_poses(center: Float[Array, "3"], scan_match_params) -> tuple[Float[Array, "27 3"], Float[Array, "27 3"],
+                                                                         Float[Array, "3"]]:
+    """The 3x3x3 stencil round a matched pose, spaced by the matcher's initial steps.
+
+    Returns:
+      ``(poses, offsets, spacing)``: (27, 3) poses (angles wrapped), their (27, 3) offsets
+      from ``center`` and the (3,) spacing (m, m, rad).
+    """
+    sm = scan_match_params
+    spacing = jnp.stack([sm.linear_step, sm.linear_step, sm.angular_step])
+    offsets = _STENCIL * spacing
+    poses = center + offsets
+    return poses.at[:, 2].set(wrap_angle(poses[:, 2])), offsets, spacing
+
+
 class MatchedGaussian(NamedTuple):
     """A Gaussian over x_t fitted around the scan-matched pose (steps 1-3 of the SMP)."""
 
@@ -66,10 +81,7 @@ def matched_gaussian(pose, grid_map, inputs: StepInputs, sensor, params, config,
         predicted = compose(pose, inputs.motion + jax.random.normal(start_key, (3,), pose.dtype) * start_std)
     result = match(spec, grid_map.hit_dist2, predicted, inputs.ranges, sensor, params.likelihood,
                    sm.linear_step, sm.angular_step, config.match_iterations)
-    spacing = jnp.stack([sm.linear_step, sm.linear_step, sm.angular_step])
-    offsets = _STENCIL * spacing
-    candidates = result.pose + offsets
-    candidates = candidates.at[:, 2].set(wrap_angle(candidates[:, 2]))
+    candidates, offsets, spacing = stencil_poses(result.pose, sm)
     untempered = params.likelihood._replace(gain=jnp.float32(1.0))
     raw_log_lik = endpoint_log_likelihoods(spec, grid_map.hit_dist2, candidates, inputs.ranges, sensor, untempered)
     log_motion = motion.log_density(candidates, pose, inputs.motion, params.motion)
