@@ -273,6 +273,8 @@ def main(argv=None):
                     help="override a filter parameter for every method (dotted name, e.g. likelihood.gain=0.2)")
     ap.add_argument("--lp-sm", action="store_true",
                     help="also run the LP with scan-matched localizers (LP-SM, not in the paper)")
+    ap.add_argument("--fov-deg", type=float, default=None,
+                    help="the laser's field of view (degrees; default the scenario's 180), one beam per degree")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
     args = ap.parse_args(argv)
 
@@ -281,8 +283,10 @@ def main(argv=None):
     scenario_kwargs = {}
     particle_counts = args.particles or [20, 50]
     method_list = methods(args.alpha, args.lp_sm)
+    if args.fov_deg is not None:
+        scenario_kwargs = dict(field_of_view=float(np.radians(args.fov_deg)), num_beams=int(round(args.fov_deg)))
     if args.quick:
-        scenario_kwargs = dict(laps=3, laps_per_visit=3)
+        scenario_kwargs.update(laps=3, laps_per_visit=3)
         particle_counts = args.particles or [4, 8]
         method_list = [_capped(m, 20, 3) for m in method_list]
     if args.only:

@@ -509,3 +509,17 @@ def test_box_world_odometry_drifts(box):
     assert drift > 0.3
     again = box_world_scenario(jax.random.key(0))
     np.testing.assert_array_equal(again.log.ranges, box.log.ranges)
+
+
+def test_box_world_field_of_view():
+    """A wider laser sees behind the robot: at the start (at X, facing the hedge) box 2, 3.5 m
+    behind, is out of a 180-degree laser's view and in a 360-degree one's."""
+    narrow = box_world_scenario(jax.random.key(0), laps=1, laps_per_visit=1)
+    wide = box_world_scenario(jax.random.key(0), laps=1, laps_per_visit=1, num_beams=361,
+                              field_of_view=2 * np.pi)
+    np.testing.assert_allclose(float(wide.log.sensor.beam_angles[0]), -np.pi, atol=1e-6)
+    assert narrow.log.sensor.beam_angles.shape == (180,) and wide.log.sensor.beam_angles.shape == (361,)
+    range_max = float(narrow.log.sensor.range_max)
+    behind = np.abs(np.abs(np.asarray(wide.log.sensor.beam_angles)) - np.pi) < 0.1
+    assert np.any(wide.log.ranges[0][behind] < range_max)
+    assert np.max(np.abs(np.asarray(narrow.log.sensor.beam_angles))) <= np.pi / 2 + 1e-6

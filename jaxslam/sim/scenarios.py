@@ -185,7 +185,7 @@ def office_scenario(
     true_poses = waypoint_path(waypoints, step, step / OFFICE_TURN_RADIUS, turn_radius=OFFICE_TURN_RADIUS)
     if true_poses.shape[0] != num_scans:  # a guard: the office path has no turns on the spot
         raise AssertionError(f"office path has {true_poses.shape[0]} poses, expected {num_scans}")
-    sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
+    sensor = make_sensor(uniform_beams(num_beams, field_of_view), range_min=0.05, range_max=range_max)
     dt = step / speed
     log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<office scenario>")
     metadata = dict(
@@ -313,6 +313,7 @@ def box_world_scenario(
     range_noise_std: float = 0.02,
     dt: float = 0.1,
     motion: MotionParams | None = None,
+    field_of_view: float = np.pi,
 ) -> Scenario:
     """The box world of Grzonka et al. (Figs. 1 and 4), the test case for look-ahead proposals.
 
@@ -326,7 +327,7 @@ def box_world_scenario(
     With the defaults: 2,351 scans (0.1 m steps, 1 m/s at 10 Hz; U-turns on the spot in
     0.1 rad steps), 229 m.
 
-    Laser: ``num_beams`` = 180 beams over 180 degrees (forward-facing), range_max 4 m,
+    Laser: ``num_beams`` = 180 beams over ``field_of_view`` = 180 degrees (forward-facing), range_max 4 m,
     Gaussian range noise 0.02 m. We keep the 180-degree field of view of the SICK LMS on
     the paper's Pioneer-class robots: the robot sees the hedge only when it drives toward
     X from the box, which is what makes the return to X a loop closure. Circling box 2
@@ -358,7 +359,7 @@ def box_world_scenario(
         motion = motion_params(0.05, 0.02, 0.05, 0.1, 0.001, 0.002)
     world = box_world()
     true_poses, info = box_world_path(laps, laps_per_visit, circle_radius, step_length, max_turn_per_step)
-    sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
+    sensor = make_sensor(uniform_beams(num_beams, field_of_view), range_min=0.05, range_max=range_max)
     log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<box world scenario>")
     metadata = dict(
         checkpoint_x=CHECKPOINT_X.copy(),
