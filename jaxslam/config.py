@@ -122,6 +122,12 @@ class LookaheadParams(NamedTuple):
     1 uses each scan's own sharpness, as the SMP's fit does. The SLAM weight increment is
     then scaled by ``likelihood.gain / localizer_gain`` (the tempered evidence), so setting
     it equal to ``likelihood.gain`` tempers the localizers and leaves the increment as is."""
+    match_share: Float[Array, ""]
+    """``lookahead_initial="scan_match"`` only: the share in [0, 1] of the time-t localizers drawn
+    around the scan-matched pose; the others are drawn from the motion model, as in the paper's
+    LP, and every g is weighted against the mixture of the two (so the estimate stays unbiased).
+    1 (default): all from the match; a match that slid along a weak structure then leaves no
+    localizer near the truth, which the odometry-drawn share keeps."""
 
 
 class SlamParams(NamedTuple):
@@ -153,6 +159,7 @@ _DEFAULTS: dict[str, float] = {
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
     "scan_match.min_std_fraction": 0.1, "scan_match.start_noise": 1.0,
     "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
+    "lookahead.match_share": 1.0,
     "resample_threshold": 0.5,
 }
 
@@ -176,6 +183,8 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
             raise ConfigError(f"parameter {name} must be a number, got {value!r}") from None
     if not 0.0 <= merged["lookahead.alpha"] < 1.0:
         raise ConfigError(f"parameter lookahead.alpha must be in [0, 1), got {merged['lookahead.alpha']}")
+    if not 0.0 <= merged["lookahead.match_share"] <= 1.0:
+        raise ConfigError(f"parameter lookahead.match_share must be in [0, 1], got {merged['lookahead.match_share']}")
     if merged["lookahead.localizer_gain"] <= 0:
         raise ConfigError(f"parameter lookahead.localizer_gain must be > 0, got {merged['lookahead.localizer_gain']}")
     if merged["likelihood.z_rand"] <= 0:

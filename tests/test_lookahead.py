@@ -428,3 +428,48 @@ def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
     assert np.ptp(means[:, 0]) + np.ptp(means[:, 1]) > 1e-4  # the start matters
     np.testing.assert_allclose(means[:, :2], np.broadcast_to(reference.mean[:2], (12, 2)), atol=0.03)
     np.testing.assert_allclose(means[:, 2], np.full(12, float(reference.mean[2])), atol=0.03)
+
+
+def test_mixed_localizers_estimate_the_same_evidence(room_map):
+    """lookahead.match_share: some localizers from the matched Gaussian, the rest from the motion
+    model, all weighted against the mixture. With k = 0 the increment is exactly log mean exp(g)
+    with g so defined, and exp(increment) estimates the same p(z_t | x_{t-1}, m, u_t) whatever the
+    share: the means over 400 draws agree within 3 Monte Carlo standard errors."""
+    from jaxslam import motion
+    from jaxslam.proposals import scan_match
+
+    inputs, pose = room_inputs(0)
+    config = lp_config(horizon=0, lookahead_initial="scan_match")
+
+    def params_for(share):
+        return default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1,
+                                 "scan_match.start_noise": 0.0, "lookahead.match_share": share})
+
+    # The weights against the mixture, recomputed by hand for share 0.5.
+    params = params_for(0.5)
+    ex = _jit_explain(jax.random.key(5), pose, room_map, inputs, SENSOR, params, config)
+    gaussian = scan_match.matched_gaussian(pose, room_map, inputs, SENSOR, params, config, fit_gain=0.1)
+    assert bool(gaussian.matched)
+    lik = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
+                                                     params.likelihood))(ex.poses_t)
+    log_motion = motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
+    log_q = np.logaddexp(np.log(0.5) + scan_match.gaussian_log_density(ex.poses_t, gaussian), np.log(0.5) + log_motion)
+    np.testing.assert_allclose(ex.log_lik_t, lik + log_motion - log_q, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(ex.draw.log_weight_increment,
+                               jax.scipy.special.logsumexp(ex.log_lik_t) - math.log(config.num_localizers),
+                               rtol=1e-5, atol=1e-3)
+    # Half the cloud sits on the match, half spreads like the motion model's.
+    half = config.num_localizers // 2
+    spread = lambda poses: float(np.std(np.asarray(poses)[:, :2], axis=0).mean())  # noqa: E731
+    assert spread(ex.poses_t[:half]) < 0.5 * spread(ex.poses_t[half:])
+
+    keys = jax.random.split(jax.random.key(11), 400)
+    stats = {}
+    for share in (0.0, 0.5, 1.0):
+        draws = jax.vmap(lambda k, p=params_for(share): _jit_explain(k, pose, room_map, inputs, SENSOR, p, config)
+                         .draw.log_weight_increment)(keys)
+        values = np.exp(np.asarray(draws, np.float64))
+        stats[share] = (values.mean(), values.std(ddof=1) / math.sqrt(values.size))
+    for a, b in [(0.0, 0.5), (0.5, 1.0), (0.0, 1.0)]:
+        (ma, sa), (mb, sb) = stats[a], stats[b]
+        assert abs(ma - mb) < 3.0 * math.hypot(sa, sb), (a, b, stats)

@@ -148,6 +148,8 @@ def test_config_and_params_validation():
         params_from_dict({"motion.srr": "fast"})
     with pytest.raises(ConfigError, match="alpha"):
         params_from_dict({"lookahead.alpha": 1.0})
+    with pytest.raises(ConfigError, match="match_share"):
+        params_from_dict({"lookahead.match_share": 1.5})
     with pytest.raises(ConfigError, match="unknown config field"):
         config_from_dict({"particles": 3})
     with pytest.raises(ConfigError, match="num_particles must be a int"):

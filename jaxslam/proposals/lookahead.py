@@ -319,14 +319,25 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
         # estimates the same p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
         # The matcher's random start (scan_match.start_noise) only picks which q is used; drawn
         # independently of the samples, it leaves the estimate unbiased.
+        #
+        # With lookahead.match_share = s < 1 the first round(s L) localizers come from the match
+        # and the rest from the motion model (the draws above), and q is the mixture
+        # s N(match) + (1 - s) p(x | x_{t-1}, u): with a fixed count from each component this
+        # "deterministic mixture" weighting keeps mean_i exp(g_i) unbiased (Veach and Guibas's
+        # balance heuristic), so a match that slid still leaves the motion-drawn localizers to
+        # the look-ahead.
         gaussian = scan_match.matched_gaussian(pose, grid_map, inputs, sensor, params, config,
                                                fit_gain=localizer_gain,
                                                start_key=jax.random.fold_in(key_initial, 2))
         matched_t = scan_match.sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
-        log_weight_t = (log_likelihood(matched_t, (inputs.motion, inputs.ranges))
-                        + motion.log_density(matched_t, pose, inputs.motion, params.motion)
-                        - scan_match.gaussian_log_density(matched_t, gaussian))
-        poses_t = jnp.where(gaussian.matched, matched_t, poses_t)
+        share = jnp.round(params.lookahead.match_share * num) / num  # the share actually drawn
+        from_match = (jnp.arange(num) < share * num) & gaussian.matched
+        mixed_t = jnp.where(from_match[:, None], matched_t, poses_t)
+        log_motion = motion.log_density(mixed_t, pose, inputs.motion, params.motion)
+        log_q = jnp.logaddexp(jnp.log(share) + scan_match.gaussian_log_density(mixed_t, gaussian),
+                              jnp.log1p(-share) + log_motion)
+        log_weight_t = log_likelihood(mixed_t, (inputs.motion, inputs.ranges)) + log_motion - log_q
+        poses_t = jnp.where(gaussian.matched, mixed_t, poses_t)
         log_lik_t = jnp.where(gaussian.matched, log_weight_t, log_lik_t)
     draw, horizon, history = lookahead_core(
         key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
