@@ -185,7 +185,7 @@ def office_scenario(
     true_poses = waypoint_path(waypoints, step, step / OFFICE_TURN_RADIUS, turn_radius=OFFICE_TURN_RADIUS)
     if true_poses.shape[0] != num_scans:  # a guard: the office path has no turns on the spot
         raise AssertionError(f"office path has {true_poses.shape[0]} poses, expected {num_scans}")
-    sensor = make_sensor(uniform_beams(num_beams, field_of_view), range_min=0.05, range_max=range_max)
+    sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
     dt = step / speed
     log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<office scenario>")
     metadata = dict(
