@@ -105,17 +105,21 @@ def _map_and_write(log, config, params, args, source: str, world=None) -> int:
 
     result = run(jax.random.key(args.seed), log, config, params, chunk_size=args.chunk_size,
                  progress=not args.no_progress)
-    refined = None
+    refined, refine_seconds = None, None
     if getattr(args, "refine", False):
+        import time
+
         import numpy as np
 
         from jaxslam.refine import refine_trajectory
 
+        t0 = time.perf_counter()
         best = int(np.argmax(np.asarray(result.state.log_weights)))
         refined = refine_trajectory(result.config.grid, result.state.maps.hit_dist2[best], result.trajectory,
                                     log.ranges, log.sensor, params, result.config, odometry=log.odometry)
+        refine_seconds = time.perf_counter() - t0
     summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
-                                 refined=refined)
+                                 refined=refined, refine_seconds=refine_seconds)
     t = summary["timings"]
     print(f"processed {summary['scans_processed']} of {summary['scans_in_log']} scans in {t['total']:.1f} s "
           f"(compile {t['compile']:.1f} s, real-time factor {t['real_time_factor']:.1f}); "

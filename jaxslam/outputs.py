@@ -56,12 +56,14 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
     }
 
 
-def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, world=None, refined=None) -> dict:
+def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, world=None, refined=None,
+                       refine_seconds: float | None = None) -> dict:
     """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json`` and ``slam.png`` into ``out_dir``.
 
     The map is the final best particle's. The trajectory has one pose per scan of the log.
     With ``refined`` (a :class:`jaxslam.refine.RefinedTrajectory`) also ``trajectory_refined.txt``,
-    and the summary's ``refinement`` gives the fraction of scans whose match held.
+    and the summary's ``refinement`` gives the fraction of scans whose match held (and, when
+    given, ``refine_seconds``: the refinement's wall time).
     Returns the summary.
     """
     import matplotlib
@@ -87,6 +89,8 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
         write_trajectory(out / "trajectory_refined.txt", log.timestamps, refined.poses)
         summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
                                  "median_score": float(np.median(refined.scores))}
+        if refine_seconds is not None:
+            summary["refinement"]["seconds"] = float(refine_seconds)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     return summary
 
