@@ -28,6 +28,15 @@ def wrap_angle_np(theta) -> np.ndarray:
     return np.where(inside, theta, np.pi - np.mod(np.pi - theta, 2.0 * np.pi))
 
 
+def between_np(a, b) -> np.ndarray:
+    """:func:`between` on the host in float64 NumPy, for host code (metrics, trajectory
+    smoothing) where poses far from the origin would lose precision in float32."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle_np(b[..., 2] - a[..., 2])], axis=-1)
+
+
 def make_pose(x, y, theta) -> Float[Array, "... 3"]:
     """Stack x, y (m) and theta (rad, wrapped) into a pose array."""
     x, y, theta = jnp.broadcast_arrays(jnp.asarray(x), jnp.asarray(y), jnp.asarray(theta))

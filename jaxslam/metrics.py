@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from jaxslam.geometry import between, wrap_angle
+from jaxslam.geometry import between_np, wrap_angle_np
 from jaxslam.io.relations import Relations
 
 __all__ = [
@@ -145,9 +145,9 @@ def relation_error(timestamps, poses, relations: Relations, time_tolerance: floa
         raise ValueError(f"relations have inconsistent shapes {t1.shape}, {t2.shape}, {motion.shape}")
     x1 = lookup_poses(timestamps, poses, t1, time_tolerance)
     x2 = lookup_poses(timestamps, poses, t2, time_tolerance)
-    estimated = np.asarray(between(x1, x2), dtype=np.float64)
+    estimated = between_np(x1, x2)
     trans = np.hypot(estimated[:, 0] - motion[:, 0], estimated[:, 1] - motion[:, 1])
-    rot = np.abs(np.asarray(wrap_angle(estimated[:, 2] - motion[:, 2]), dtype=np.float64))
+    rot = np.abs(wrap_angle_np(estimated[:, 2] - motion[:, 2]))
     return RelationError(
         trans=trans,
         rot=rot,
@@ -227,10 +227,10 @@ def passage_errors(
       (N,) ||translation error|| + lambda * |rotation error|.
     """
     paths = np.asarray(paths, np.float64)
-    est = np.asarray(between(paths[:, first], paths[:, last]), np.float64)
-    true = np.asarray(between(np.asarray(true_first, np.float64), np.asarray(true_last, np.float64)), np.float64)
-    diff = np.asarray(between(np.broadcast_to(true, est.shape), est), np.float64)
-    return np.hypot(diff[:, 0], diff[:, 1]) + rotation_weight * np.abs(np.asarray(wrap_angle(diff[:, 2]), np.float64))
+    est = between_np(paths[:, first], paths[:, last])
+    true = between_np(true_first, true_last)
+    diff = between_np(np.broadcast_to(true, est.shape), est)
+    return np.hypot(diff[:, 0], diff[:, 1]) + rotation_weight * np.abs(wrap_angle_np(diff[:, 2]))
 
 
 def revisiting_accuracy(
@@ -291,6 +291,6 @@ def absolute_trajectory_error(estimated, truth, align: bool = True) -> dict:
         xy = (est[:, :2] - mu_e) @ np.array([[c, s], [-s, c]]) + mu_r
         est = np.column_stack([xy, est[:, 2] + angle])
     dist = np.hypot(est[:, 0] - ref[:, 0], est[:, 1] - ref[:, 1])
-    rot = np.abs(np.asarray(wrap_angle(est[:, 2] - ref[:, 2]), np.float64))
+    rot = np.abs(wrap_angle_np(est[:, 2] - ref[:, 2]))
     return {"rmse": float(np.sqrt(np.mean(dist**2))), "mean": float(dist.mean()), "max": float(dist.max()),
             "rot_mean": float(rot.mean())}

@@ -36,7 +36,7 @@ import numpy as np
 from jaxtyping import Array, Float, UInt8
 
 from jaxslam import motion
-from jaxslam.geometry import weighted_mean_and_covariance, wrap_angle_np
+from jaxslam.geometry import between_np, weighted_mean_and_covariance, wrap_angle_np
 from jaxslam.grid import GridSpec
 from jaxslam.proposals.scan_match import stencil_poses
 from jaxslam.scan_matching import match
@@ -185,7 +185,8 @@ def smooth_with_odometry(
     if not ok.any() or num == 0:
         return x
     info_measured = np.linalg.inv(np.asarray(measured_cov, np.float64)) * ok[:, None, None]
-    steps = _between_np(np.asarray(odometry[:-1], np.float64), np.asarray(odometry[1:], np.float64))
+    odometry = np.asarray(odometry, np.float64)
+    steps = between_np(odometry[:-1], odometry[1:])
     std = np.asarray(motion.noise_std(jnp.asarray(steps, jnp.float32), motion_params), np.float64)
     info_step = 1.0 / std**2  # (T-1, 3): diagonal
     for _ in range(iterations):
@@ -210,7 +211,6 @@ def smooth_with_odometry(
         jac_b[:, 0, 0], jac_b[:, 0, 1], jac_b[:, 1, 0], jac_b[:, 1, 1], jac_b[:, 2, 2] = c, s, -s, c, 1.0
         wa = jac_a * info_step[:, :, None]  # S^-1 A
         wb = jac_b * info_step[:, :, None]
-        diag = diag.copy()
         diag[:-1] += np.einsum("tki,tkj->tij", jac_a, wa)
         diag[1:] += np.einsum("tki,tkj->tij", jac_b, wb)
         upper = np.einsum("tki,tkj->tij", jac_a, wb)  # block (t-1, t)
@@ -225,15 +225,11 @@ def smooth_with_odometry(
     return x
 
 
-def _between_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """:func:`jaxslam.geometry.between` in float64 NumPy (odometry poses can be far from 0)."""
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle_np(b[..., 2] - a[..., 2])], axis=-1)
-
-
 def _solve_block_tridiagonal(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve the symmetric block-tridiagonal system (block Thomas algorithm).
+
+    Host float64 NumPy, run once per log after the filter: the elimination is sequential, and
+    13,630 Intel scans take well under a second per Gauss-Newton step.
 
     Args:
       diag: (T, n, n) diagonal blocks; upper: (T-1, n, n) blocks (t, t+1) (the lower ones are

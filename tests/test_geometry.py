@@ -177,3 +177,16 @@ def test_wrap_angle_np_matches_jax_version_in_float64():
     np.testing.assert_allclose(wrapped, np.asarray(wrap_angle(theta.astype(np.float32)), np.float64), atol=1e-5)
     inside = theta[(theta > -np.pi) & (theta <= np.pi)]
     np.testing.assert_array_equal(wrap_angle_np(inside), inside)  # bit for bit in range
+
+
+def test_between_np_matches_between_and_keeps_float64_precision():
+    rng = np.random.default_rng(0)
+    a = np.column_stack([rng.uniform(-20, 20, (50, 2)), rng.uniform(-np.pi, np.pi, 50)])
+    b = np.column_stack([rng.uniform(-20, 20, (50, 2)), rng.uniform(-np.pi, np.pi, 50)])
+    np.testing.assert_allclose(G.between_np(a, b), np.asarray(G.between(a, b)), atol=2e-5)
+    # Two poses 1 mm apart, 10 km from the origin: float32 cannot resolve the step, float64 can.
+    far = np.array([10_000.0, 10_000.0, 0.3])
+    near = far + np.array([0.001, 0.0, 0.0])
+    step = G.between_np(far, near)
+    np.testing.assert_allclose(np.hypot(step[0], step[1]), 0.001, rtol=1e-9)
+    assert G.between_np(far, near).dtype == np.float64

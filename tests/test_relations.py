@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from jaxslam.geometry import between, compose
+from jaxslam.geometry import between_np, compose
 from jaxslam.io import read_log, read_relations
 from jaxslam.io.relations import Relations
 from jaxslam.laserlog import LogError
@@ -76,7 +76,7 @@ def _trajectory(num=40, seed=1):
 
 def _relations_from(timestamps, poses, pairs):
     i, j = np.asarray(pairs).T
-    motion = np.asarray(between(poses[i], poses[j]), dtype=np.float64)
+    motion = between_np(poses[i], poses[j])  # float64, as the metric computes
     return Relations(timestamps[i], timestamps[j], motion)
 
 

@@ -330,7 +330,8 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
                                                fit_gain=localizer_gain,
                                                start_key=jax.random.fold_in(key_initial, 2))
         matched_t = scan_match.sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
-        share = jnp.round(params.lookahead.match_share * num) / num  # the share actually drawn
+        # The share actually drawn (a count: no gradient, and none through log(0) at 0 or 1).
+        share = jax.lax.stop_gradient(jnp.round(params.lookahead.match_share * num) / num)
         from_match = (jnp.arange(num) < share * num) & gaussian.matched
         mixed_t = jnp.where(from_match[:, None], matched_t, poses_t)
         log_motion = motion.log_density(mixed_t, pose, inputs.motion, params.motion)
