@@ -7,8 +7,8 @@ per-scan trajectory with the relation metric of Kuemmerle et al. 2009, and write
 ``DIR/results.json``, ``DIR/results.md`` (the table, beside the published numbers and
 GMapping measured on this machine) and each run's map PNG. Each run also localises every
 scan in its final map and fuses the matches with the odometry (``jaxslam map --refine``,
-:mod:`jaxslam.refine`); the table shows that trajectory's error on a row of its own. Finished runs are skipped on
-restart, so the script can be stopped and resumed.
+:mod:`jaxslam.refine`); the table shows that trajectory's error on a row of its own.
+Finished runs are skipped on restart, so the script can be stopped and resumed.
 
     python experiments/datasets.py --out results/datasets [--seeds 3] [--proposals op smp lp]
 """

@@ -201,7 +201,7 @@ def smooth_with_odometry(
         a, b = x[:-1], x[1:]
         c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
         dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-        r_o = np.stack([c * dx + s * dy, -s * dx + c * dy, b[:, 2] - a[:, 2]], axis=-1) - steps
+        r_o = between_np(a, b) - steps
         r_o[:, 2] = wrap_angle_np(r_o[:, 2])
         jac_a = np.zeros((num - 1, 3, 3))
         jac_a[:, 0, 0], jac_a[:, 0, 1], jac_a[:, 0, 2] = -c, -s, -s * dx + c * dy

@@ -117,7 +117,7 @@ def trajectory_per_scan(log: LaserLog, processed_indices, processed_poses) -> np
     result = np.asarray(compose(poses[anchor], motion), dtype=np.float64)
     # Processed scans keep their pose exactly (compose runs in float32).
     result[idx] = poses
-    result[idx, 2] = np.asarray(wrap_angle_np(poses[:, 2]))
+    result[idx, 2] = wrap_angle_np(poses[:, 2])
     return result
 
 

@@ -338,7 +338,7 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
         log_q = jnp.logaddexp(jnp.log(share) + scan_match.gaussian_log_density(mixed_t, gaussian),
                               jnp.log1p(-share) + log_motion)
         log_weight_t = log_likelihood(mixed_t, (inputs.motion, inputs.ranges)) + log_motion - log_q
-        poses_t = jnp.where(gaussian.matched, mixed_t, poses_t)
+        poses_t = mixed_t  # the motion draws throughout when the match failed
         log_lik_t = jnp.where(gaussian.matched, log_weight_t, log_lik_t)
     draw, horizon, history = lookahead_core(
         key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
