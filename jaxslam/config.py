@@ -66,6 +66,13 @@ class SlamConfig:
     lookahead_initial: str = "odometry"
     """Where the LP draws its L time-t localizers: "odometry" (the motion model, as in the paper)
     or "scan_match" (a Gaussian fitted around the scan-matched pose, importance-corrected)."""
+    lookahead_weight: str = "filter"
+    """The LP's SLAM weight. "filter" (DESIGN.md step 5): the evidence of scan t, with the
+    selection correction (``lookahead.selection_correction``), so the particles target the
+    filtering posterior. "lookahead": the particles target the posterior given the k scans ahead
+    too (block sampling, Doucet, Briers and Senecal 2006): the increment is the localizer filter's
+    log p(z_{t+k} | x_{t-1}, z_{t:t+k-1}), and the pose drawn by the look-ahead is not corrected
+    back; the SLAM resampling then sees k scans ahead."""
 
     def __post_init__(self):
         checks = [
@@ -82,6 +89,8 @@ class SlamConfig:
             (self.horizon >= 0, "horizon must be >= 0"),
             (self.lookahead_initial in ("odometry", "scan_match"),
              f"lookahead_initial must be 'odometry' or 'scan_match', got {self.lookahead_initial!r}"),
+            (self.lookahead_weight in ("filter", "lookahead"),
+             f"lookahead_weight must be 'filter' or 'lookahead', got {self.lookahead_weight!r}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -128,6 +137,13 @@ class LookaheadParams(NamedTuple):
     LP, and every g is weighted against the mixture of the two (so the estimate stays unbiased).
     1 (default): all from the match; a match that slid along a weak structure then leaves no
     localizer near the truth, which the odometry-drawn share keeps."""
+    selection_correction: Float[Array, ""]
+    """How much of the selection correction the SLAM weight keeps, in [0, 1]. The increment is
+    log mean_i exp(g_i) + c (g_J - logsumexp(g) - log p_J): c = 1 (default) is the DESIGN's
+    g_J - log L - log p_J, unbiased for alpha > 0 but noisy, since it depends on which sample
+    was drawn; c = 0 weighs every SLAM particle by its evidence estimate alone, unbiased for
+    every alpha (the paper's 0 included) and independent of the draw, so the look-ahead then
+    only chooses the pose. Values in between temper the correction like the likelihood gain."""
 
 
 class SlamParams(NamedTuple):
@@ -159,7 +175,7 @@ _DEFAULTS: dict[str, float] = {
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
     "scan_match.min_std_fraction": 0.1, "scan_match.start_noise": 1.0,
     "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
-    "lookahead.match_share": 1.0,
+    "lookahead.match_share": 1.0, "lookahead.selection_correction": 1.0,
     "resample_threshold": 0.5,
 }
 
@@ -185,6 +201,9 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
         raise ConfigError(f"parameter lookahead.alpha must be in [0, 1), got {merged['lookahead.alpha']}")
     if not 0.0 <= merged["lookahead.match_share"] <= 1.0:
         raise ConfigError(f"parameter lookahead.match_share must be in [0, 1], got {merged['lookahead.match_share']}")
+    if not 0.0 <= merged["lookahead.selection_correction"] <= 1.0:
+        raise ConfigError("parameter lookahead.selection_correction must be in [0, 1], "
+                          f"got {merged['lookahead.selection_correction']}")
     if merged["lookahead.localizer_gain"] <= 0:
         raise ConfigError(f"parameter lookahead.localizer_gain must be > 0, got {merged['lookahead.localizer_gain']}")
     if merged["likelihood.z_rand"] <= 0:

@@ -42,7 +42,8 @@ def toy_loglik(x, step_input):
     return toy_log_lik(x, z)
 
 
-def toy_increment(key, alpha, z_t, future_u, future_z, num, threshold, valid=None, offsets=None):
+def toy_increment(key, alpha, z_t, future_u, future_z, num, threshold, valid=None, offsets=None,
+                  selection_correction=1.0, weight="filter"):
     """One LP weight increment with x_{t-1} = 0 and u_t = 0; ``offsets`` (K,) are added
     to every future log-likelihood of step s (a scale change of p(z_s | x_s))."""
     k0, k1 = jax.random.split(key)
@@ -59,7 +60,8 @@ def toy_increment(key, alpha, z_t, future_u, future_z, num, threshold, valid=Non
     def move(key, x, step_input):
         return toy_move(key, x, step_input[:2])
 
-    draw, _, _ = la.lookahead_core(k1, x, g, (future_u, future_z, offsets), valid, move, loglik, alpha, threshold)
+    draw, _, _ = la.lookahead_core(k1, x, g, (future_u, future_z, offsets), valid, move, loglik, alpha, threshold,
+                                   selection_correction=selection_correction, weight=weight)
     return draw, g
 
 
@@ -84,8 +86,9 @@ TOY_EXACT = math.exp(-0.5 * TOY_Z_T**2 / (Q**2 + R**2)) / math.sqrt(2 * math.pi 
 TOY_RUNS = 20_000
 
 
-def _toy_weights(alpha, seed=0):
-    fn = jax.jit(jax.vmap(lambda k: toy_increment(k, alpha, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 2.0)[0]
+def _toy_weights(alpha, seed=0, selection_correction=1.0):
+    fn = jax.jit(jax.vmap(lambda k: toy_increment(k, alpha, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 2.0,
+                                                  selection_correction=selection_correction)[0]
                           .log_weight_increment))
     inc = np.asarray(fn(jax.random.split(jax.random.key(seed), TOY_RUNS)), np.float64)
     assert np.all(np.isfinite(inc))
@@ -105,6 +108,89 @@ def test_paper_lp_weight_alpha0_is_biased_low():
     drawn, so E[exp(increment)] < p(z_t | x_{t-1}). Measured: 0.390 +- 0.005 vs 0.561."""
     mean, se = _toy_weights(0.0)
     assert mean + 10 * se < 0.8 * TOY_EXACT, (mean, se, TOY_EXACT)
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.5])
+def test_without_selection_correction_the_increment_is_the_evidence_estimate(alpha):
+    """c = 0: log mean exp(g) whatever J the look-ahead drew (k = 3, resampling every step),
+    so even the paper's alpha = 0 is unbiased: mean exp(increment) within 3 Monte Carlo
+    standard errors of p(z_t | x_{t-1})."""
+    keys = jax.random.split(jax.random.key(3), 64)
+    draws, g = jax.vmap(lambda k: toy_increment(k, alpha, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 2.0,
+                                                selection_correction=0.0))(keys)
+    np.testing.assert_allclose(draws.log_weight_increment, jax.scipy.special.logsumexp(g, axis=1) - math.log(50),
+                               rtol=0, atol=2e-6)
+    assert len(set(np.asarray(draws.index).tolist())) > 1  # the draws differ, the increments do not depend on them
+    mean, se = _toy_weights(alpha, selection_correction=0.0)
+    assert abs(mean - TOY_EXACT) < 3 * se, (mean, se, TOY_EXACT)
+
+
+def test_partial_selection_correction_matches_numpy_reference():
+    """c in (0, 1) scales log[softmax(g)_J / p_J]; c = 1 is the DESIGN's increment bit for bit."""
+    log_v = jnp.array([-1.0, -jnp.inf, 0.5, -2.0, 0.2])
+    g = jnp.array([-0.3, -1.2, 0.4, -0.8, -0.1])
+    for alpha in (0.0, 0.3):
+        full = la.select(jax.random.key(5), log_v, g, alpha)
+        assert float(la.select(jax.random.key(5), log_v, g, alpha, 1.0).log_weight_increment) == float(
+            full.log_weight_increment)
+        j = int(full.index)
+        g64, log_p64 = np.asarray(g, np.float64), np.asarray(full.log_p, np.float64)
+        lse = np.log(np.sum(np.exp(g64)))
+        for c in (0.0, 0.25, 0.5):
+            draw = la.select(jax.random.key(5), log_v, g, alpha, c)
+            assert int(draw.index) == j  # c changes the weight, never the draw
+            expected = lse - math.log(5) + c * (g64[j] - lse - log_p64[j])
+            np.testing.assert_allclose(float(draw.log_weight_increment), expected, atol=2e-6)
+    # The paper's 0/0 (alpha = 0, every V zero) is undefined only while the correction is kept.
+    dead = jnp.full((5,), -jnp.inf)
+    assert np.isneginf(float(la.select(jax.random.key(0), dead, g, 0.0, 0.5).log_weight_increment))
+    np.testing.assert_allclose(float(la.select(jax.random.key(0), dead, g, 0.0, 0.0).log_weight_increment),
+                               float(jax.scipy.special.logsumexp(g)) - math.log(5), atol=1e-6)
+
+
+def _kalman_predictive_log_density(observations):
+    """log p(z_last | x_{t-1} = 0, z_t .. z_{last - 1}) of the toy model (all u = 0)."""
+    mean, var = 0.0, 0.0
+    for z in observations[:-1]:
+        var += Q**2
+        gain = var / (var + R**2)
+        mean, var = mean + gain * (z - mean), (1 - gain) * var
+    var += Q**2
+    s2 = var + R**2
+    return -0.5 * (observations[-1] - mean) ** 2 / s2 - 0.5 * math.log(2 * math.pi * s2)
+
+
+def test_lookahead_weight_is_the_predictive_of_the_newest_scan():
+    """weight="lookahead": the increment estimates log p(z_{t+k} | x_{t-1}, z_{t:t+k-1}), which a
+    Kalman filter gives exactly. L = 2000, k = 3, ESS-triggered resampling; 200 runs. The log of a
+    ratio of two estimates is biased by O(1/L); the tolerance is 4 standard errors of the mean."""
+    keys = jax.random.split(jax.random.key(11), 200)
+    inc = jax.jit(jax.vmap(lambda k: toy_increment(k, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 2000, 0.5,
+                                                   weight="lookahead")[0].log_weight_increment))(keys)
+    inc = np.asarray(inc, np.float64)
+    exact = _kalman_predictive_log_density([TOY_Z_T, *np.asarray(TOY_FUTURE_Z).tolist()])
+    se = inc.std(ddof=1) / math.sqrt(inc.size)
+    assert abs(inc.mean() - exact) < 4 * se + 1e-3, (inc.mean(), se, exact)
+    # The filter's increment estimates a different number, log p(z_t | x_{t-1}), far from it.
+    assert abs(math.log(TOY_EXACT) - exact) > 0.5
+
+
+def test_lookahead_weight_at_the_ends_of_the_horizon():
+    key = jax.random.key(4)
+    empty = jnp.zeros((0,))
+    k0, g = toy_increment(key, 0.5, TOY_Z_T, empty, empty, 50, 0.5, weight="lookahead")
+    np.testing.assert_allclose(k0.log_weight_increment, jax.scipy.special.logsumexp(g) - math.log(50), atol=2e-6)
+    # The horizon reached the end of the log: the previous step's target already held every
+    # remaining scan, so the weight does not change.
+    shrunk, _ = toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5,
+                              valid=jnp.array([True, True, False]), weight="lookahead")
+    assert float(shrunk.log_weight_increment) == 0.0
+    # The draw is the look-ahead's either way: only the weight differs.
+    full, _ = toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5)
+    ahead, _ = toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5, weight="lookahead")
+    assert int(full.index) == int(ahead.index)
+    with pytest.raises(ValueError, match="weight"):
+        toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5, weight="smoother")
 
 
 def test_back_propagation_matches_numpy_reference():
@@ -362,14 +448,15 @@ def test_lp_run_end_to_end_on_a_simulated_log():
     config = SlamConfig(num_particles=4, proposal="lp", num_localizers=24, horizon=2, map_padding=2.5,
                         linear_update=0.0, angular_update=0.0, max_insert_range=10.0)
     params = default_params(**{"lookahead.alpha": 0.1})
-    result = rbpf.run(jax.random.key(0), log, config, params, chunk_size=8, progress=False)
-    assert result.best_path.shape == (14, 3)
-    info = result.info
-    assert np.all(np.isfinite(info.log_evidence_increment))
-    assert not info.degenerate.any() and int(info.num_fallbacks.sum()) == 0
-    # The LP path follows the truth far better than the odometry's drift allows to fail.
-    error = np.hypot(*(result.best_path[:, :2] - truth[:, :2]).T)
-    assert error.max() < 0.15, error
+    for config in (config, dataclasses.replace(config, lookahead_weight="lookahead")):
+        result = rbpf.run(jax.random.key(0), log, config, params, chunk_size=8, progress=False)
+        assert result.best_path.shape == (14, 3)
+        info = result.info
+        assert np.all(np.isfinite(info.log_evidence_increment))
+        assert not info.degenerate.any() and int(info.num_fallbacks.sum()) == 0
+        # The LP path follows the truth far better than the odometry's drift allows to fail.
+        error = np.hypot(*(result.best_path[:, :2] - truth[:, :2]).T)
+        assert error.max() < 0.15, (config.lookahead_weight, error)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -140,6 +140,8 @@ def test_map_leaving_the_grid_is_counted_not_wrapped(office_log):
 def test_config_and_params_validation():
     with pytest.raises(ConfigError, match="proposal"):
         SlamConfig(proposal="xyz")
+    with pytest.raises(ConfigError, match="lookahead_weight"):
+        SlamConfig(proposal="lp", lookahead_weight="smoother")
     with pytest.raises(ConfigError, match="num_particles"):
         SlamConfig(num_particles=0)
     with pytest.raises(ConfigError, match="unknown parameter"):
@@ -150,6 +152,8 @@ def test_config_and_params_validation():
         params_from_dict({"lookahead.alpha": 1.0})
     with pytest.raises(ConfigError, match="match_share"):
         params_from_dict({"lookahead.match_share": 1.5})
+    with pytest.raises(ConfigError, match="selection_correction"):
+        params_from_dict({"lookahead.selection_correction": -0.1})
     with pytest.raises(ConfigError, match="unknown config field"):
         config_from_dict({"particles": 3})
     with pytest.raises(ConfigError, match="num_particles must be a int"):

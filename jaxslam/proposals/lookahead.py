@@ -16,6 +16,12 @@ how well each time-t sample explains the future to choose the particle's new pos
 4. Select J with p_i = (1 - alpha) V_i / sum(V) + alpha exp(g_i) / sum(exp(g)).
 5. log w_t = log w_{t-1} + g_J - log L - log p_J.
 
+Step 5 is log mean_i exp(g_i) (the evidence estimate) plus the selection correction
+log[softmax(g)_J / p_J], whose exponential has mean 1 over J. ``lookahead.selection_correction``
+= c scales that correction: c = 1 is step 5; c = 0 keeps the evidence estimate alone, which is
+unbiased for every alpha and does not depend on J, at the price of weighting poses that the
+look-ahead chose (a smoothing-like draw) as if they came from the filter's proposal.
+
 alpha = 0 is the paper's Eq. 10 (log w += log(sum(V) / L) + g_J - log V_J); it is
 biased low because time-t samples whose line died out in the horizon's resampling
 can never be drawn. Any alpha > 0 makes exp(increment) an unbiased estimate of
@@ -79,6 +85,9 @@ class HorizonResult(NamedTuple):
     """Final localizer states (for poses: (L, 3))."""
     num_resamplings: Int[Array, ""]
     """How many horizon steps resampled."""
+    log_evidence: Float[Array, "K"]
+    """After each step s: log Z + logsumexp(a) - log L, the filter's estimate of
+    log p(z_{t:s} | x_{t-1}) (constant over steps past the end of the log)."""
 
 
 class HorizonHistory(NamedTuple):
@@ -106,7 +115,8 @@ class LookaheadDraw(NamedTuple):
     log_p: Float[Array, "L"]
     """log p_i, the selection probabilities (logsumexp = 0)."""
     log_weight_increment: Float[Array, ""]
-    """g_J - log L - log p_J (-inf when alpha = 0 and every V is zero). The grid model
+    """log mean exp(g) + c (g_J - logsumexp(g) - log p_J), c the selection correction (c = 1:
+    g_J - log L - log p_J; -inf when alpha = 0, c > 0 and every V is zero). The grid model
     (:func:`propose`, :func:`explain`) multiplies it by ``likelihood.gain / lookahead.localizer_gain``."""
     fallback: Bool[Array, ""]
     """Every V_i is zero: the draw used the defensive component alone."""
@@ -159,13 +169,14 @@ def run_horizon(
         states = jax.tree.map(lambda new, old: jnp.where(_expand(valid, new), new, old), moved, states)
         log_a = jnp.where(valid, new_log_a, log_a)
         count = count + do.astype(jnp.int32)
+        log_evidence = log_z + jax.scipy.special.logsumexp(log_a) - log_num
         out = HorizonHistory(states, log_a, origin, do, valid) if return_history else None
-        return (states, log_a, origin, log_z, count), out
+        return (states, log_a, origin, log_z, count), (log_evidence, out)
 
     init = (states_t, log_lik_t, origin0, jnp.zeros((), log_lik_t.dtype), jnp.int32(0))
     xs = (jnp.arange(num_steps, dtype=jnp.int32), future_inputs, future_valid)
-    (states, log_a, origin, log_z, count), history = jax.lax.scan(body, init, xs)
-    return HorizonResult(log_a, origin, log_z, states, count), history
+    (states, log_a, origin, log_z, count), (log_evidence, history) = jax.lax.scan(body, init, xs)
+    return HorizonResult(log_a, origin, log_z, states, count, log_evidence), history
 
 
 def _expand(flag: Bool[Array, ""], like: Array) -> Bool[Array, "..."]:
@@ -226,17 +237,27 @@ def select(
     log_v: Float[Array, "L"],
     log_lik_t: Float[Array, "L"],
     alpha: Float[Array, ""],
+    selection_correction: Float[Array, ""] = 1.0,
 ) -> LookaheadDraw:
-    """Steps 4-5: draw J ~ p and return the weight increment g_J - log L - log p_J.
+    """Steps 4-5: draw J ~ p and return the weight increment.
 
-    With alpha = 0 and every V zero the increment is -inf (the paper's weight is 0/0
+    The increment is log mean exp(g) + c (g_J - logsumexp(g) - log p_J) with c =
+    ``selection_correction`` in [0, 1]; c = 1 (default) is g_J - log L - log p_J. With
+    alpha = 0, c > 0 and every V zero the increment is -inf (the paper's weight is 0/0
     there; the RBPF then drops the particle) and ``fallback`` reports it.
     """
     num = log_v.shape[0]
     log_p, fallback = selection_log_probs(log_v, log_lik_t, alpha)
     index = jax.random.categorical(key, log_p).astype(jnp.int32)
-    increment = log_lik_t[index] - math.log(num) - log_p[index]
-    paper_form_undefined = fallback & (jnp.asarray(alpha) <= 0.0)
+    full = log_lik_t[index] - math.log(num) - log_p[index]
+    log_total_g = jax.scipy.special.logsumexp(log_lik_t)
+    correction = log_lik_t[index] - log_total_g - log_p[index]
+    c = jnp.asarray(selection_correction, log_lik_t.dtype)
+    # c = 1 returns the full form untouched (bit for bit); c < 1 never multiplies an infinite
+    # correction (0 * inf = NaN).
+    tempered = log_total_g - math.log(num) + c * jnp.where(jnp.isfinite(correction), correction, 0.0)
+    increment = jnp.where(c >= 1.0, full, tempered)
+    paper_form_undefined = fallback & (jnp.asarray(alpha) <= 0.0) & (c > 0.0)
     increment = jnp.where(paper_form_undefined | jnp.isnan(increment), -jnp.inf, increment)
     return LookaheadDraw(index, log_v, log_p, increment, fallback)
 
@@ -253,19 +274,51 @@ def lookahead_core(
     resample_threshold: Float[Array, ""],
     resample_fn: resampling.ResampleFn = resampling.systematic,
     return_history: bool = False,
+    selection_correction: Float[Array, ""] = 1.0,
+    weight: str = "filter",
 ) -> tuple[LookaheadDraw, HorizonResult, HorizonHistory | None]:
     """Steps 2-5 for given time-t samples (step 1 is the caller's: it owns the model).
 
     ``key`` is split by fold-in tags, never by the horizon length. See :func:`run_horizon`
-    for the arguments. Returns the draw, the final horizon state and (optionally) history.
+    for the arguments; ``selection_correction`` and ``weight`` (static, "filter" or
+    "lookahead") choose the increment (:func:`select`, :func:`lookahead_increment`). Returns
+    the draw, the final horizon state and (optionally) history.
     """
     horizon, history = run_horizon(
         jax.random.fold_in(key, _TAG_HORIZON), states_t, log_lik_t, future_inputs, future_valid,
         move, log_likelihood, resample_threshold, resample_fn, return_history,
     )
     log_v = back_propagate(horizon.log_a, horizon.origin, horizon.log_z, log_lik_t.shape[0])
-    draw = select(jax.random.fold_in(key, _TAG_SELECT), log_v, log_lik_t, alpha)
+    draw = select(jax.random.fold_in(key, _TAG_SELECT), log_v, log_lik_t, alpha, selection_correction)
+    if weight == "lookahead":
+        draw = draw._replace(log_weight_increment=lookahead_increment(log_lik_t, horizon.log_evidence, future_valid))
+    elif weight != "filter":
+        raise ValueError(f"weight must be 'filter' or 'lookahead', got {weight!r}")
     return draw, horizon, history
+
+
+def lookahead_increment(
+    log_lik_t: Float[Array, "L"],
+    log_evidence: Float[Array, "K"],
+    future_valid: Bool[Array, "K"],
+) -> Float[Array, ""]:
+    """The SLAM weight increment when the particles target p(x_{0:t} | z_{1:t+k}) (block sampling).
+
+    With the look-ahead's ideal proposal p(x_t | x_{t-1}, z_{t:t+k}) the weight of that target
+    is p(z_{t:t+k} | x_{t-1}) / p(z_{t:t+k-1} | x_{t-1}) = p(z_{t+k} | x_{t-1}, z_{t:t+k-1}):
+    the new scan that entered the horizon, predicted by the localizer filter. Both evidences
+    come from this horizon's run (``log_evidence``; time t alone is log mean exp(g)):
+    - k = 0: log mean exp(g), the filter's increment;
+    - the horizon reached past the end of the log (last step invalid): 0, the previous step's
+      target already held every remaining scan.
+    A ratio of two estimates from one run: consistent in L, not unbiased.
+    """
+    log_evidence_t = jax.scipy.special.logsumexp(log_lik_t) - math.log(log_lik_t.shape[0])
+    if log_evidence.shape[0] == 0:
+        return log_evidence_t
+    previous = log_evidence_t if log_evidence.shape[0] == 1 else log_evidence[-2]
+    increment = jnp.where(future_valid[-1], log_evidence[-1] - previous, 0.0)
+    return jnp.where(jnp.isnan(increment), -jnp.inf, increment)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -343,7 +396,8 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
     draw, horizon, history = lookahead_core(
         key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
         move, log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,
-        resampling.RESAMPLERS[config.resampler], return_history,
+        resampling.RESAMPLERS[config.resampler], return_history, params.lookahead.selection_correction,
+        config.lookahead_weight,
     )
     draw = draw._replace(log_weight_increment=evidence_scale * draw.log_weight_increment)
     return poses_t, log_lik_t, draw, horizon, history
