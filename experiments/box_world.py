@@ -9,7 +9,9 @@ revisiting accuracy RA between the first and the last passage over X
 
 Proposals: OP, SMP, and the look-ahead LP with L = 100 localizers and k = 5 once as
 in the paper (alpha = 0, Eq. 10) and once with the defensive share ``--alpha``, plus
-LP with L = 50, k = 3 (defensive); ``--lp-sm`` adds the LP with scan-matched localizers.
+LP with L = 50, k = 3 (defensive); ``--lp-sm`` adds the LP with scan-matched localizers,
+``--evidence-weights`` the LPs without the selection correction (label "c=0",
+``lookahead.selection_correction = 0``).
 Particle counts 20 and 50. Every method uses the package's default parameters except the
 update rule (a scan every 0.5 m or 0.25 rad: the box world's scans are 0.1 m apart) and the
 odometry noise, which is the simulator's, matched to that rule (:data:`MOTION_SCALE`);
@@ -64,9 +66,10 @@ class Method:
     horizon: int = 0
     alpha: float = 0.0
     initial: str = "odometry"
+    selection_correction: float = 1.0
 
 
-def methods(alpha: float, lp_sm: bool = False) -> list[Method]:
+def methods(alpha: float, lp_sm: bool = False, evidence_weights: bool = False) -> list[Method]:
     out = [
         Method("OP", "op"),
         Method("SMP", "smp"),
@@ -76,6 +79,10 @@ def methods(alpha: float, lp_sm: bool = False) -> list[Method]:
     ]
     if lp_sm:  # not in the paper: localizers drawn around the scan-matched pose (importance-corrected)
         out.append(Method(f"LP-SM a={alpha:g} L=100 k=5", "lp", 100, 5, alpha, "scan_match"))
+    if evidence_weights:  # lookahead.selection_correction = 0: the SLAM weight is the evidence estimate alone
+        out.append(Method(f"LP a={alpha:g} c=0 L=100 k=5", "lp", 100, 5, alpha, selection_correction=0.0))
+        if lp_sm:
+            out.append(Method(f"LP-SM a={alpha:g} c=0 L=100 k=5", "lp", 100, 5, alpha, "scan_match", 0.0))
     return out
 
 
@@ -112,6 +119,7 @@ def filter_setup(method: Method, n: int, scenario, args):
     for name in ("srr", "srt", "str", "stt"):  # the proportional terms; the floors stay
         overrides[f"motion.{name}"] *= args.motion_scale
     overrides["lookahead.alpha"] = method.alpha
+    overrides["lookahead.selection_correction"] = method.selection_correction
     overrides.update(parse_assignments(args.set or []))
     return config, default_params(**overrides)
 
@@ -273,6 +281,9 @@ def main(argv=None):
                     help="override a filter parameter for every method (dotted name, e.g. likelihood.gain=0.2)")
     ap.add_argument("--lp-sm", action="store_true",
                     help="also run the LP with scan-matched localizers (LP-SM, not in the paper)")
+    ap.add_argument("--evidence-weights", action="store_true",
+                    help="also run the LPs with lookahead.selection_correction = 0 (label 'c=0'): the SLAM "
+                         "weight is the evidence estimate alone, the look-ahead only picks the pose")
     ap.add_argument("--fov-deg", type=float, default=None,
                     help="the laser's field of view (degrees; default the scenario's 180), one beam per degree")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
@@ -282,7 +293,7 @@ def main(argv=None):
     (out / "maps").mkdir(parents=True, exist_ok=True)
     scenario_kwargs = {}
     particle_counts = args.particles or [20, 50]
-    method_list = methods(args.alpha, args.lp_sm)
+    method_list = methods(args.alpha, args.lp_sm, args.evidence_weights)
     if args.fov_deg is not None:
         scenario_kwargs = dict(field_of_view=float(np.radians(args.fov_deg)), num_beams=int(round(args.fov_deg)))
     if args.quick:
@@ -301,7 +312,7 @@ def main(argv=None):
                         "set": args.set or [],
                         "success_ra": SUCCESS_RA}
     known = list(data.get("method_order", []))
-    data["method_order"] = known + [m.label for m in methods(args.alpha, True) if m.label not in known]
+    data["method_order"] = known + [m.label for m in methods(args.alpha, True, True) if m.label not in known]
 
     from tqdm.auto import tqdm
 

@@ -5,12 +5,16 @@ configuration and parameters for every log (``SETTINGS`` below; no per-dataset t
 for several seeds, each in its own subprocess (its peak memory is its own), scores the
 per-scan trajectory with the relation metric of Kuemmerle et al. 2009, and writes
 ``DIR/results.json``, ``DIR/results.md`` (the table, beside the published numbers and
-GMapping measured on this machine) and each run's map PNG. Each run also localises every
+GMapping measured on this machine), ``DIR/seeds.md`` (the seed-to-seed spread: with
+a few seeds, whether a late loop closure fails decides the mean) and each run's map PNG. Each run also localises every
 scan in its final map and fuses the matches with the odometry (``jaxslam map --refine``,
 :mod:`jaxslam.refine`); the table shows that trajectory's error on a row of its own.
 Finished runs are skipped on restart, so the script can be stopped and resumed.
 
     python experiments/datasets.py --out results/datasets [--seeds 3] [--proposals op smp lp]
+
+Proposals: op, smp, lp (the paper's), lp-sm (localizers around the scan match) and lp-c0 /
+lp-sm-c0 (the same with ``lookahead.selection_correction = 0``).
 """
 
 from __future__ import annotations
@@ -77,13 +81,15 @@ def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path) -> di
     scored = run_dir / "errors.json"
     if scored.is_file():
         return json.loads(scored.read_text())
-    cli_proposal = "lp" if proposal == "lp-sm" else proposal
+    cli_proposal = "lp" if proposal.startswith("lp") else proposal
     cmd = [sys.executable, "-m", "jaxslam.cli", "map", str(data / log_name), "--proposal", cli_proposal,
            "--particles", str(SETTINGS["particles"]), "--seed", str(seed), "--out", str(run_dir), "--no-progress",
            "--refine"]
     if cli_proposal == "lp":
         cmd += ["--localizers", str(SETTINGS["localizers"]), "--horizon", str(SETTINGS["horizon"])]
-    if proposal == "lp-sm":  # not in the paper: localizers drawn around the scan-matched pose
+    if proposal.endswith("-c0"):  # the SLAM weight is the evidence estimate alone (no selection correction)
+        cmd += ["--set", "lookahead.selection_correction=0"]
+    if proposal.startswith("lp-sm"):  # not in the paper: localizers drawn around the scan-matched pose
         cmd += ["--set", "lookahead_initial=scan_match"]
     for item in SETTINGS["set"]:
         cmd += ["--set", item]
@@ -135,9 +141,16 @@ def aggregate(records: list[dict]) -> dict:
             out.setdefault(dataset, {})[proposal] = {
                 **{k: float(np.mean([r[k] for r in runs])) for k in keys + refined_keys},
                 "trans_mean_over_seeds_std": float(np.std([r["trans_mean"] for r in runs])),
+                **({"refined_trans_mean_over_seeds_std": float(np.std([r["refined_trans_mean"] for r in runs]))}
+                   if refined_keys else {}),
                 "seeds": len(runs),
             }
     return out
+
+
+def method_label(proposal: str) -> str:
+    """"lp-sm-c0" -> "LP-SM c=0" (c: lookahead.selection_correction)."""
+    return proposal.upper().replace("-C0", " c=0")
 
 
 def markdown(summary: dict) -> str:
@@ -148,12 +161,12 @@ def markdown(summary: dict) -> str:
     for dataset in DATASETS:
         for proposal, s in summary.get(dataset, {}).items():
             lines.append(
-                f"| {dataset} | jaxslam {proposal.upper()} ({s['seeds']} seeds) | {s['trans_mean']:.3f} ± {s['trans_std']:.3f} "
+                f"| {dataset} | jaxslam {method_label(proposal)} ({s['seeds']} seeds) | {s['trans_mean']:.3f} ± {s['trans_std']:.3f} "
                 f"| {s['rot_mean_deg']:.2f} ± {s['rot_std_deg']:.2f} | {s['wall_s']:.1f} | {s['real_time_factor']:.1f} "
                 f"| {s['peak_memory_mb']:.0f} |")
             if "refined_trans_mean" in s:
                 lines.append(
-                    f"| {dataset} | jaxslam {proposal.upper()} + refinement | {s['refined_trans_mean']:.3f} ± "
+                    f"| {dataset} | jaxslam {method_label(proposal)} + refinement | {s['refined_trans_mean']:.3f} ± "
                     f"{s['refined_trans_std']:.3f} | {s['refined_rot_mean_deg']:.2f} ± {s['refined_rot_std_deg']:.2f} "
                     "| | | |")
         g = GMAPPING_HERE[dataset]
@@ -164,14 +177,34 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def seed_markdown(records: list[dict], over: float = 0.06) -> str:
+    """Seed-to-seed spread of the refined error: mean ± standard error over seeds, the worst
+    seed, and how many seeds end over ``over`` m (where part of a loop closure failed)."""
+    lines = ["| dataset | method | seeds | filter [m] | refined [m] | worst seed, refined [m] "
+             f"| seeds over {over:g} m, refined |", "|---|---|---|---|---|---|---|"]
+    table: dict = {}
+    for r in records:
+        if "failed" not in r and "refined_trans_mean" in r:
+            table.setdefault((r["dataset"], r["proposal"]), []).append(r)
+    for (dataset, proposal), runs in table.items():
+        filt = np.array([r["trans_mean"] for r in runs])
+        refined = np.array([r["refined_trans_mean"] for r in runs])
+        se = (lambda x: x.std(ddof=1) / np.sqrt(x.size)) if len(runs) > 1 else (lambda x: 0.0)
+        lines.append(f"| {dataset} | {method_label(proposal)} | {len(runs)} | {filt.mean():.3f} ± {se(filt):.3f} "
+                     f"| {refined.mean():.3f} ± {se(refined):.3f} | {refined.max():.3f} | {int((refined > over).sum())} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default="results/datasets")
     parser.add_argument("--data", default=str(DATA))
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
-    parser.add_argument("--proposals", nargs="+", default=["op", "smp", "lp"], choices=["op", "smp", "lp", "lp-sm"],
-                        help="lp-sm: the LP with scan-matched localizers (lookahead_initial=scan_match)")
+    parser.add_argument("--proposals", nargs="+", default=["op", "smp", "lp"],
+                        choices=["op", "smp", "lp", "lp-sm", "lp-c0", "lp-sm-c0"],
+                        help="lp-sm: the LP with scan-matched localizers (lookahead_initial=scan_match); "
+                             "-c0: with lookahead.selection_correction=0 (the evidence alone weighs the particles)")
     args = parser.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     if not data.is_dir():
@@ -189,6 +222,7 @@ def main(argv=None) -> int:
                                                      "gmapping_this_machine": GMAPPING_HERE, "published": PUBLISHED},
                                                     indent=2))
         (out / "results.md").write_text(markdown(summary))
+        (out / "seeds.md").write_text(seed_markdown(records))
     print(markdown(aggregate(records)))
     return 0
 
