@@ -5,10 +5,11 @@ configuration and parameters for every log (``SETTINGS`` below; no per-dataset t
 for several seeds, each in its own subprocess (its peak memory is its own), scores the
 per-scan trajectory with the relation metric of Kuemmerle et al. 2009, and writes
 ``DIR/results.json``, ``DIR/results.md`` (the table, beside the published numbers and
-GMapping measured on this machine), ``DIR/seeds.md`` (the seed-to-seed spread: with
-a few seeds, whether a late loop closure fails decides the mean) and each run's map PNG. Each run also localises every
-scan in its final map and fuses the matches with the odometry (``jaxslam map --refine``,
-:mod:`jaxslam.refine`); the table shows that trajectory's error on a row of its own.
+GMapping measured on this machine), ``DIR/seeds.md`` (the seed-to-seed spread: with a few
+seeds, whether a late loop closure fails decides the mean) and each run's map PNG. Each run
+also localises every scan in its final map and fuses the matches with the odometry
+(``jaxslam map --refine``, :mod:`jaxslam.refine`); the table shows that trajectory's error on
+a row of its own.
 Finished runs are skipped on restart, so the script can be stopped and resumed.
 
     python experiments/datasets.py --out results/datasets [--seeds 3] [--proposals op smp lp]
