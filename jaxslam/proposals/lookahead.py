@@ -169,7 +169,7 @@ def run_horizon(
         states = jax.tree.map(lambda new, old: jnp.where(_expand(valid, new), new, old), moved, states)
         log_a = jnp.where(valid, new_log_a, log_a)
         count = count + do.astype(jnp.int32)
-        log_evidence = log_z + jax.scipy.special.logsumexp(log_a) - log_num
+        log_evidence = log_z + _log_mean_exp(log_a)
         out = HorizonHistory(states, log_a, origin, do, valid) if return_history else None
         return (states, log_a, origin, log_z, count), (log_evidence, out)
 
@@ -177,6 +177,11 @@ def run_horizon(
     xs = (jnp.arange(num_steps, dtype=jnp.int32), future_inputs, future_valid)
     (states, log_a, origin, log_z, count), (log_evidence, history) = jax.lax.scan(body, init, xs)
     return HorizonResult(log_a, origin, log_z, states, count, log_evidence), history
+
+
+def _log_mean_exp(log_values: Float[Array, "L"]) -> Float[Array, ""]:
+    """log mean_i exp(x_i): the evidence estimate of L weighted samples."""
+    return jax.scipy.special.logsumexp(log_values) - math.log(log_values.shape[0])
 
 
 def _expand(flag: Bool[Array, ""], like: Array) -> Bool[Array, "..."]:
@@ -250,12 +255,12 @@ def select(
     log_p, fallback = selection_log_probs(log_v, log_lik_t, alpha)
     index = jax.random.categorical(key, log_p).astype(jnp.int32)
     full = log_lik_t[index] - math.log(num) - log_p[index]
-    log_total_g = jax.scipy.special.logsumexp(log_lik_t)
-    correction = log_lik_t[index] - log_total_g - log_p[index]
+    log_evidence_t = _log_mean_exp(log_lik_t)
+    correction = full - log_evidence_t  # log[softmax(g)_J / p_J]
     c = jnp.asarray(selection_correction, log_lik_t.dtype)
     # c = 1 returns the full form untouched (bit for bit); c < 1 never multiplies an infinite
     # correction (0 * inf = NaN).
-    tempered = log_total_g - math.log(num) + c * jnp.where(jnp.isfinite(correction), correction, 0.0)
+    tempered = log_evidence_t + c * jnp.where(jnp.isfinite(correction), correction, 0.0)
     increment = jnp.where(c >= 1.0, full, tempered)
     paper_form_undefined = fallback & (jnp.asarray(alpha) <= 0.0) & (c > 0.0)
     increment = jnp.where(paper_form_undefined | jnp.isnan(increment), -jnp.inf, increment)
@@ -313,7 +318,7 @@ def lookahead_increment(
       target already held every remaining scan.
     A ratio of two estimates from one run: consistent in L, not unbiased.
     """
-    log_evidence_t = jax.scipy.special.logsumexp(log_lik_t) - math.log(log_lik_t.shape[0])
+    log_evidence_t = _log_mean_exp(log_lik_t)
     if log_evidence.shape[0] == 0:
         return log_evidence_t
     previous = log_evidence_t if log_evidence.shape[0] == 1 else log_evidence[-2]
