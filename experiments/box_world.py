@@ -112,7 +112,7 @@ def filter_setup(method: Method, n: int, scenario, args):
         max_insert_range=scenario.log.sensor.range_max.item() + 0.5, beam_stride=args.beam_stride,
         linear_update=args.linear_update, angular_update=args.angular_update,
         num_localizers=max(method.num_localizers, 1), horizon=method.horizon,
-        lookahead_initial=method.initial,
+        lookahead_initial=method.initial, likelihood_field=args.likelihood_field,
     )
     m = scenario.metadata["motion_params"]
     overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}
@@ -286,6 +286,8 @@ def main(argv=None):
                          "weight is the evidence estimate alone, the look-ahead only picks the pose")
     ap.add_argument("--fov-deg", type=float, default=None,
                     help="the laser's field of view (degrees; default the scenario's 180), one beam per degree")
+    ap.add_argument("--likelihood-field", choices=("endpoints", "occupied"), default="endpoints",
+                    help="what the likelihood field measures distances to (SlamConfig.likelihood_field)")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
     args = ap.parse_args(argv)
 
@@ -309,6 +311,7 @@ def main(argv=None):
                         "alpha": args.alpha, "rotation_weight": args.rotation_weight,
                         "beam_stride": args.beam_stride, "linear_update": args.linear_update,
                         "angular_update": args.angular_update, "motion_scale": args.motion_scale,
+                        "likelihood_field": args.likelihood_field,
                         "set": args.set or [],
                         "success_ra": SUCCESS_RA}
     known = list(data.get("method_order", []))

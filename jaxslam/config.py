@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxslam.grid import GridSpec, InsertionParams
+from jaxslam.grid import LIKELIHOOD_FIELDS, GridSpec, InsertionParams
 from jaxslam.motion import MotionParams
 from jaxslam.resampling import RESAMPLERS
 from jaxslam.sensor import LikelihoodParams
@@ -49,6 +49,11 @@ class SlamConfig:
     """Beams are inserted into the map up to this range (m); sets samples per beam."""
     field_radius: int = 4
     """Radius (cells) of the likelihood field around each registered endpoint."""
+    likelihood_field: str = "endpoints"
+    """What the likelihood field measures distances to: "endpoints" (every endpoint ever
+    registered, a scatter-min per beam) or "occupied" (the cells whose log-odds is above 0, so
+    endpoints that later beams see through stop counting, as in GMapping; the field is
+    recomputed in a window round each inserted scan). See ``jaxslam.grid.insert_scan``."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     linear_update: float = 1.0
@@ -82,6 +87,8 @@ class SlamConfig:
             (self.map_padding >= 0, "map_padding must be >= 0"),
             (self.max_insert_range > 0, "max_insert_range must be > 0"),
             (1 <= self.field_radius <= 11, "field_radius must be in 1..11 (its squared distances fit uint8)"),
+            (self.likelihood_field in LIKELIHOOD_FIELDS,
+             f"likelihood_field must be one of {LIKELIHOOD_FIELDS}, got {self.likelihood_field!r}"),
             (self.beam_stride >= 1, "beam_stride must be >= 1"),
             (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}"),
             (self.match_iterations >= 0, "match_iterations must be >= 0"),

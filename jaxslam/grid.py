@@ -22,6 +22,7 @@ Points outside the map are never wrapped: they are dropped and counted.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -40,6 +41,9 @@ LOGODDS_DTYPE = jnp.float16
 
 FAR = 255
 """Value of ``hit_dist2`` for a cell with no endpoint within the field radius."""
+
+LIKELIHOOD_FIELDS = ("endpoints", "occupied")
+"""What ``hit_dist2`` measures distances to (see :func:`insert_scan`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -168,25 +172,38 @@ def insert_scan(
     params: InsertionParams,
     max_insert_range: float,
     field_radius: int,
+    likelihood_field: str = "endpoints",
 ) -> tuple[GridMap, Int[Array, ""]]:
     """Insert one scan taken at robot ``pose`` into one map.
 
     Every cell a beam crosses before its endpoint gets ``logodds_free`` once per beam;
     the endpoint cell of a returned beam (range_min <= r < min(range_max, max_insert_range))
     gets ``logodds_occupied`` and registers an endpoint in the likelihood field. A "no
-    return" beam (r >= range_max) clears free space up to ``no_return_free_range`` and
-    marks nothing occupied. Beams are traced up to ``max_insert_range`` metres (static:
+    return" beam (r >= range_max) clears free space up to ``no_return_free_range``, but never
+    past range_max (the laser says nothing of the space beyond its reach), and marks nothing
+    occupied. Beams are traced up to ``max_insert_range`` metres (static:
     it sets the number of samples per beam, one per cell).
+
+    ``likelihood_field`` (static) says what the likelihood field measures distances to:
+    "endpoints", every endpoint ever registered (a scatter-min, the cheapest); "occupied", the
+    cells whose log-odds is now above 0, so an endpoint that later beams see through leaves the
+    field (as GMapping's matcher, which skips cells under its occupancy threshold). With
+    "endpoints" a particle whose pose drifts keeps its old endpoints and adds the new ones, its
+    obstacles thicken, and the drift is never penalised; "occupied" recomputes the field in the
+    window the scan can have changed (:func:`refresh_field`).
 
     Returns the new map and the number of beam samples (free or endpoint) that fell
     outside the map and were dropped.
     """
+    if likelihood_field not in LIKELIHOOD_FIELDS:
+        raise ValueError(f"likelihood_field must be one of {LIKELIHOOD_FIELDS}, got {likelihood_field!r}")
     res = spec.resolution
     num_samples = int(math.ceil(max_insert_range / res)) + 1
     origin = compose(pose, sensor.laser_pose)
     no_return = ranges >= sensor.range_max
     returned = (~no_return) & (ranges >= sensor.range_min) & (ranges < max_insert_range)
-    free_len = jnp.where(no_return, jnp.minimum(params.no_return_free_range, max_insert_range),
+    no_return_len = jnp.minimum(jnp.minimum(params.no_return_free_range, sensor.range_max), max_insert_range)
+    free_len = jnp.where(no_return, no_return_len,
                          jnp.minimum(ranges, max_insert_range))
     free_len = jnp.where((ranges < sensor.range_min) & ~no_return, 0.0, free_len)
     angle = origin[2] + sensor.beam_angles
@@ -226,6 +243,11 @@ def insert_scan(
     flat = flat.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
     logodds = flat.reshape(spec.shape)
 
+    if likelihood_field == "occupied":
+        reach = int(math.ceil(max_insert_range / res)) + 1  # cells this scan can have changed
+        center = world_to_cell(spec, origin[:2])
+        return GridMap(logodds, refresh_field(logodds, grid_map.hit_dist2, center, reach, field_radius)), outside
+
     offsets, d2 = _field_kernel(field_radius)
     splat_cells = world_to_cell(spec, end_points)[:, None, :] + jnp.asarray(offsets)[None]  # (B, K, 2)
     splat_idx = jnp.where(returned[:, None], flat_index(spec, splat_cells), spec.num_cells)
@@ -233,6 +255,61 @@ def insert_scan(
         jnp.broadcast_to(jnp.asarray(d2), splat_idx.shape).reshape(-1), mode="drop"
     )
     return GridMap(logodds, hit_dist2.reshape(spec.shape)), outside
+
+
+def occupied_field(occupied: Bool[Array, "h w"], radius: int) -> UInt8[Array, "h w"]:
+    """Squared distance (cells) from each cell to the nearest occupied cell, ``FAR`` beyond
+    ``radius``: the likelihood field of :func:`insert_scan`'s "occupied" mode, exact.
+
+    Two 1-D passes of 2 * radius + 1 shifts each (the squared Euclidean distance is separable:
+    min over rows of dr^2 + min over columns of dc^2), so O(h w radius), not O(h w radius^2).
+    Cells outside the array count as unoccupied.
+    """
+    big = jnp.int32(1 << 20)
+    field = jnp.where(occupied, 0, big).astype(jnp.int32)
+    for axis in (0, 1):
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (radius, radius)
+        padded = jnp.pad(field, pad, constant_values=big)
+        n = field.shape[axis]
+        field = functools.reduce(jnp.minimum, [
+            jax.lax.slice_in_dim(padded, radius + d, radius + d + n, axis=axis) + d * d
+            for d in range(-radius, radius + 1)])
+    return jnp.where(field <= radius * radius, jnp.minimum(field, FAR), FAR).astype(jnp.uint8)
+
+
+def refresh_field(
+    logodds: Float[Array, "H W"],
+    hit_dist2: UInt8[Array, "H W"],
+    center: Int[Array, "2"],
+    reach: int,
+    radius: int,
+) -> UInt8[Array, "H W"]:
+    """Recompute ``hit_dist2`` from the occupied cells (log-odds > 0) within ``reach`` + ``radius``
+    cells (Chebyshev) of ``center`` (row, col); the rest of the field is kept.
+
+    The window is static in size (``reach`` and ``radius`` are static), so this jits to one
+    fixed-size slice, two 1-D passes and one write-back. A window that would cross the map's
+    edge is moved inside it; the cells within ``radius`` of a window side that is not the
+    map's edge are not written (their occupied neighbours may lie outside the window).
+    """
+    height, width = logodds.shape
+    half = reach + 2 * radius
+    size_r, size_c = min(2 * half + 1, height), min(2 * half + 1, width)
+    start_r = jnp.clip(center[0] - half, 0, height - size_r)
+    start_c = jnp.clip(center[1] - half, 0, width - size_c)
+    window = jax.lax.dynamic_slice(logodds, (start_r, start_c), (size_r, size_c))
+    fresh = occupied_field(window > 0, radius)
+    old = jax.lax.dynamic_slice(hit_dist2, (start_r, start_c), (size_r, size_c))
+
+    def inner(start, size, total):  # window cells whose whole field neighbourhood is in view
+        i = jnp.arange(size)
+        low_ok = (i >= radius) | (start == 0)
+        high_ok = (i < size - radius) | (start + size == total)
+        return low_ok & high_ok
+
+    keep_fresh = inner(start_r, size_r, height)[:, None] & inner(start_c, size_c, width)[None, :]
+    return jax.lax.dynamic_update_slice(hit_dist2, jnp.where(keep_fresh, fresh, old), (start_r, start_c))
 
 
 def occupancy_probability(logodds: Float[Array, "... H W"]) -> Float[Array, "... H W"]:

@@ -103,7 +103,8 @@ def init(
     n = config.num_particles
     pose = jnp.zeros(3, jnp.float32) if initial_pose is None else jnp.asarray(initial_pose, jnp.float32)
     one_map, _ = insert_scan(spec, empty_map(spec), pose, jnp.asarray(first_ranges, jnp.float32), sensor,
-                             params.insertion, config.max_insert_range, config.field_radius)
+                             params.insertion, config.max_insert_range, config.field_radius,
+                             config.likelihood_field)
     maps = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), one_map)
     return SlamState(
         poses=jnp.broadcast_to(pose, (n, 3)),
@@ -149,7 +150,7 @@ def step(
 
     def insert(grid_map, pose):
         return insert_scan(spec, grid_map, pose, inputs.ranges, sensor, params.insertion,
-                           config.max_insert_range, config.field_radius)
+                           config.max_insert_range, config.field_radius, config.likelihood_field)
 
     maps, outside = jax.vmap(insert)(state.maps, out.pose)
 

@@ -122,7 +122,7 @@ class Reference:
             no_return = r >= rmax
             returned = (not no_return) and rmin <= r < max_range
             if no_return:
-                length = min(nrfr, max_range)
+                length = min(nrfr, rmax, max_range)
             elif r < rmin:
                 length = 0.0
             else:
@@ -225,6 +225,22 @@ def test_insert_scan_matches_reference():
     assert np.asarray(new.hit_dist2).min() == 0 and (np.asarray(new.hit_dist2) != np.asarray(m.hit_dist2)).any()
 
 
+def test_no_return_clears_no_further_than_range_max():
+    # A short-range laser (range_max 1.0 m < no_return_free_range 1.3 m < max_insert_range):
+    # a no-return beam says only that nothing lies within 1.0 m, so no cell beyond is cleared
+    # (a 4 m laser with the default 5 m would erase obstacles it cannot see).
+    short = make_sensor(SENSOR.beam_angles, range_min=0.12, range_max=1.0, laser_pose=(0.11, -0.04, 0.21))
+    _, _, inc = check_against_reference(SPEC, G.empty_map(SPEC), POSE, np.full_like(RANGES, 1.0), short)
+    rows, cols = np.nonzero(inc)
+    assert rows.size > 0 and np.all(inc[rows, cols] < 0)
+    origin = np_compose(POSE.astype(np.float64), np.asarray(short.laser_pose, np.float64))
+    centers = np.stack([cols + 0.5, rows + 0.5], -1) * SPEC.resolution + np.asarray(SPEC.origin)
+    # A cleared cell's centre is at most half a cell diagonal past the range.
+    reach = np.linalg.norm(centers - origin[:2], axis=-1)
+    assert reach.max() <= 1.0 + SPEC.resolution / np.sqrt(2) + 1e-6
+    assert reach.max() > 1.0 - 2 * SPEC.resolution  # and the beams do reach range_max
+
+
 def test_insert_scan_into_empty_map_and_accumulation():
     m = G.empty_map(SPEC)
     m1, _, _ = check_against_reference(SPEC, m, POSE, RANGES, SENSOR)
@@ -319,3 +335,67 @@ def test_insert_scan_is_traced_once_per_spec():
     f(SPEC, m, jnp.asarray(POSE), jnp.asarray(RANGES), SENSOR._replace(laser_pose=jnp.zeros(3)), PARAMS,
       MAX_RANGE, RADIUS)
     assert len(traces) == 1
+
+
+# ------------------------------------------------------------- likelihood field "occupied"
+
+def _brute_force_field(occupied: np.ndarray, radius: int) -> np.ndarray:
+    out = np.full(occupied.shape, G.FAR, np.int64)
+    cells = np.argwhere(occupied)
+    for r in range(occupied.shape[0]):
+        for c in range(occupied.shape[1]):
+            if cells.size:
+                d2 = int(((cells - [r, c]) ** 2).sum(axis=1).min())
+                if d2 <= radius * radius:
+                    out[r, c] = min(d2, G.FAR)
+    return out
+
+
+@pytest.mark.parametrize("radius", [1, 3, 5])
+def test_occupied_field_matches_brute_force(radius):
+    occupied = np.random.default_rng(radius).random((23, 31)) < 0.03
+    occupied[0, 5] = occupied[22, 30] = True  # on the array's edges
+    got = np.asarray(G.occupied_field(jnp.asarray(occupied), radius))
+    np.testing.assert_array_equal(got, _brute_force_field(occupied, radius))
+
+
+BIG_SPEC = G.GridSpec((60, 80), 0.1, (0.0, 0.0))  # larger than the refresh window (35 cells)
+RING = make_sensor(np.linspace(-np.pi, np.pi, 45, endpoint=False), range_min=0.05, range_max=3.0)
+insert_occupied = jax.jit(G.insert_scan, static_argnums=(0, 6, 7, 8))
+
+
+def test_occupied_mode_keeps_the_field_of_the_current_occupancy():
+    """After scans in the middle and at every edge of a map larger than the refresh window,
+    ``hit_dist2`` is exactly the field of the cells whose log-odds is now above 0."""
+    rng = np.random.default_rng(4)
+    grid_map = G.empty_map(BIG_SPEC)
+    poses = [(4.0, 3.0, 0.3), (0.3, 0.4, 1.0), (7.7, 5.7, -2.0), (0.2, 5.8, 0.0), (7.9, 0.1, 2.5), (4.2, 3.1, 0.0)]
+    for x, y, theta in poses:
+        ranges = rng.uniform(0.2, 1.4, RING.beam_angles.shape).astype(np.float32)
+        ranges[::7] = 3.0  # no return
+        grid_map, _ = insert_occupied(BIG_SPEC, grid_map, jnp.array([x, y, theta], jnp.float32), jnp.asarray(ranges),
+                                      RING, PARAMS, 1.0, RADIUS, "occupied")
+        expected = _brute_force_field(np.asarray(grid_map.logodds, np.float32) > 0, RADIUS)
+        np.testing.assert_array_equal(np.asarray(grid_map.hit_dist2), expected)
+
+
+def test_an_endpoint_seen_through_leaves_only_the_occupied_field():
+    sensor = make_sensor([0.0], range_min=0.05, range_max=3.0)
+    pose = jnp.array([2.05, 3.05, 0.0], jnp.float32)
+    endpoint_cell = (30, 25)  # x = 2.55, y = 3.05
+    fields = {}
+    for mode in G.LIKELIHOOD_FIELDS:
+        grid_map, _ = insert_occupied(BIG_SPEC, G.empty_map(BIG_SPEC), pose, jnp.array([0.5]), sensor, PARAMS,
+                                      1.5, RADIUS, mode)
+        assert int(grid_map.hit_dist2[endpoint_cell]) == 0
+        for _ in range(4):  # a longer beam passes through it: 0.9 - 4 x 0.4 < 0, now free
+            grid_map, _ = insert_occupied(BIG_SPEC, grid_map, pose, jnp.array([1.2]), sensor, PARAMS, 1.5, RADIUS,
+                                          mode)
+        assert float(grid_map.logodds[endpoint_cell]) < 0
+        fields[mode] = int(grid_map.hit_dist2[endpoint_cell])
+    assert fields == {"endpoints": 0, "occupied": G.FAR}  # the new endpoint is 7 cells away
+
+
+def test_unknown_likelihood_field_is_an_error():
+    with pytest.raises(ValueError, match="likelihood_field"):
+        G.insert_scan(BIG_SPEC, G.empty_map(BIG_SPEC), jnp.zeros(3), jnp.ones(45), RING, PARAMS, 1.0, RADIUS, "hits")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import chex
@@ -42,6 +43,8 @@ def toy_loglik(x, step_input):
     return toy_log_lik(x, z)
 
 
+# Jitted (the numbers traced, the sizes static) so that each test compiles once per shape.
+@functools.partial(jax.jit, static_argnames=("num", "weight"))
 def toy_increment(key, alpha, z_t, future_u, future_z, num, threshold, valid=None, offsets=None,
                   selection_correction=1.0, weight="filter"):
     """One LP weight increment with x_{t-1} = 0 and u_t = 0; ``offsets`` (K,) are added
@@ -65,12 +68,19 @@ def toy_increment(key, alpha, z_t, future_u, future_z, num, threshold, valid=Non
     return draw, g
 
 
+@functools.partial(jax.jit, static_argnames=("num", "weight"))
+def toy_increments(keys, alpha, z_t, future_u, future_z, num, threshold, selection_correction=1.0, weight="filter"):
+    """:func:`toy_increment` for a batch of keys (one run of the look-ahead per key)."""
+    return jax.vmap(lambda k: toy_increment(k, alpha, z_t, future_u, future_z, num, threshold,
+                                            selection_correction=selection_correction, weight=weight))(keys)
+
+
 @pytest.mark.parametrize("alpha", [0.0, 0.1, 0.5, 0.9])
 def test_k0_increment_is_log_mean_likelihood(alpha):
     keys = jax.random.split(jax.random.key(1), 64)
     z_t = 0.37
     empty = jnp.zeros((0,))
-    draws, g = jax.vmap(lambda k: toy_increment(k, alpha, z_t, empty, empty, 50, 0.5))(keys)
+    draws, g = toy_increments(keys, alpha, z_t, empty, empty, 50, 0.5)
     expected = jax.scipy.special.logsumexp(g, axis=1) - math.log(50)
     np.testing.assert_allclose(draws.log_weight_increment, expected, rtol=0, atol=2e-6)
     # With k = 0, V_i = exp(g_i): p is the likelihood share for every alpha.
@@ -87,10 +97,10 @@ TOY_RUNS = 20_000
 
 
 def _toy_weights(alpha, seed=0, selection_correction=1.0):
-    fn = jax.jit(jax.vmap(lambda k: toy_increment(k, alpha, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 2.0,
-                                                  selection_correction=selection_correction)[0]
-                          .log_weight_increment))
-    inc = np.asarray(fn(jax.random.split(jax.random.key(seed), TOY_RUNS)), np.float64)
+    keys = jax.random.split(jax.random.key(seed), TOY_RUNS)
+    draws, _ = toy_increments(keys, alpha, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 2.0,
+                              selection_correction=selection_correction)
+    inc = np.asarray(draws.log_weight_increment, np.float64)
     assert np.all(np.isfinite(inc))
     w = np.exp(inc)
     return w.mean(), w.std(ddof=1) / math.sqrt(w.size)
@@ -116,8 +126,7 @@ def test_without_selection_correction_the_increment_is_the_evidence_estimate(alp
     so even the paper's alpha = 0 is unbiased: mean exp(increment) within 3 Monte Carlo
     standard errors of p(z_t | x_{t-1})."""
     keys = jax.random.split(jax.random.key(3), 64)
-    draws, g = jax.vmap(lambda k: toy_increment(k, alpha, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 2.0,
-                                                selection_correction=0.0))(keys)
+    draws, g = toy_increments(keys, alpha, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 2.0, selection_correction=0.0)
     np.testing.assert_allclose(draws.log_weight_increment, jax.scipy.special.logsumexp(g, axis=1) - math.log(50),
                                rtol=0, atol=2e-6)
     assert len(set(np.asarray(draws.index).tolist())) > 1  # the draws differ, the increments do not depend on them
@@ -165,9 +174,8 @@ def test_lookahead_weight_is_the_predictive_of_the_newest_scan():
     Kalman filter gives exactly. L = 2000, k = 3, ESS-triggered resampling; 200 runs. The log of a
     ratio of two estimates is biased by O(1/L); the tolerance is 4 standard errors of the mean."""
     keys = jax.random.split(jax.random.key(11), 200)
-    inc = jax.jit(jax.vmap(lambda k: toy_increment(k, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 2000, 0.5,
-                                                   weight="lookahead")[0].log_weight_increment))(keys)
-    inc = np.asarray(inc, np.float64)
+    draws, _ = toy_increments(keys, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 2000, 0.5, weight="lookahead")
+    inc = np.asarray(draws.log_weight_increment, np.float64)
     exact = _kalman_predictive_log_density([TOY_Z_T, *np.asarray(TOY_FUTURE_Z).tolist()])
     se = inc.std(ddof=1) / math.sqrt(inc.size)
     assert abs(inc.mean() - exact) < 4 * se + 1e-3, (inc.mean(), se, exact)

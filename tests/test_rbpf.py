@@ -142,6 +142,8 @@ def test_config_and_params_validation():
         SlamConfig(proposal="xyz")
     with pytest.raises(ConfigError, match="lookahead_weight"):
         SlamConfig(proposal="lp", lookahead_weight="smoother")
+    with pytest.raises(ConfigError, match="likelihood_field"):
+        SlamConfig(likelihood_field="hits")
     with pytest.raises(ConfigError, match="num_particles"):
         SlamConfig(num_particles=0)
     with pytest.raises(ConfigError, match="unknown parameter"):
