@@ -113,6 +113,7 @@ def filter_setup(method: Method, n: int, scenario, args):
         linear_update=args.linear_update, angular_update=args.angular_update,
         num_localizers=max(method.num_localizers, 1), horizon=method.horizon,
         lookahead_initial=method.initial, likelihood_field=args.likelihood_field,
+        lookahead_weight=args.lookahead_weight,
     )
     m = scenario.metadata["motion_params"]
     overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}
@@ -144,8 +145,15 @@ def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
     ra = revisiting_accuracy(paths, log_w, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
     errors = passage_errors(paths, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
     best = int(np.argmax(log_w))
+    # RA's two parts (weighted like RA): the position error (m) and the heading error (rad).
+    weights = np.exp(log_w - log_w.max())
+    weights /= weights.sum()
+    position_errors = passage_errors(paths, first, last, truth[idx[first]], truth[idx[last]], 0.0)
+    heading_errors = (errors - position_errors) / args.rotation_weight if args.rotation_weight else None
     run = {
         "seed": seed, "ra": ra, "best_particle_error": float(errors[best]), "seconds": seconds,
+        "ra_position": float(weights @ position_errors),
+        "ra_heading": None if heading_errors is None else float(weights @ heading_errors),
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
         "min_ess": float(result.info.ess.min()),
@@ -288,6 +296,9 @@ def main(argv=None):
                     help="the laser's field of view (degrees; default the scenario's 180), one beam per degree")
     ap.add_argument("--likelihood-field", choices=("endpoints", "occupied"), default="endpoints",
                     help="what the likelihood field measures distances to (SlamConfig.likelihood_field)")
+    ap.add_argument("--lookahead-weight", choices=("filter", "lookahead"), default="filter",
+                    help="the LPs' SLAM weight (SlamConfig.lookahead_weight): 'lookahead' weighs each "
+                         "particle by the k scans ahead too (block sampling)")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
     args = ap.parse_args(argv)
 
@@ -312,6 +323,7 @@ def main(argv=None):
                         "beam_stride": args.beam_stride, "linear_update": args.linear_update,
                         "angular_update": args.angular_update, "motion_scale": args.motion_scale,
                         "likelihood_field": args.likelihood_field,
+                        "lookahead_weight": args.lookahead_weight,
                         "set": args.set or [],
                         "success_ra": SUCCESS_RA}
     known = list(data.get("method_order", []))
