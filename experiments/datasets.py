@@ -72,7 +72,7 @@ GMAPPING_HERE = {  # GMapping (C++, 30 particles, default parameters) on this ma
 }
 
 
-def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path) -> dict:
+def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path, settings: dict = SETTINGS) -> dict:
     """Map one log with one proposal and seed (subprocess), then score it. Cached in out."""
     from jaxslam.io import read_relations, read_trajectory
     from jaxslam.metrics import relation_error
@@ -84,15 +84,15 @@ def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path) -> di
         return json.loads(scored.read_text())
     cli_proposal = "lp" if proposal.startswith("lp") else proposal
     cmd = [sys.executable, "-m", "jaxslam.cli", "map", str(data / log_name), "--proposal", cli_proposal,
-           "--particles", str(SETTINGS["particles"]), "--seed", str(seed), "--out", str(run_dir), "--no-progress",
+           "--particles", str(settings["particles"]), "--seed", str(seed), "--out", str(run_dir), "--no-progress",
            "--refine"]
     if cli_proposal == "lp":
-        cmd += ["--localizers", str(SETTINGS["localizers"]), "--horizon", str(SETTINGS["horizon"])]
+        cmd += ["--localizers", str(settings["localizers"]), "--horizon", str(settings["horizon"])]
     if proposal.endswith("-c0"):  # the SLAM weight is the evidence estimate alone (no selection correction)
         cmd += ["--set", "lookahead.selection_correction=0"]
     if proposal.startswith("lp-sm"):  # not in the paper: localizers drawn around the scan-matched pose
         cmd += ["--set", "lookahead_initial=scan_match"]
-    for item in SETTINGS["set"]:
+    for item in settings["set"]:
         cmd += ["--set", item]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -206,10 +206,19 @@ def main(argv=None) -> int:
                         choices=["op", "smp", "lp", "lp-sm", "lp-c0", "lp-sm-c0"],
                         help="lp-sm: the LP with scan-matched localizers (lookahead_initial=scan_match); "
                              "-c0: with lookahead.selection_correction=0 (the evidence alone weighs the particles)")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="change one of the table's settings for every run (after them, so it wins), "
+                             "e.g. likelihood_field=occupied; use a new --out (runs are cached there)")
     args = parser.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     if not data.is_dir():
         print(f"datasets not found at {data}", file=sys.stderr)
+        return 2
+    settings = {**SETTINGS, "set": SETTINGS["set"] + args.set}
+    previous = out / "results.json"
+    if previous.is_file() and json.loads(previous.read_text()).get("settings") != settings:
+        print(f"{previous} was written with other settings; its cached runs would be mixed with "
+              f"these: choose another --out", file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
@@ -217,9 +226,9 @@ def main(argv=None) -> int:
     jobs = [(d, p, s) for d in args.datasets for p in args.proposals for s in range(args.seeds)]
     records = []
     for dataset, proposal, seed in tqdm(jobs, desc="runs", unit="run"):
-        records.append(run_one(dataset, proposal, seed, out, data))
+        records.append(run_one(dataset, proposal, seed, out, data, settings))
         summary = aggregate(records)
-        (out / "results.json").write_text(json.dumps({"settings": SETTINGS, "runs": records, "summary": summary,
+        (out / "results.json").write_text(json.dumps({"settings": settings, "runs": records, "summary": summary,
                                                      "gmapping_this_machine": GMAPPING_HERE, "published": PUBLISHED},
                                                     indent=2))
         (out / "results.md").write_text(markdown(summary))
