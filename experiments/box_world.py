@@ -145,15 +145,13 @@ def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
     ra = revisiting_accuracy(paths, log_w, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
     errors = passage_errors(paths, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
     best = int(np.argmax(log_w))
-    # RA's two parts (weighted like RA): the position error (m) and the heading error (rad).
-    weights = np.exp(log_w - log_w.max())
-    weights /= weights.sum()
-    position_errors = passage_errors(paths, first, last, truth[idx[first]], truth[idx[last]], 0.0)
-    heading_errors = (errors - position_errors) / args.rotation_weight if args.rotation_weight else None
+    # RA's two parts: RA is linear in lambda, so lambda = 0 gives the position part (m) and the
+    # rest divided by lambda the heading part (rad).
+    ra_position = revisiting_accuracy(paths, log_w, first, last, truth[idx[first]], truth[idx[last]], 0.0)
     run = {
         "seed": seed, "ra": ra, "best_particle_error": float(errors[best]), "seconds": seconds,
-        "ra_position": float(weights @ position_errors),
-        "ra_heading": None if heading_errors is None else float(weights @ heading_errors),
+        "ra_position": ra_position,
+        "ra_heading": (ra - ra_position) / args.rotation_weight if args.rotation_weight else None,
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
         "min_ess": float(result.info.ess.min()),
