@@ -21,7 +21,8 @@ Writes ``DIR/results.json`` after every run (resumable: finished cells are skipp
 a half-finished cell resumes at its next run), ``DIR/fig5.png`` (mean +- std of RA
 and success rate against N, like the paper's Fig. 5), ``DIR/maps/*.npz`` and
 ``DIR/examples.png`` (the best particle's map and path, first run of each cell, like
-Fig. 4), and ``DIR/ra_distribution.png``.
+Fig. 4), ``DIR/failures.png`` (the same for the worst failed run of each method), and
+``DIR/ra_distribution.png``.
 
     python experiments/box_world.py --runs 30 --out results/box_world [--quick]
 """
@@ -41,6 +42,7 @@ import numpy as np
 from jaxslam import rbpf
 from jaxslam.cli import parse_assignments
 from jaxslam.config import SlamConfig, default_params, params_to_dict
+from jaxslam.geometry import wrap_angle_np
 from jaxslam.grid import GridSpec
 from jaxslam.metrics import checkpoint_passages, passage_errors, revisiting_accuracy
 from jaxslam.rbpf import particle_paths
@@ -152,11 +154,62 @@ def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
         "seed": seed, "ra": ra, "best_particle_error": float(errors[best]), "seconds": seconds,
         "ra_position": ra_position,
         "ra_heading": (ra - ra_position) / args.rotation_weight if args.rotation_weight else None,
+        **frame_diagnostics(result, scenario, passages),
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
         "min_ess": float(result.info.ess.min()),
     }
     return run, result, scenario
+
+
+def frame_diagnostics(result, scenario, passages) -> dict:
+    """Where a run's error comes from: box 2's frame, and how many hypotheses of it survive.
+
+    While the robot circles box 2 only box 2 is in view, so each particle's pose there is
+    right relative to its own map of box 2, and its error against the truth is the error of
+    that map's frame, fixed when box 2 was first mapped after the blind drive from the hedge.
+    At the end of the first lap (index ``lap1``):
+
+    - ``frame_error_lap1`` (m): the best final particle's position error there;
+    - ``cloud_error_lap1_min`` / ``_median`` (m): the same over the particles alive then, so
+      whether the filter held a hypothesis close to the truth at all;
+    - ``lineages_from_lap1``: how many distinct particles at lap 1 are ancestors of the
+      particles alive at the end of laps 5, 10 and 15 and at the end (path coalescence);
+    - ``odometry_heading_error_x1`` (rad): the odometry's heading error between the start and
+      the first return over X, the blind U-turn at the turnaround included.
+    """
+    idx = result.selection.indices
+    truth = scenario.true_poses[idx]
+    laps = scenario.metadata.get("lap_end_indices")
+    if laps is None or len(laps) == 0 or len(passages) < 2:
+        return {}
+
+    def nearest(scan):  # the processed scan nearest to a raw scan index
+        return int(np.argmin(np.abs(idx - scan)))
+
+    lap1 = nearest(laps[0])
+    proposed, ancestors = np.asarray(result.info.proposed_poses), np.asarray(result.info.ancestors)
+    start = scenario.log.odometry[0]
+
+    def alive_at_lap1(step):  # the path index lap1 of the particles alive after ``step``
+        return particle_paths(proposed[:step], ancestors[:step], start)[:, lap1]
+
+    cloud = np.hypot(*(alive_at_lap1(lap1)[:, :2] - truth[lap1, :2]).T)
+    checkpoints = {f"lap{k}": nearest(laps[k - 1]) for k in (5, 10, 15) if k <= len(laps)}
+    checkpoints["end"] = len(idx) - 1
+    lineages = {name: int(np.unique(alive_at_lap1(step), axis=0).shape[0]) for name, step in checkpoints.items()}
+    odometry, true_poses = np.asarray(scenario.log.odometry), scenario.true_poses
+    x1 = int(passages[1])
+
+    def turned(poses):  # heading change from the start to the first return over X
+        return poses[x1, 2] - poses[0, 2]
+
+    return {
+        "frame_error_lap1": float(np.hypot(*(result.best_path[lap1, :2] - truth[lap1, :2]))),
+        "cloud_error_lap1_min": float(cloud.min()), "cloud_error_lap1_median": float(np.median(cloud)),
+        "lineages_from_lap1": lineages,
+        "odometry_heading_error_x1": float(np.abs(wrap_angle_np(turned(odometry) - turned(true_poses)))),
+    }
 
 
 def save_example(path: Path, result, scenario, ra: float):
@@ -234,25 +287,35 @@ def make_figures(out: Path, data: dict):
         fig.savefig(out / "ra_distribution.png", dpi=120)
         plt.close(fig)
 
-    # Example maps (first run of each method at the largest N available), like Fig. 4.
-    examples = []
-    for label in labels:
-        rows = sorted((c for c in cells.values() if c["method"] == label and c.get("example")), key=lambda c: -c["N"])
-        if rows:
-            examples.append((label, rows[0]))
-    if examples:
-        fig, axes = plt.subplots(1, len(examples), figsize=(4.2 * len(examples), 3.4), squeeze=False)
-        for ax, (label, cell) in zip(axes[0], examples):
-            ex = np.load(out / cell["example"])
+    # Example maps (first run of each method at the largest N available), like Fig. 4, and the
+    # worst failed run of each method (the true world drawn over the map shows which part of
+    # the map is off: box 2's frame against the hedge's).
+    for key, name in (("example", "examples.png"), ("worst_example", "failures.png")):
+        shown = []
+        for label in labels:
+            rows = sorted((c for c in cells.values() if c["method"] == label and c.get(key)), key=lambda c: -c["N"])
+            if rows:
+                shown.append((label, rows[0]))
+        if not shown:
+            continue
+        fig, axes = plt.subplots(1, len(shown), figsize=(4.2 * len(shown), 3.4), squeeze=False)
+        for ax, (label, cell) in zip(axes[0], shown):
+            ex = np.load(out / cell[key])
             prob = 1.0 / (1.0 + np.exp(-ex["logodds"]))
             ax.imshow(prob, origin="lower", extent=tuple(ex["extent"]), cmap="gray_r", vmin=0, vmax=1)
+            for seg in ex["segments"]:
+                ax.plot(seg[[0, 2]], seg[[1, 3]], color="tab:blue", lw=0.6)
             ax.plot(ex["truth"][:, 0], ex["truth"][:, 1], color="tab:green", lw=0.6, label="truth")
             ax.plot(ex["best_path"][:, 0], ex["best_path"][:, 1], color="tab:red", lw=0.6, label="best particle")
             ax.set_title(f"{label}, N={cell['N']}\nRA = {float(ex['ra']):.3f}", fontsize=8)
+            xs, ys = ex["segments"][:, [0, 2]], ex["segments"][:, [1, 3]]
+            ax.set_xlim(xs.min() - 2.5, xs.max() + 2.5)  # the world and the circle round box 2
+            ax.set_ylim(ys.min() - 2.5, ys.max() + 2.5)
             ax.set_aspect("equal")
-        axes[0][0].legend(fontsize=7, loc="lower left")
+        axes[0][0].plot([], [], color="tab:blue", lw=0.6, label="true world")
+        axes[0][0].legend(fontsize=7, loc="upper right")
         fig.tight_layout()
-        fig.savefig(out / "examples.png", dpi=120)
+        fig.savefig(out / name, dpi=120)
         plt.close(fig)
 
 
@@ -297,6 +360,9 @@ def main(argv=None):
     ap.add_argument("--lookahead-weight", choices=("filter", "lookahead"), default="filter",
                     help="the LPs' SLAM weight (SlamConfig.lookahead_weight): 'lookahead' weighs each "
                          "particle by the k scans ahead too (block sampling)")
+    ap.add_argument("--uturn", choices=("left", "right"), default="left",
+                    help="way round for the turns on the spot at the turnaround point: left (through "
+                         "south, blind for part of the turn) or right (facing the hedge)")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
     args = ap.parse_args(argv)
 
@@ -307,6 +373,8 @@ def main(argv=None):
     method_list = methods(args.alpha, args.lp_sm, args.evidence_weights)
     if args.fov_deg is not None:
         scenario_kwargs = dict(field_of_view=float(np.radians(args.fov_deg)), num_beams=int(round(args.fov_deg)))
+    if args.uturn != "left":
+        scenario_kwargs["uturn"] = args.uturn
     if args.quick:
         scenario_kwargs.update(laps=3, laps_per_visit=3)
         particle_counts = args.particles or [4, 8]
