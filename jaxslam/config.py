@@ -22,7 +22,7 @@ from jaxtyping import Array, Float
 from jaxslam.grid import LIKELIHOOD_FIELDS, GridSpec, InsertionParams
 from jaxslam.motion import MotionParams
 from jaxslam.resampling import RESAMPLERS
-from jaxslam.sensor import LikelihoodParams
+from jaxslam.sensor import FIELD_LOOKUPS, LikelihoodParams
 
 PROPOSALS = ("op", "smp", "lp")
 
@@ -54,6 +54,15 @@ class SlamConfig:
     registered, a scatter-min per beam) or "occupied" (the cells whose log-odds is above 0, so
     endpoints that later beams see through stop counting, as in GMapping; the field is
     recomputed in a window round each inserted scan). See ``jaxslam.grid.insert_scan``."""
+    likelihood_lookup: str = "nearest"
+    """How a beam's endpoint reads the likelihood field in the particle weights (every proposal,
+    the SMP's fitted Gaussian, the LP's localizers): "nearest" (the cell it falls in) or
+    "bilinear" (interpolated between the four surrounding cells, so the likelihood is continuous
+    in the pose; four gathers per beam). See ``jaxslam.sensor``."""
+    match_lookup: str = "nearest"
+    """The same choice for the hill-climbing scan matcher (the SMP's and LP-SM's match, and the
+    refinement's matches and their covariances). "bilinear" lets the matcher settle between
+    cells instead of stopping wherever a whole cell stops improving."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     linear_update: float = 1.0
@@ -89,6 +98,10 @@ class SlamConfig:
             (1 <= self.field_radius <= 11, "field_radius must be in 1..11 (its squared distances fit uint8)"),
             (self.likelihood_field in LIKELIHOOD_FIELDS,
              f"likelihood_field must be one of {LIKELIHOOD_FIELDS}, got {self.likelihood_field!r}"),
+            (self.likelihood_lookup in FIELD_LOOKUPS,
+             f"likelihood_lookup must be one of {FIELD_LOOKUPS}, got {self.likelihood_lookup!r}"),
+            (self.match_lookup in FIELD_LOOKUPS,
+             f"match_lookup must be one of {FIELD_LOOKUPS}, got {self.match_lookup!r}"),
             (self.beam_stride >= 1, "beam_stride must be >= 1"),
             (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}"),
             (self.match_iterations >= 0, "match_iterations must be >= 0"),

@@ -79,7 +79,7 @@ def refine_trajectory(
       ranges: (T, B) the scans (m).
       sensor: the laser.
       params: ``SlamParams``: the likelihood and the scan matcher's steps and ``min_score``.
-      config: ``SlamConfig``: ``beam_stride`` and ``match_iterations``.
+      config: ``SlamConfig``: ``beam_stride``, ``match_iterations`` and ``match_lookup``.
       odometry: (T, 3) the log's odometry poses, one per scan; when given, the matches are
         fused with it (:func:`smooth_with_odometry`, motion stds from ``params.motion``).
       chunk_size: scans matched per compiled call (static).
@@ -104,7 +104,7 @@ def refine_trajectory(
     for start in range(0, padded, chunk_size):
         sl = slice(start, start + chunk_size)
         p, s, c = _match_chunk(spec, hit_dist2, jnp.asarray(pose_in[sl]), jnp.asarray(ranges_in[sl]), lik_sensor,
-                               params, config.match_iterations)
+                               params, config.match_iterations, config.match_lookup)
         out_pose.append(np.asarray(p))
         out_score.append(np.asarray(s))
         out_cov.append(np.asarray(c))
@@ -120,17 +120,17 @@ def refine_trajectory(
     return RefinedTrajectory(refined, ok, scores, matched_pose, covariances)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6))
-def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations):
+@functools.partial(jax.jit, static_argnums=(0, 6, 7))
+def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations, lookup):
     sm = params.scan_match
 
     def one(pose, scan):
         result = match(spec, hit_dist2, pose, scan, sensor, params.likelihood, sm.linear_step, sm.angular_step,
-                       iterations)
+                       iterations, lookup)
         # The match's covariance: the tempered likelihood (the gain that makes the beams'
         # evidence honest) normalised over the stencil, plus the proposal's floor.
         candidates, _, spacing = stencil_poses(result.pose, sm)
-        log_lik = endpoint_log_likelihoods(spec, hit_dist2, candidates, scan, sensor, params.likelihood)
+        log_lik = endpoint_log_likelihoods(spec, hit_dist2, candidates, scan, sensor, params.likelihood, lookup)
         _, cov = weighted_mean_and_covariance(candidates, jax.nn.softmax(log_lik))
         cov = cov + jnp.diag((sm.min_std_fraction * spacing) ** 2)
         return result.pose, result.score, cov

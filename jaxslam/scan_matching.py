@@ -48,16 +48,18 @@ def match(
     linear_step: Float[Array, ""],
     angular_step: Float[Array, ""],
     iterations: int,
+    lookup: str = "nearest",
 ) -> MatchResult:
-    """Hill-climb from ``initial_pose`` for ``iterations`` (static) rounds of six moves."""
-    log_lik = lambda pose: endpoint_log_likelihood(spec, hit_dist2, pose, ranges, sensor, likelihood)
+    """Hill-climb from ``initial_pose`` for ``iterations`` (static) rounds of six moves, on the
+    endpoint likelihood read from the field by ``lookup`` (static, ``sensor.FIELD_LOOKUPS``)."""
+    log_lik = lambda pose: endpoint_log_likelihood(spec, hit_dist2, pose, ranges, sensor, likelihood, lookup)
     step_scale = jnp.stack([linear_step, linear_step, angular_step])
 
     def body(carry, _):
         pose, best, scale = carry
         candidates = pose + _MOVES * (step_scale * scale)
         candidates = candidates.at[:, 2].set(wrap_angle(candidates[:, 2]))
-        values = endpoint_log_likelihoods(spec, hit_dist2, candidates, ranges, sensor, likelihood)
+        values = endpoint_log_likelihoods(spec, hit_dist2, candidates, ranges, sensor, likelihood, lookup)
         j = jnp.argmax(values)
         better = values[j] > best
         pose = jnp.where(better, candidates[j], pose)

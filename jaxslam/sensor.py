@@ -10,6 +10,13 @@ endpoint in the map (infinite beyond the field radius, and for endpoints outside
 the map). Beams without a return (r >= range_max) or shorter than range_min are
 skipped. The sum over beams is multiplied by ``likelihood_gain`` (< 1 tempers the
 over-confidence of treating correlated beams as independent).
+
+``lookup`` (static, :data:`FIELD_LOOKUPS`) says how an endpoint reads the field: "nearest"
+takes the cell it falls in (one gather per beam; the likelihood is then constant while the
+endpoint stays in its cell, so a pose is only resolved to about a cell), "bilinear"
+interpolates the per-beam log-likelihood of the four cells whose centres surround it (four
+gathers; the likelihood is continuous in the pose, so the scan matcher can settle between
+cells).
 """
 
 from __future__ import annotations
@@ -22,6 +29,9 @@ from jaxtyping import Array, Bool, Float, UInt8
 
 from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
 from jaxslam.motion import _LOG_2PI
+
+FIELD_LOOKUPS = ("nearest", "bilinear")
+"""How an endpoint reads the likelihood field (see the module docstring)."""
 
 
 
@@ -100,14 +110,16 @@ def endpoint_log_likelihood(
     ranges: Float[Array, "B"],
     sensor: SensorSpec,
     params: LikelihoodParams,
+    lookup: str = "nearest",
 ) -> Float[Array, ""]:
     """log p(z | x, m) of one scan at one robot pose in one map, in nats.
 
     ``gain * sum_b log(z_hit * fit_b + z_rand)`` over the beams that count (see
-    :func:`endpoint_fit`). vmap it over poses and maps, or call
+    :func:`endpoint_fit`), each beam's term read from the field by ``lookup`` (static,
+    :data:`FIELD_LOOKUPS`). vmap it over poses and maps, or call
     :func:`endpoint_log_likelihoods` for many poses in one map.
     """
-    return endpoint_log_likelihoods(spec, hit_dist2, pose[None], ranges, sensor, params)[0]
+    return endpoint_log_likelihoods(spec, hit_dist2, pose[None], ranges, sensor, params, lookup)[0]
 
 
 def endpoint_log_likelihoods(
@@ -117,6 +129,7 @@ def endpoint_log_likelihoods(
     ranges: Float[Array, "B"],
     sensor: SensorSpec,
     params: LikelihoodParams,
+    lookup: str = "nearest",
 ) -> Float[Array, "L"]:
     """:func:`endpoint_log_likelihood` of one scan at L robot poses in one map (nats).
 
@@ -125,10 +138,54 @@ def endpoint_log_likelihoods(
     particles), after which a pose costs one rotation per beam; and the per-beam term only
     depends on the stored squared cell distance (uint8), so it is read from a 256-entry
     table (:func:`per_beam_log_likelihood_table`) instead of evaluating exp and log per beam.
+    With ``lookup="bilinear"`` the terms of the four surrounding cells are interpolated.
     """
-    d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
-    per_beam = per_beam_log_likelihood_table(spec, params)[d2.astype(jnp.int32)]
+    if lookup not in FIELD_LOOKUPS:
+        raise ValueError(f"lookup must be one of {FIELD_LOOKUPS}, got {lookup!r}")
+    table = per_beam_log_likelihood_table(spec, params)
+    ends, valid = beam_endpoints(poses, ranges, sensor)
+    if lookup == "nearest":
+        per_beam = table[_field_at_cells(spec, hit_dist2, world_to_cell(spec, ends)).astype(jnp.int32)]
+    else:
+        # Cell coordinates of the endpoint relative to the cell centres: cell (r, c) has its
+        # centre at (c + 0.5, r + 0.5) cells from the origin.
+        xy = (ends - jnp.asarray(spec.origin, ends.dtype)) / spec.resolution - 0.5
+        big = 4 * max(spec.shape) + 4  # clip far-away points before the int cast
+        lower = jnp.clip(jnp.floor(xy), -big, big)
+        frac = xy - lower  # (L, B, 2) in [0, 1)
+        base = jnp.stack([lower[..., 1], lower[..., 0]], axis=-1).astype(jnp.int32)  # (row, col)
+        per_beam = 0.0
+        for d_row, d_col in ((0, 0), (0, 1), (1, 0), (1, 1)):
+            term = table[_field_at_cells(spec, hit_dist2, base + jnp.array([d_row, d_col])).astype(jnp.int32)]
+            weight = ((frac[..., 1] if d_row else 1.0 - frac[..., 1])
+                      * (frac[..., 0] if d_col else 1.0 - frac[..., 0]))
+            per_beam = per_beam + weight * term
     return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+
+
+def beam_endpoints(
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+) -> tuple[Float[Array, "L B 2"], Bool[Array, "B"]]:
+    """World (x, y) in metres of every beam's endpoint for L robot poses, and which beams
+    count (a return within range). The endpoints are computed once in the robot frame (B
+    trig calls), after which a pose costs one rotation per beam."""
+    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
+    beam_x = ranges * jnp.cos(sensor.beam_angles)  # (B,) endpoints in the laser frame (m)
+    beam_y = ranges * jnp.sin(sensor.beam_angles)
+    lc, ls = jnp.cos(sensor.laser_pose[2]), jnp.sin(sensor.laser_pose[2])
+    robot_x = sensor.laser_pose[0] + lc * beam_x - ls * beam_y  # laser -> robot frame, once per scan
+    robot_y = sensor.laser_pose[1] + ls * beam_x + lc * beam_y
+    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])  # (L, 1)
+    ends = jnp.stack([poses[:, 0:1] + c * robot_x - s * robot_y,
+                      poses[:, 1:2] + s * robot_x + c * robot_y], axis=-1)  # (L, B, 2)
+    return ends, valid
+
+
+def _field_at_cells(spec: GridSpec, hit_dist2: UInt8[Array, "H W"], cells) -> UInt8[Array, "..."]:
+    """The field at (row, col) cells; ``FAR`` outside the map."""
+    return hit_dist2.reshape(-1).at[flat_index(spec, cells)].get(mode="fill", fill_value=FAR)
 
 
 def endpoint_cell_distances(
@@ -140,17 +197,8 @@ def endpoint_cell_distances(
 ) -> tuple[UInt8[Array, "L B"], Bool[Array, "B"]]:
     """The stored squared cell distance at every beam's endpoint for L robot poses (``FAR``
     outside the map or the field radius), and which beams count (a return within range)."""
-    valid = (ranges < sensor.range_max) & (ranges >= sensor.range_min)
-    beam_x = ranges * jnp.cos(sensor.beam_angles)  # (B,) endpoints in the laser frame (m)
-    beam_y = ranges * jnp.sin(sensor.beam_angles)
-    lc, ls = jnp.cos(sensor.laser_pose[2]), jnp.sin(sensor.laser_pose[2])
-    robot_x = sensor.laser_pose[0] + lc * beam_x - ls * beam_y  # laser -> robot frame, once per scan
-    robot_y = sensor.laser_pose[1] + ls * beam_x + lc * beam_y
-    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])  # (L, 1)
-    ends = jnp.stack([poses[:, 0:1] + c * robot_x - s * robot_y,
-                      poses[:, 1:2] + s * robot_x + c * robot_y], axis=-1)  # (L, B, 2)
-    idx = flat_index(spec, world_to_cell(spec, ends))
-    return hit_dist2.reshape(-1).at[idx].get(mode="fill", fill_value=FAR), valid
+    ends, valid = beam_endpoints(poses, ranges, sensor)
+    return _field_at_cells(spec, hit_dist2, world_to_cell(spec, ends)), valid
 
 
 def per_beam_log_likelihood_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:

@@ -60,18 +60,38 @@ def test_step_compiles_once_per_config(office_log, proposal):
     assert int(state.step) == 3
 
 
+def _position_errors(result, log):
+    """(best path's, odometry's) position errors (m) against the truth at the processed scans."""
+    idx = result.selection.indices
+    truth = log.ground_truth[idx]
+    return (np.hypot(*(result.best_path[:, :2] - truth[:, :2]).T),
+            np.hypot(*(log.odometry[idx, :2] - truth[:, :2]).T))
+
+
 def test_smp_tracks_the_truth_and_beats_odometry(office_log):
     result = rbpf.run(jax.random.key(0), office_log, small_config(), default_params(), progress=False)
     idx = result.selection.indices
-    truth = office_log.ground_truth[idx]
-    slam_err = np.hypot(*(result.best_path[:, :2] - truth[:, :2]).T)
-    odom_err = np.hypot(*(office_log.odometry[idx, :2] - truth[:, :2]).T)
+    slam_err, odom_err = _position_errors(result, office_log)
     # Seed-fixed run; on this stretch the SMP stays within a few cm (measured: mean ~0.03 m).
     assert slam_err.mean() < 0.1
     assert slam_err.mean() < 0.5 * odom_err.mean()
     assert result.trajectory.shape == (office_log.num_scans, 3)
     np.testing.assert_allclose(result.trajectory[idx], result.best_path, atol=1e-5)
     assert result.info.ess.shape == (idx.size - 1,)
+    assert not np.any(result.info.degenerate)
+
+
+@pytest.mark.parametrize("lookups", [{"likelihood_lookup": "bilinear"}, {"match_lookup": "bilinear"}])
+def test_smp_with_the_bilinear_lookup_tracks_the_truth(office_log, lookups):
+    """The whole filter with the bilinear lookup in the weights, or in the scan matcher only (the
+    lookup itself is pinned down against NumPy in test_sensor). Seed-fixed. In the weights:
+    measured mean error 0.108 m on this stretch (0.08 to 0.11 over seeds 0-2, against 0.04 to
+    0.07 with the nearest lookup; over the whole office 0.04 to 0.07 against 0.04 to 0.12);
+    odometry's is 0.19 m."""
+    result = rbpf.run(jax.random.key(0), office_log, small_config(**lookups), default_params(), progress=False)
+    slam_err, odom_err = _position_errors(result, office_log)
+    assert slam_err.mean() < 0.15
+    assert slam_err.mean() < 0.75 * odom_err.mean()
     assert not np.any(result.info.degenerate)
 
 
@@ -144,6 +164,10 @@ def test_config_and_params_validation():
         SlamConfig(proposal="lp", lookahead_weight="smoother")
     with pytest.raises(ConfigError, match="likelihood_field"):
         SlamConfig(likelihood_field="hits")
+    with pytest.raises(ConfigError, match="likelihood_lookup"):
+        SlamConfig(likelihood_lookup="cubic")
+    with pytest.raises(ConfigError, match="match_lookup"):
+        SlamConfig(match_lookup="linear")
     with pytest.raises(ConfigError, match="num_particles"):
         SlamConfig(num_particles=0)
     with pytest.raises(ConfigError, match="unknown parameter"):

@@ -171,3 +171,19 @@ def test_refinement_with_odometry_stays_on_the_truth(mapped_office):
     with pytest.raises(ValueError, match="odometry"):
         refine_trajectory(SPEC, grid_map.hit_dist2, noisy, scenario.log.ranges, scenario.log.sensor, params, config,
                           odometry=scenario.log.odometry[:-1])
+
+
+def test_bilinear_matcher_lands_closer_than_a_cell(mapped_office):
+    """With ``match_lookup="bilinear"`` the matcher settles between cells: on the same scans it
+    lands closer to the truth than with the nearest-cell lookup (medians measured 0.017 and
+    0.009 m)."""
+    scenario, grid_map, params = mapped_office
+    truth = np.asarray(scenario.true_poses, np.float64)
+    noisy = truth + np.random.default_rng(0).normal(0.0, [0.04, 0.04, 0.02], truth.shape)
+    errors = {}
+    for lookup in ("nearest", "bilinear"):
+        config = SlamConfig(grid=SPEC, beam_stride=1, match_lookup=lookup)
+        refined = refine_trajectory(SPEC, grid_map.hit_dist2, noisy, scenario.log.ranges, scenario.log.sensor,
+                                    params, config)
+        errors[lookup] = np.median(np.hypot(*(refined.matched_poses[:, :2] - truth[:, :2]).T))
+    assert errors["bilinear"] < 0.8 * errors["nearest"], errors

@@ -330,14 +330,15 @@ def lookahead_increment(
 # The grid-map model.
 
 
-def _grid_model(pose_params: motion.MotionParams, spec: GridSpec, hit_dist2, sensor, lik_params):
+def _grid_model(pose_params: motion.MotionParams, spec: GridSpec, hit_dist2, sensor, lik_params,
+                lookup: str = "nearest"):
     def move(key, poses, step_input):
         step_motion, _ = step_input
         return motion.sample(key, poses, step_motion, pose_params)
 
     def log_likelihood(poses, step_input):
         _, ranges = step_input
-        return endpoint_log_likelihoods(spec, hit_dist2, poses, ranges, sensor, lik_params)
+        return endpoint_log_likelihoods(spec, hit_dist2, poses, ranges, sensor, lik_params, lookup)
 
     return move, log_likelihood
 
@@ -365,7 +366,8 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
     localizer_gain = params.lookahead.localizer_gain
     evidence_scale = params.likelihood.gain / localizer_gain
     localizer_lik = params.likelihood._replace(gain=localizer_gain)
-    move, log_likelihood = _grid_model(params.motion, spec, grid_map.hit_dist2, sensor, localizer_lik)
+    move, log_likelihood = _grid_model(params.motion, spec, grid_map.hit_dist2, sensor, localizer_lik,
+                                       config.likelihood_lookup)
     start = jnp.broadcast_to(pose, (num, 3))
     key_initial = jax.random.fold_in(key, _TAG_INITIAL)
     poses_t = motion.sample(key_initial, start, inputs.motion, params.motion)
