@@ -116,6 +116,7 @@ def filter_setup(method: Method, n: int, scenario, args):
         num_localizers=max(method.num_localizers, 1), horizon=method.horizon,
         lookahead_initial=method.initial, likelihood_field=args.likelihood_field,
         lookahead_weight=args.lookahead_weight,
+        match_lookup="nearest",  # the box-world tables were measured with the nearest-cell matcher
     )
     m = scenario.metadata["motion_params"]
     overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}

@@ -59,10 +59,12 @@ class SlamConfig:
     the SMP's fitted Gaussian, the LP's localizers): "nearest" (the cell it falls in) or
     "bilinear" (interpolated between the four surrounding cells, so the likelihood is continuous
     in the pose; four gathers per beam). See ``jaxslam.sensor``."""
-    match_lookup: str = "nearest"
+    match_lookup: str = "bilinear"
     """The same choice for the hill-climbing scan matcher (the SMP's and LP-SM's match, and the
-    refinement's matches and their covariances). "bilinear" lets the matcher settle between
-    cells instead of stopping wherever a whole cell stops improving."""
+    refinement's matches and their covariances). "bilinear" (the default) lets the matcher
+    settle between cells instead of stopping wherever a whole cell stops improving: on Intel,
+    ACES and MIT CSAIL it is as accurate or more (docs/tuning.md, "Reading the field between
+    cells"). "nearest" is what the datasets and box-world tables were measured with."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     linear_update: float = 1.0
