@@ -143,16 +143,20 @@ def endpoint_log_likelihoods(
     if lookup not in FIELD_LOOKUPS:
         raise ValueError(f"lookup must be one of {FIELD_LOOKUPS}, got {lookup!r}")
     table = per_beam_log_likelihood_table(spec, params)
-    ends, valid = beam_endpoints(poses, ranges, sensor)
     if lookup == "nearest":
-        per_beam = table[_field_at_cells(spec, hit_dist2, world_to_cell(spec, ends)).astype(jnp.int32)]
+        d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
+        per_beam = table[d2.astype(jnp.int32)]
     else:
-        # Cell coordinates of the endpoint relative to the cell centres: cell (r, c) has its
-        # centre at (c + 0.5, r + 0.5) cells from the origin.
+        ends, valid = beam_endpoints(poses, ranges, sensor)
+        # Cell coordinates of the endpoint relative to the cell centres (cell (r, c) has its
+        # centre at (c + 0.5, r + 0.5) cells from the origin): the four cells round it are
+        # ``base`` and its neighbours up and right.
         xy = (ends - jnp.asarray(spec.origin, ends.dtype)) / spec.resolution - 0.5
-        big = 4 * max(spec.shape) + 4  # clip far-away points before the int cast
+        big = 4 * max(spec.shape) + 4  # clip far-away points before the int cast, as world_to_cell
         lower = jnp.clip(jnp.floor(xy), -big, big)
-        frac = xy - lower  # (L, B, 2) in [0, 1)
+        # Position inside that square, (x, y) in [0, 1]; clipped so that the weights stay a
+        # convex combination where a far-away point was clipped (all four cells are FAR there).
+        frac = jnp.clip(xy - lower, 0.0, 1.0)
         base = jnp.stack([lower[..., 1], lower[..., 0]], axis=-1).astype(jnp.int32)  # (row, col)
         per_beam = 0.0
         for d_row, d_col in ((0, 0), (0, 1), (1, 0), (1, 1)):

@@ -264,3 +264,15 @@ def test_unknown_lookup_is_an_error():
     with pytest.raises(ValueError, match="lookup must be one of"):
         S.endpoint_log_likelihood(SPEC, jnp.asarray(hit), jnp.asarray(POSE), jnp.asarray(ranges), sensor, PARAMS,
                                   "cubic")
+
+
+@pytest.mark.parametrize("lookup", S.FIELD_LOOKUPS)
+def test_a_pose_far_outside_the_map_scores_the_floor(lookup):
+    """Endpoints far outside the map (world_to_cell clips them) score log(z_rand) per beam,
+    with either lookup: the bilinear weights stay a convex combination there."""
+    hit, ranges, sensor = setup()
+    far = jnp.array([[3.0e4, -2.0e4, 0.3]], jnp.float32)
+    got = float(S.endpoint_log_likelihoods(SPEC, jnp.asarray(hit), far, jnp.asarray(ranges), sensor, PARAMS,
+                                           lookup)[0])
+    num_valid = int(np.sum((ranges >= RANGE_MIN) & (ranges < RANGE_MAX)))
+    assert got == pytest.approx(0.7 * num_valid * math.log(0.05), rel=1e-5)
