@@ -116,7 +116,7 @@ def filter_setup(method: Method, n: int, scenario, args):
         num_localizers=max(method.num_localizers, 1), horizon=method.horizon,
         lookahead_initial=method.initial, likelihood_field=args.likelihood_field,
         lookahead_weight=args.lookahead_weight,
-        match_lookup="nearest",  # the box-world tables were measured with the nearest-cell matcher
+        match_lookup=args.match_lookup,  # the tables were measured with "nearest", the default here
     )
     m = scenario.metadata["motion_params"]
     overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}
@@ -361,6 +361,8 @@ def main(argv=None):
     ap.add_argument("--lookahead-weight", choices=("filter", "lookahead"), default="filter",
                     help="the LPs' SLAM weight (SlamConfig.lookahead_weight): 'lookahead' weighs each "
                          "particle by the k scans ahead too (block sampling)")
+    ap.add_argument("--match-lookup", choices=("nearest", "bilinear"), default="nearest",
+                    help="how the scan matcher (SMP, LP-SM) reads the likelihood field; the tables use nearest")
     ap.add_argument("--uturn", choices=("left", "right"), default="left",
                     help="way round for the turns on the spot at the turnaround point: left (through "
                          "south, blind for part of the turn) or right (facing the hedge)")
@@ -389,7 +391,7 @@ def main(argv=None):
                         "alpha": args.alpha, "rotation_weight": args.rotation_weight,
                         "beam_stride": args.beam_stride, "linear_update": args.linear_update,
                         "angular_update": args.angular_update, "motion_scale": args.motion_scale,
-                        "likelihood_field": args.likelihood_field,
+                        "likelihood_field": args.likelihood_field, "match_lookup": args.match_lookup,
                         "lookahead_weight": args.lookahead_weight,
                         "set": args.set or [],
                         "success_ra": SUCCESS_RA}
