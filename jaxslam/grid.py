@@ -84,12 +84,17 @@ class GridSpec:
         return self.shape[0] * self.shape[1]
 
 
+def cell_clip_bound(spec: GridSpec) -> int:
+    """Cell coordinates are clipped to +-this before an int cast, so that far-away points
+    cannot overflow; every clipped cell still lies outside the map."""
+    return 4 * max(spec.shape) + 4
+
+
 def world_to_cell(spec: GridSpec, xy: Float[Array, "... 2"]) -> Int[Array, "... 2"]:
     """(row, col) int32 of the cells containing world points (m). May lie outside the map."""
     col = jnp.floor((xy[..., 0] - spec.origin[0]) / spec.resolution)
     row = jnp.floor((xy[..., 1] - spec.origin[1]) / spec.resolution)
-    # Clip far-away points before the int cast so that huge values cannot overflow.
-    big = 4 * max(spec.shape) + 4
+    big = cell_clip_bound(spec)
     return jnp.stack([jnp.clip(row, -big, big), jnp.clip(col, -big, big)], axis=-1).astype(jnp.int32)
 
 

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax.scipy.special import ndtr as _ndtr
 from jaxtyping import Array, Bool, Float, UInt8
 
-from jaxslam.grid import FAR, GridSpec, flat_index, world_to_cell
+from jaxslam.grid import FAR, GridSpec, cell_clip_bound, flat_index, world_to_cell
 from jaxslam.motion import _LOG_2PI
 
 FIELD_LOOKUPS = ("nearest", "bilinear")
@@ -152,7 +152,7 @@ def endpoint_log_likelihoods(
         # centre at (c + 0.5, r + 0.5) cells from the origin): the four cells round it are
         # ``base`` and its neighbours up and right.
         xy = (ends - jnp.asarray(spec.origin, ends.dtype)) / spec.resolution - 0.5
-        big = 4 * max(spec.shape) + 4  # clip far-away points before the int cast, as world_to_cell
+        big = cell_clip_bound(spec)
         lower = jnp.clip(jnp.floor(xy), -big, big)
         # Position inside that square, (x, y) in [0, 1]; clipped so that the weights stay a
         # convex combination where a far-away point was clipped (all four cells are FAR there).

@@ -72,7 +72,8 @@ def test_smp_tracks_the_truth_and_beats_odometry(office_log):
     result = rbpf.run(jax.random.key(0), office_log, small_config(), default_params(), progress=False)
     idx = result.selection.indices
     slam_err, odom_err = _position_errors(result, office_log)
-    # Seed-fixed run; on this stretch the SMP stays within a few cm (measured: mean ~0.03 m).
+    # Seed-fixed run; on this stretch the SMP stays within a few cm (measured: mean 0.039 m with
+    # the default bilinear matcher, 0.060 m with the nearest-cell one).
     assert slam_err.mean() < 0.1
     assert slam_err.mean() < 0.5 * odom_err.mean()
     assert result.trajectory.shape == (office_log.num_scans, 3)
