@@ -15,7 +15,9 @@ LP with L = 50, k = 3 (defensive); ``--lp-sm`` adds the LP with scan-matched loc
 Particle counts 20 and 50. Every method uses the package's default parameters except the
 update rule (a scan every 0.5 m or 0.25 rad: the box world's scans are 0.1 m apart) and the
 odometry noise, which is the simulator's, matched to that rule (:data:`MOTION_SCALE`);
-``--set NAME=VALUE`` overrides any parameter for all methods.
+``--set NAME=VALUE`` overrides any parameter for all methods; ``--localizers L`` and
+``--horizon K`` resize every LP row (the labels follow), and ``--seeds S ...`` runs exactly
+those seeds instead of ``--first-seed`` .. ``--first-seed + --runs - 1``.
 
 Writes ``DIR/results.json`` after every run (resumable: finished cells are skipped,
 a half-finished cell resumes at its next run), ``DIR/fig5.png`` (mean +- std of RA
@@ -90,9 +92,13 @@ def methods(alpha: float, lp_sm: bool = False, evidence_weights: bool = False) -
 
 def _capped(method: Method, max_localizers: int, max_horizon: int) -> Method:
     """``--quick``: at most this many localizers and horizon steps; the label says what runs."""
+    return _resized(method, min(method.num_localizers, max_localizers), min(method.horizon, max_horizon))
+
+
+def _resized(method: Method, num: int, horizon: int) -> Method:
+    """The LP ``method`` with ``num`` localizers and horizon ``horizon``; the label says what runs."""
     if method.proposal != "lp":
         return method
-    num, horizon = min(method.num_localizers, max_localizers), min(method.horizon, max_horizon)
     label = method.label.replace(f"L={method.num_localizers} k={method.horizon}", f"L={num} k={horizon}")
     return dataclasses.replace(method, label=label, num_localizers=num, horizon=horizon)
 
@@ -336,6 +342,12 @@ def main(argv=None):
     ap.add_argument("--out", default="results/box_world")
     ap.add_argument("--first-seed", type=int, default=0,
                     help="seeds first-seed .. first-seed + runs - 1 (tune on seeds the reported table does not use)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+                    help="run exactly these seeds (instead of --first-seed .. + --runs)")
+    ap.add_argument("--localizers", type=int, default=None,
+                    help="localizers per SLAM particle in every LP row (relabels the rows 'L=...')")
+    ap.add_argument("--horizon", type=int, default=None,
+                    help="look-ahead steps k in every LP row (relabels the rows 'k=...')")
     ap.add_argument("--quick", action="store_true", help="3 laps, N in (4, 8), L = 20: a smoke test in minutes")
     ap.add_argument("--particles", type=int, nargs="+", default=None, help="SLAM particle counts (default 20 50)")
     ap.add_argument("--alpha", type=float, default=0.5, help="defensive share of the defensive LP")
@@ -382,12 +394,20 @@ def main(argv=None):
         scenario_kwargs.update(laps=3, laps_per_visit=3)
         particle_counts = args.particles or [4, 8]
         method_list = [_capped(m, 20, 3) for m in method_list]
+    if args.localizers is not None and args.localizers < 1:
+        ap.error("--localizers must be at least 1")
+    if args.horizon is not None and args.horizon < 0:
+        ap.error("--horizon must be at least 0")
+    if args.localizers is not None or args.horizon is not None:
+        method_list = [_resized(m, args.localizers or m.num_localizers,
+                                m.horizon if args.horizon is None else args.horizon) for m in method_list]
     if args.only:
         method_list = [m for m in method_list if any(s in m.label for s in args.only)]
 
     path = out / "results.json"
     data = load_results(path)
-    data["settings"] = {"runs": args.runs, "first_seed": args.first_seed, "quick": args.quick, "scenario": scenario_kwargs,
+    data["settings"] = {"runs": args.runs, "first_seed": args.first_seed, "seeds": args.seeds,
+                        "localizers": args.localizers, "horizon": args.horizon, "quick": args.quick, "scenario": scenario_kwargs,
                         "alpha": args.alpha, "rotation_weight": args.rotation_weight,
                         "beam_stride": args.beam_stride, "linear_update": args.linear_update,
                         "angular_update": args.angular_update, "motion_scale": args.motion_scale,
@@ -406,13 +426,13 @@ def main(argv=None):
         cell = data["cells"].setdefault(key, {"method": method.label, "N": n, "runs": []})
         cell.update({"proposal": method.proposal, "num_localizers": method.num_localizers,
                      "horizon": method.horizon, "alpha": method.alpha})
-        if len(cell["runs"]) >= args.runs:
+        seeds = args.seeds if args.seeds else range(args.first_seed, args.first_seed + args.runs)
+        done = {r["seed"] for r in cell["runs"]}
+        if all(seed in done for seed in seeds):
             cell["complete"] = True
             continue
-        seeds = range(args.first_seed, args.first_seed + args.runs)
-        done = {r["seed"] for r in cell["runs"]}
         bar = tqdm(seeds, desc=key, unit="run", file=sys.stdout)
-        bar.update(len(done))
+        bar.update(sum(seed in done for seed in seeds))
         for seed in seeds:
             if seed in done:
                 continue
@@ -420,7 +440,7 @@ def main(argv=None):
             cell["runs"].append(run)
             if "params" not in cell:
                 cell["params"] = params_to_dict(result_params(method, n, scenario, args))
-            if seed == args.first_seed or "example" not in cell:
+            if seed == seeds[0] or "example" not in cell:
                 name = f"maps/{method.label.replace(' ', '_').replace('=', '')}_N{n}_seed{seed}.npz"
                 save_example(out / name, result, scenario, run["ra"])
                 cell["example"] = name
@@ -430,7 +450,7 @@ def main(argv=None):
                 save_example(out / name, result, scenario, run["ra"])
                 cell["worst_example"] = name
             cell["summary"] = summarize_cell(cell["runs"])
-            cell["complete"] = len(cell["runs"]) >= args.runs
+            cell["complete"] = all(s in {r["seed"] for r in cell["runs"]} for s in seeds)
             write_json(path, data)
             bar.set_postfix(ra=f"{run['ra']:.3f}", s=f"{run['seconds']:.0f}")
             bar.update(1)
