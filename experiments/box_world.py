@@ -426,7 +426,7 @@ def main(argv=None):
         cell = data["cells"].setdefault(key, {"method": method.label, "N": n, "runs": []})
         cell.update({"proposal": method.proposal, "num_localizers": method.num_localizers,
                      "horizon": method.horizon, "alpha": method.alpha})
-        seeds = args.seeds if args.seeds else range(args.first_seed, args.first_seed + args.runs)
+        seeds = list(dict.fromkeys(args.seeds)) if args.seeds else range(args.first_seed, args.first_seed + args.runs)
         done = {r["seed"] for r in cell["runs"]}
         if all(seed in done for seed in seeds):
             cell["complete"] = True
