@@ -421,14 +421,14 @@ def main(argv=None):
     from tqdm.auto import tqdm
 
     cells = [(m, n) for n in particle_counts for m in method_list]
+    seeds = list(dict.fromkeys(args.seeds)) if args.seeds else list(range(args.first_seed, args.first_seed + args.runs))
     for method, n in cells:
         key = cell_key(method, n)
         cell = data["cells"].setdefault(key, {"method": method.label, "N": n, "runs": []})
         cell.update({"proposal": method.proposal, "num_localizers": method.num_localizers,
                      "horizon": method.horizon, "alpha": method.alpha})
-        seeds = list(dict.fromkeys(args.seeds)) if args.seeds else range(args.first_seed, args.first_seed + args.runs)
         done = {r["seed"] for r in cell["runs"]}
-        if all(seed in done for seed in seeds):
+        if done.issuperset(seeds):
             cell["complete"] = True
             continue
         bar = tqdm(seeds, desc=key, unit="run", file=sys.stdout)
@@ -438,6 +438,7 @@ def main(argv=None):
                 continue
             run, result, scenario = run_once(method, n, seed, args, scenario_kwargs)
             cell["runs"].append(run)
+            done.add(seed)
             if "params" not in cell:
                 cell["params"] = params_to_dict(result_params(method, n, scenario, args))
             if seed == seeds[0] or "example" not in cell:
@@ -450,7 +451,7 @@ def main(argv=None):
                 save_example(out / name, result, scenario, run["ra"])
                 cell["worst_example"] = name
             cell["summary"] = summarize_cell(cell["runs"])
-            cell["complete"] = all(s in {r["seed"] for r in cell["runs"]} for s in seeds)
+            cell["complete"] = done.issuperset(seeds)
             write_json(path, data)
             bar.set_postfix(ra=f"{run['ra']:.3f}", s=f"{run['seconds']:.0f}")
             bar.update(1)
