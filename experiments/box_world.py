@@ -399,8 +399,10 @@ def main(argv=None):
     if args.horizon is not None and args.horizon < 0:
         ap.error("--horizon must be at least 0")
     if args.localizers is not None or args.horizon is not None:
-        method_list = [_resized(m, args.localizers or m.num_localizers,
-                                m.horizon if args.horizon is None else args.horizon) for m in method_list]
+        resized = [_resized(m, args.localizers or m.num_localizers,
+                            m.horizon if args.horizon is None else args.horizon) for m in method_list]
+        # Two rows can become one (e.g. "L=50 k=3" resized to L=100, k=5): keep each label once.
+        method_list = list({m.label: m for m in resized}.values())
     if args.only:
         method_list = [m for m in method_list if any(s in m.label for s in args.only)]
 
