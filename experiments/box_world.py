@@ -49,6 +49,7 @@ from jaxslam.grid import GridSpec
 from jaxslam.metrics import checkpoint_passages, passage_errors, revisiting_accuracy
 from jaxslam.rbpf import particle_paths
 from jaxslam.sim import box_world_scenario
+from jaxslam.sim.scenarios import BOX_WORLD_MOTION
 
 SUCCESS_RA = 0.2
 """RA (m) under which a run counts as a success (the paper's threshold)."""
@@ -135,6 +136,10 @@ def filter_setup(method: Method, n: int, scenario, args):
 
 
 def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
+    if args.world_odometry_scale != 1.0:
+        scaled = {name: getattr(BOX_WORLD_MOTION, name) * args.world_odometry_scale
+                  for name in ("srr", "srt", "str", "stt")}  # the proportional terms; the floors stay
+        scenario_kwargs = {**scenario_kwargs, "motion": BOX_WORLD_MOTION._replace(**scaled)}
     scenario = box_world_scenario(jax.random.key(seed), **scenario_kwargs)
     config, params = filter_setup(method, n, scenario, args)
     t0 = time.perf_counter()
@@ -378,6 +383,9 @@ def main(argv=None):
     ap.add_argument("--uturn", choices=("left", "right"), default="left",
                     help="way round for the turns on the spot at the turnaround point: left (through "
                          "south, blind for part of the turn) or right (facing the hedge)")
+    ap.add_argument("--world-odometry-scale", type=float, default=1.0,
+                    help="scale the simulated robot's odometry noise (its proportional terms; the "
+                         "filter's model follows it): < 1 is a robot with better odometry")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
     args = ap.parse_args(argv)
 
@@ -394,6 +402,8 @@ def main(argv=None):
         scenario_kwargs.update(laps=3, laps_per_visit=3)
         particle_counts = args.particles or [4, 8]
         method_list = [_capped(m, 20, 3) for m in method_list]
+    if not args.world_odometry_scale > 0:
+        ap.error("--world-odometry-scale must be > 0")
     if args.localizers is not None and args.localizers < 1:
         ap.error("--localizers must be at least 1")
     if args.horizon is not None and args.horizon < 0:
@@ -413,6 +423,7 @@ def main(argv=None):
                         "alpha": args.alpha, "rotation_weight": args.rotation_weight,
                         "beam_stride": args.beam_stride, "linear_update": args.linear_update,
                         "angular_update": args.angular_update, "motion_scale": args.motion_scale,
+                        "world_odometry_scale": args.world_odometry_scale,
                         "likelihood_field": args.likelihood_field, "match_lookup": args.match_lookup,
                         "lookahead_weight": args.lookahead_weight,
                         "set": args.set or [],

@@ -318,6 +318,10 @@ X_TOLERANCE = 0.3
 """Radius (m) round checkpoint X within which the path counts as passing over it."""
 
 
+BOX_WORLD_MOTION = motion_params(0.05, 0.02, 0.05, 0.1, 0.001, 0.002)
+"""The box world's odometry noise per 0.1 m step (see :func:`box_world_scenario` for why)."""
+
+
 def box_world_scenario(
     key: PRNGKeyArray,
     laps: int = 15,
@@ -360,9 +364,10 @@ def box_world_scenario(
     srr = 0.05 m/m (5 % translation error), srt = 0.02 m/rad, str = 0.05 rad/m (rotation
     drift per metre driven), stt = 0.1 rad/rad, minimum stds 1 mm and 0.002 rad. The
     per-step heading stds add up (GMapping's model sums the terms), so per lap (11 m and
-    2 pi turned in 110 steps) odometry accumulates a heading std of about 7 degrees and a
-    position std of about 0.3 m: a few degrees per revolution, as on a wheeled robot on
-    flat ground. Over the whole run (measured on 100 seeds) the heading std reaches about
+    2 pi turned in 110 steps) odometry accumulates a heading std of about 7.6 degrees and a
+    position std of about 0.3 m: the noisy end of a wheeled robot's odometry on flat ground.
+    (Half the proportional terms, ``experiments/box_world.py --world-odometry-scale 0.5``,
+    give 4.4 degrees a lap; the LP's success rate depends on it: docs/tuning.md.) Over the whole run (measured on 100 seeds) the heading std reaches about
     40 degrees, and at the last passage over X odometry is off by 2 m (median; 0.65 m to
     4.5 m from the 10th to the 90th percentile). So the filter must close the loop at X:
     the point of the paper is that the odometry (OP) and scan-matching (SMP) proposals
@@ -379,7 +384,7 @@ def box_world_scenario(
       ``motion_params``, ``range_noise_std``, ``step_length``, ``dt``.
     """
     if motion is None:
-        motion = motion_params(0.05, 0.02, 0.05, 0.1, 0.001, 0.002)
+        motion = BOX_WORLD_MOTION
     world = box_world()
     true_poses, info = box_world_path(laps, laps_per_visit, circle_radius, step_length, max_turn_per_step, uturn)
     sensor = make_sensor(uniform_beams(num_beams, field_of_view), range_min=0.05, range_max=range_max)
