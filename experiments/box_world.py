@@ -125,21 +125,28 @@ def filter_setup(method: Method, n: int, scenario, args):
         lookahead_weight=args.lookahead_weight,
         match_lookup=args.match_lookup,  # the tables were measured with "nearest", the default here
     )
-    m = scenario.metadata["motion_params"]
-    overrides = {f"motion.{name}": float(getattr(m, name)) for name in m._fields}
-    for name in ("srr", "srt", "str", "stt"):  # the proportional terms; the floors stay
-        overrides[f"motion.{name}"] *= args.motion_scale
+    noise = scaled_noise(scenario.metadata["motion_params"], args.motion_scale)
+    overrides = {f"motion.{name}": value for name, value in noise.items()}
     overrides["lookahead.alpha"] = method.alpha
     overrides["lookahead.selection_correction"] = method.selection_correction
     overrides.update(parse_assignments(args.set or []))
     return config, default_params(**overrides)
 
 
+def scaled_noise(motion, scale: float) -> dict[str, float]:
+    """The fields of ``motion`` (MotionParams) as floats, the proportional terms (srr, srt, str,
+    stt) times ``scale``; the floors (minimum stds) stay."""
+    values = {name: float(getattr(motion, name)) for name in motion._fields}
+    for name in ("srr", "srt", "str", "stt"):
+        values[name] *= scale
+    return values
+
+
 def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
     if args.world_odometry_scale != 1.0:
-        scaled = {name: getattr(BOX_WORLD_MOTION, name) * args.world_odometry_scale
-                  for name in ("srr", "srt", "str", "stt")}  # the proportional terms; the floors stay
-        scenario_kwargs = {**scenario_kwargs, "motion": BOX_WORLD_MOTION._replace(**scaled)}
+        noise = scaled_noise(BOX_WORLD_MOTION, args.world_odometry_scale)
+        world_motion = BOX_WORLD_MOTION._replace(**{k: np.float32(v) for k, v in noise.items()})
+        scenario_kwargs = {**scenario_kwargs, "motion": world_motion}
     scenario = box_world_scenario(jax.random.key(seed), **scenario_kwargs)
     config, params = filter_setup(method, n, scenario, args)
     t0 = time.perf_counter()

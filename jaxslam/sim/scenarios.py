@@ -368,8 +368,9 @@ def box_world_scenario(
     position std of about 0.3 m: the noisy end of a wheeled robot's odometry on flat ground.
     (Half the proportional terms, ``experiments/box_world.py --world-odometry-scale 0.5``,
     give 4.4 degrees a lap; the LP's success rate depends on it: docs/tuning.md.) Over the
-    whole run (measured on 100 seeds) the heading std reaches about 40 degrees, and at the last passage over X odometry is off by 2 m (median; 0.65 m to
-    4.5 m from the 10th to the 90th percentile). So the filter must close the loop at X:
+    whole run (measured on 100 seeds) the heading std reaches about 40 degrees, and at the
+    last passage over X odometry is off by 2 m (median; 0.65 m to 4.5 m from the 10th to the
+    90th percentile). So the filter must close the loop at X:
     the point of the paper is that the odometry (OP) and scan-matching (SMP) proposals
     lose the right hypothesis during the laps, and the look-ahead proposal (LP) keeps it.
     These stds scale with the step: with longer steps (fewer, larger independent errors)
