@@ -10,7 +10,8 @@ seeds, whether a late loop closure fails decides the mean) and each run's map PN
 also localises every scan in its final map and fuses the matches with the odometry
 (``jaxslam map --refine``, :mod:`jaxslam.refine`); the table shows that trajectory's error on
 a row of its own.
-Finished runs are skipped on restart, so the script can be stopped and resumed.
+Finished runs are skipped on restart, so the script can be stopped and resumed, and a later
+call into the same folder (same settings) adds its runs to ``results.json`` beside the earlier ones.
 
     python experiments/datasets.py --out results/datasets [--seeds 3] [--proposals op smp lp]
 
@@ -230,7 +231,13 @@ def main(argv=None) -> int:
     from tqdm import tqdm
 
     jobs = [(d, p, s) for d in args.datasets for p in args.proposals for s in range(args.seeds)]
+    # results.json describes every run in the folder: an earlier call's runs (other logs,
+    # proposals or seeds, same settings) stay in it beside this call's.
     records = []
+    if previous.is_file():
+        this_call = set(jobs)
+        records = [r for r in json.loads(previous.read_text())["runs"]
+                   if (r["dataset"], r["proposal"], r["seed"]) not in this_call]
     for dataset, proposal, seed in tqdm(jobs, desc="runs", unit="run"):
         records.append(run_one(dataset, proposal, seed, out, data, settings))
         summary = aggregate(records)
