@@ -23,8 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import doors, mcl
-from jaxslam.sensor import make_sensor, uniform_beams
+from jaxslam.localization import doors, mcl
+from jaxslam.laser import make_sensor, uniform_beams
+from jaxslam.segment_map import expected_ranges
 
 LENGTH = 40.0
 
@@ -73,7 +74,7 @@ def main(argv=None):
     sensor = make_sensor(uniform_beams(args.beams, np.pi), 0.0, 10.0)
     n, b = args.particles, args.beams
     pose = jnp.array([LENGTH / 2, 1.0, 0.3])
-    ranges = jnp.asarray(mcl.expected_ranges(jnp.asarray(walls), pose, sensor)) * 0.9
+    ranges = jnp.asarray(expected_ranges(jnp.asarray(walls), pose, sensor)[0]) * 0.9
     inputs = mcl.ScanInputs(jnp.array([0.1, 0.0, 0.01]), ranges)
     base = mcl.init_tracked(jax.random.key(0), pose, jnp.array([0.3, 0.3, 0.1]), mcl.MclConfig(n))
     config = doors.DoorConfig(num_particles=n)

@@ -1,11 +1,11 @@
 """Throughput of the look-ahead proposal (LP): beam evaluations per second.
 
 One LP update costs N * L * (k+1) * B beam evaluations (N SLAM particles, L localizers,
-horizon k, B beams; DESIGN.md section 6). This script times the jitted RBPF step with
+horizon k, B beams; docs/design.md). This script times the jitted RBPF step with
 proposal "lp" on a realistic office-like map (after warm-up, median of repetitions),
 the LP proposal alone (the step minus scan insertion and SLAM resampling), and, in the
 same run, a plain vmapped nearest-cell lookup of the same number of beams (the
-baseline of DESIGN.md: ~5e7 beam evaluations/s on the 2-core CPU). It then measures
+baseline of docs/design.md: ~5e7 beam evaluations/s on the 2-core CPU). It then measures
 how the step's time grows with N, L and k (slopes of log time against log size;
 1 = linear) and writes everything as JSON.
 
@@ -31,11 +31,12 @@ import numpy as np
 from jaxslam import rbpf
 from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between, compose
-from jaxslam.grid import GridSpec, empty_map, insert_scan
+from jaxslam.grid import GridSpec
+from jaxslam.occupancy import empty_map, insert_scan
 from jaxslam.proposals import lookahead
 from jaxslam.proposals.base import StepInputs
-from jaxslam.sensor import make_sensor, uniform_beams
-from jaxslam.sim.raycast import raycast
+from jaxslam.laser import make_sensor, uniform_beams
+from jaxslam.segment_map import raycast
 
 
 def office_world() -> np.ndarray:

@@ -1,22 +1,25 @@
 """jaxslam: vectorized particle filters for robot mapping and localization, in JAX.
 
-The public API, re-exported by name; submodules (``jaxslam.rbpf``, ``jaxslam.sim``,
-``jaxslam.io``, ...) hold the rest.
+The public API, re-exported by name; submodules hold the rest: the SLAM filter
+(``jaxslam.rbpf``, its proposals in ``jaxslam.proposals``), localization
+(``jaxslam.localization``: MCL and the door filter), the log readers (``jaxslam.io``) and
+the simulator (``jaxslam.sim``, not imported here).
 """
 
-from jaxslam import binary_bayes, geometry, grid, motion, resampling, sensor
-from jaxslam import doors, mcl, rbpf
-from jaxslam.config import ConfigError, SlamConfig, SlamParams, default_params, params_from_dict
-from jaxslam.grid import GridMap, GridSpec
+from jaxslam import binary_bayes, geometry, grid, laser, likelihood_field, motion, occupancy, particle_filter
+from jaxslam import localization, rbpf, resampling, scan_matching
+from jaxslam.config import ConfigError, RunSettings, SlamConfig, SlamParams, build_setup, default_params, params_from_dict
+from jaxslam.grid import GridSpec
+from jaxslam.laser import SensorSpec, make_sensor, uniform_beams
 from jaxslam.laserlog import LaserLog, LogError, select_updates
+from jaxslam.occupancy import GridMap
 from jaxslam.rbpf import SlamInfo, SlamResult, SlamState
-from jaxslam.sensor import SensorSpec, make_sensor, uniform_beams
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "ConfigError", "GridMap", "doors", "mcl", "GridSpec", "LaserLog", "LogError", "SensorSpec", "SlamConfig", "SlamInfo",
-    "SlamParams", "SlamResult", "SlamState", "binary_bayes", "default_params", "geometry", "grid",
-    "make_sensor", "motion", "params_from_dict", "rbpf", "resampling", "select_updates", "sensor",
-    "uniform_beams",
+    "ConfigError", "GridMap", "GridSpec", "LaserLog", "LogError", "RunSettings", "SensorSpec", "SlamConfig",
+    "SlamInfo", "SlamParams", "SlamResult", "SlamState", "binary_bayes", "build_setup", "default_params",
+    "geometry", "grid", "laser", "likelihood_field", "localization", "make_sensor", "motion", "occupancy", "params_from_dict",
+    "particle_filter", "rbpf", "resampling", "scan_matching", "select_updates", "uniform_beams",
 ]

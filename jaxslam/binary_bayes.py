@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 
@@ -19,7 +20,10 @@ def logodds(p: Float[Array, "..."]) -> Float[Array, "..."]:
 
 
 def probability(logodds_value: Float[Array, "..."]) -> Float[Array, "..."]:
-    """Probability of a log-odds value."""
+    """Probability of a log-odds value. A NumPy array (a map on the host, for outputs and
+    figures) gives a float64 NumPy array; anything else a JAX array of its float type."""
+    if isinstance(logodds_value, np.ndarray):
+        return 1.0 / (1.0 + np.exp(-logodds_value.astype(np.float64)))
     return jax.nn.sigmoid(logodds_value)
 
 

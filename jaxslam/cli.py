@@ -1,10 +1,12 @@
 """The ``jaxslam`` command: ``map``, ``demo``, ``eval`` and ``doors``.
 
-Every field of :class:`~jaxslam.config.SlamConfig` and every parameter of
-:class:`~jaxslam.config.SlamParams` can be set with ``--set NAME=VALUE`` (dotted
-names for parameters: ``--set motion.srr=0.05 --set linear_update=0.5``) or
-from a JSON config file (``--config FILE`` holding ``{"config": {...},
-"params": {...}}``); the common ones also have their own flags.
+Every field of :class:`~jaxslam.config.SlamConfig` and :class:`~jaxslam.config.RunSettings`
+and every parameter of :class:`~jaxslam.config.SlamParams` can be set with
+``--set NAME=VALUE`` (dotted names for parameters: ``--set motion.srr=0.05 --set
+linear_update=0.5``) or from a JSON config file (``--config FILE`` holding ``{"config":
+{...}, "params": {...}}``); the common ones also have their own flags. Precedence, lowest
+first: the command's defaults, the config file, the dedicated flags (only when given),
+``--set``.
 """
 
 from __future__ import annotations
@@ -28,44 +30,48 @@ def parse_assignments(items: list[str]) -> dict[str, str]:
     return out
 
 
-def build_config_and_params(args: argparse.Namespace):
-    """Merge defaults, the config file, dedicated flags and ``--set`` (later wins)."""
-    import dataclasses
+def read_config_file(path) -> dict:
+    """The flat names of a JSON config file ``{"config": {...}, "params": {...}}`` (either key
+    optional; ``config`` holds config and run-settings fields, ``params`` dotted parameters)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"{path}: cannot read config file: {err}") from None
+    if not isinstance(data, dict) or set(data) - {"config", "params"}:
+        raise ConfigError(f"{path}: expected a JSON object with keys 'config' and/or 'params'")
+    values = {}
+    for part in ("config", "params"):
+        if not isinstance(data.get(part, {}), dict):
+            raise ConfigError(f"{path}: '{part}' must be a JSON object of names and values")
+        values.update(data.get(part, {}))
+    return values
 
-    from jaxslam.config import SlamConfig, config_from_dict, params_from_dict
 
-    config_fields = {f.name for f in dataclasses.fields(SlamConfig)}
-    config_values: dict = {}
-    param_values: dict = {}
+def build_setup_from_args(args: argparse.Namespace, defaults: dict | None = None):
+    """``(SlamConfig, RunSettings, SlamParams)`` from ``defaults`` (the command's), the config
+    file, the dedicated flags that were given and ``--set`` (later wins)."""
+    from jaxslam.config import build_setup
+
+    values = dict(defaults or {})
     if getattr(args, "config", None):
-        path = Path(args.config)
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise ConfigError(f"{path}: cannot read config file: {err}") from None
-        if not isinstance(data, dict) or set(data) - {"config", "params"}:
-            raise ConfigError(f"{path}: expected a JSON object with keys 'config' and/or 'params'")
-        config_values.update(data.get("config", {}))
-        param_values.update(data.get("params", {}))
+        values.update(read_config_file(args.config))
     flags = {
         "proposal": args.proposal, "num_particles": args.particles,
         "num_localizers": getattr(args, "localizers", None), "horizon": getattr(args, "horizon", None),
+        "lookahead.alpha": getattr(args, "alpha", None),
     }
-    config_values.update({k: v for k, v in flags.items() if v is not None})
-    if getattr(args, "alpha", None) is not None:
-        param_values["lookahead.alpha"] = args.alpha
-    for name, value in parse_assignments(args.set or []).items():
-        if name in config_fields:
-            config_values[name] = value
-        else:
-            param_values[name] = value
-    return config_from_dict(config_values), params_from_dict(param_values)
+    values.update({k: v for k, v in flags.items() if v is not None})
+    values.update(parse_assignments(args.set or []))
+    return build_setup(values)
 
 
 def _add_filter_options(p: argparse.ArgumentParser, default_proposal: str, default_particles: int) -> None:
-    p.add_argument("--proposal", choices=["op", "smp", "lp"], default=default_proposal,
-                   help="proposal distribution: odometry, scan matching (GMapping) or look-ahead")
-    p.add_argument("--particles", type=int, default=default_particles, help="number of SLAM particles N")
+    p.add_argument("--proposal", choices=["op", "smp", "lp"], default=None,
+                   help=f"proposal distribution: odometry, scan matching (GMapping) or look-ahead "
+                        f"(default {default_proposal})")
+    p.add_argument("--particles", type=int, default=None,
+                   help=f"number of SLAM particles N (default {default_particles})")
     p.add_argument("--localizers", type=int, default=None, help="LP: localizer particles L per SLAM particle")
     p.add_argument("--horizon", type=int, default=None, help="LP: look-ahead horizon k (processed scans)")
     p.add_argument("--alpha", type=float, default=None, help="LP: defensive share (0 = the paper's Eq. 10)")
@@ -88,35 +94,38 @@ def _cmd_map(args: argparse.Namespace) -> int:
         kwargs["scan_topic"] = args.scan_topic
     if args.odom_topic:
         kwargs["odom_topic"] = args.odom_topic
-    config, params = build_config_and_params(args)
+    setup = build_setup_from_args(args, MAP_DEFAULTS)
     log = read_log(args.log, **kwargs)
     if args.max_scans is not None:
         import numpy as np
 
         log = log.subset(np.arange(min(args.max_scans, log.num_scans)))
-    return _map_and_write(log, config, params, args, source=str(args.log))
+    return _map_and_write(log, setup, args, source=str(args.log))
 
 
-def _map_and_write(log, config, params, args, source: str, world=None) -> int:
+MAP_DEFAULTS = {"proposal": "smp", "num_particles": 30}
+"""``jaxslam map``'s defaults beyond the library's."""
+
+
+def _map_and_write(log, setup, args, source: str, world=None) -> int:
     import jax
 
     from jaxslam.outputs import write_slam_outputs
     from jaxslam.rbpf import run
 
-    result = run(jax.random.key(args.seed), log, config, params, chunk_size=args.chunk_size,
+    config, settings, params = setup
+    result = run(jax.random.key(args.seed), log, config, params, settings, chunk_size=args.chunk_size,
                  progress=not args.no_progress)
     refined, refine_seconds = None, None
     if getattr(args, "refine", False):
         import time
 
-        import numpy as np
-
         from jaxslam.refine import refine_trajectory
 
         t0 = time.perf_counter()
-        best = int(np.argmax(np.asarray(result.state.log_weights)))
-        refined = refine_trajectory(result.config.grid, result.state.maps.hit_dist2[best], result.trajectory,
-                                    log.ranges, log.sensor, params, result.config, odometry=log.odometry)
+        refined = refine_trajectory(result.config.grid, result.state.maps.hit_dist2[result.best_particle],
+                                    result.trajectory, log.ranges, log.sensor, params, result.config,
+                                    odometry=log.odometry)
         refine_seconds = time.perf_counter() - t0
     summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
                                  refined=refined, refine_seconds=refine_seconds)
@@ -129,8 +138,11 @@ def _map_and_write(log, config, params, args, source: str, world=None) -> int:
     return 0
 
 
-DEMO_SETTINGS = ("linear_update=0.25", "angular_update=0.25", "max_insert_range=10.0", "map_padding=5.0",
-                 "beam_stride=1")
+DEMO_DEFAULTS = {"proposal": "smp", "num_particles": 20, "linear_update": 0.25, "angular_update": 0.25,
+                 "max_insert_range": 10.0, "map_padding": 5.0, "beam_stride": 1}
+"""``jaxslam demo``'s defaults: the simulated office is small, so scans are processed more often
+than GMapping's 1 m / 0.5 rad, and every beam is used (its 10 m laser sees little along the
+20 m corridor)."""
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -139,11 +151,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from jaxslam.sim import office_scenario
 
     scenario = office_scenario(jax.random.key(args.seed), num_scans=args.scans)
-    # The simulated office is small: process scans more often than GMapping's 1 m / 0.5 rad,
-    # and use every beam (its 10 m laser sees little along the 20 m corridor).
-    args.set = list(DEMO_SETTINGS) + (args.set or [])
-    config, params = build_config_and_params(args)
-    return _map_and_write(scenario.log, config, params, args, source="simulated office (jaxslam.sim.office_scenario)",
+    setup = build_setup_from_args(args, DEMO_DEFAULTS)
+    return _map_and_write(scenario.log, setup, args, source="simulated office (jaxslam.sim.office_scenario)",
                           world=scenario.world)
 
 
@@ -163,6 +172,62 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({k: v for k, v in table.items() if not isinstance(v, list)}, indent=2))
         print(f"written to {args.out}")
+    return 0
+
+
+def _cmd_doors(args: argparse.Namespace) -> int:
+    """One door scenario, one filter: figures and a JSON summary."""
+    import time
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from jaxslam.localization import doors, mcl
+    from jaxslam.localization.plotting import figure_run, plot_door_map, plot_position_errors, save_figures
+    from jaxslam.sim.door_worlds import SCENARIOS, filter_settings
+
+    if args.particles < 1:
+        raise ConfigError(f"--particles must be >= 1, got {args.particles}")
+    t0 = time.time()
+    scenario = SCENARIOS[args.scenario](jax.random.key(args.seed))
+    config, params = filter_settings(scenario, args.particles)
+    key = jax.random.key(10_000 + args.seed)
+    run = jax.jit(doors.run_filter, static_argnames=("config", "filter_kind", "heading_range"))(
+        key, mcl.log_inputs(scenario.log), jnp.asarray(scenario.true_poses, jnp.float32),
+        jnp.asarray(scenario.start_regions), scenario.door_map, scenario.log.sensor, params, config,
+        args.filter_kind, tuple(scenario.heading_range))
+    position_error = np.asarray(run.position_error)
+    final_belief = np.asarray(run.door_belief[-1])
+    result = {"scenario": args.scenario, "filter": args.filter_kind, "seed": args.seed, "particles": args.particles,
+              "final_position_error_m": float(position_error[-1]),
+              "final_heading_error_deg": float(np.rad2deg(run.heading_error[-1])),
+              "final_door_belief": dict(zip(scenario.door_names, np.round(final_belief, 4).tolist())),
+              "true_door_open_final": dict(zip(scenario.door_names, scenario.true_door_open[-1].tolist()))}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    errors = {args.filter_kind: position_error[None]}
+    if args.filter_kind == "static":
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, 2, figsize=(13, 4))
+        plot_door_map(axes[0], scenario, final_belief, "static MCL: the map as given", path=scenario.true_poses)
+        plot_position_errors(axes[1], errors)
+        fig.tight_layout()
+        fig.savefig(out / "static.png", dpi=110)
+        plt.close(fig)
+        figures = [str(out / "static.png")]
+    else:
+        infos, history = figure_run(key, scenario, config, params, memory=args.filter_kind == "hybrid")
+        figures = save_figures(out, scenario, infos, history, params, errors)
+    result["figures"] = figures
+    result["seconds"] = round(time.time() - t0, 1)
+    (out / "summary.json").write_text(json.dumps(result, indent=2))
+    print(f"{args.scenario} / {args.filter_kind}: final position error {result['final_position_error_m']:.3f} m, "
+          f"heading error {result['final_heading_error_deg']:.2f} deg; wrote {out / 'summary.json'}")
     return 0
 
 
@@ -189,12 +254,16 @@ def make_parser() -> argparse.ArgumentParser:
     p_eval.add_argument("--out", help="write the table as JSON here")
     p_eval.set_defaults(func=_cmd_eval)
 
-    try:
-        from jaxslam.cli_doors import add_parser as add_doors_parser
-    except ImportError:  # the doors module is optional at import time of the CLI
-        add_doors_parser = None
-    if add_doors_parser is not None:
-        add_doors_parser(sub)
+    p_doors = sub.add_parser("doors", help="localization with door-state estimation (Avots et al. 2002)")
+    p_doors.add_argument("--scenario", choices=("corridors", "office"), default="corridors",
+                         help="corridors: two corridors told apart only by their doors (Fig. 2); "
+                              "office: doors closed on the way out, opened, then the return pass (Fig. 1)")
+    p_doors.add_argument("--particles", type=int, default=1000)
+    p_doors.add_argument("--seed", type=int, default=0, help="seed of the simulated log and of the filter")
+    p_doors.add_argument("--filter", dest="filter_kind", choices=("hybrid", "static", "memoryless"),
+                         default="hybrid")
+    p_doors.add_argument("--out", default="out/doors", help="folder for summary.json and the figures")
+    p_doors.set_defaults(func=_cmd_doors)
     return parser
 
 

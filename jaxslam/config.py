@@ -1,14 +1,18 @@
-"""The static ``SlamConfig`` and the traced ``SlamParams`` of the RBPF.
+"""The settings of the RBPF, split by who reads them.
 
-``SlamConfig`` holds everything that sets array shapes or picks code paths
-(particle counts, horizon, map shape, beam subsampling, proposal kind): it is a
-frozen, hashable dataclass passed to ``jax.jit`` as a static argument, and
-changing it recompiles. ``SlamParams`` holds the numbers (noise, gains,
-thresholds): a pytree of float32 arrays, traced, so changing it never recompiles
-and it can be differentiated.
+* ``SlamConfig`` holds everything that sets array shapes or picks code paths inside the
+  jitted step (particle counts, horizon, map shape, beam subsampling, proposal kind): a
+  frozen, hashable dataclass passed to ``jax.jit`` as a static argument; changing it
+  recompiles.
+* ``RunSettings`` holds what only the host-side driver reads (the update rule that selects
+  the processed scans, and how a grid is sized from a log): changing it never recompiles.
+* ``SlamParams`` holds the numbers (noise, gains, thresholds): a pytree of float32 arrays,
+  traced, so changing it never recompiles and it can be differentiated.
 
-Both can be written and read as flat dictionaries with dotted names
-(``motion.srr``, ``likelihood.sigma``) for the command line and config files.
+All three are built from one flat dictionary of names (:func:`build_setup`): config and
+settings fields by name (``num_particles``, ``linear_update``), parameters by dotted name
+(``motion.srr``, ``likelihood.sigma``), as the command line's ``--set`` and config files
+give them.
 """
 
 from __future__ import annotations
@@ -19,10 +23,11 @@ from typing import Any, NamedTuple
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxslam.grid import LIKELIHOOD_FIELDS, GridSpec, InsertionParams
+from jaxslam.grid import GridSpec
+from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
 from jaxslam.motion import MotionParams
+from jaxslam.occupancy import InsertionParams
 from jaxslam.resampling import RESAMPLERS
-from jaxslam.sensor import FIELD_LOOKUPS, LikelihoodParams
 
 PROPOSALS = ("op", "smp", "lp")
 
@@ -33,44 +38,32 @@ class ConfigError(ValueError):
 
 @dataclasses.dataclass(frozen=True)
 class SlamConfig:
-    """Static settings of the RBPF (shapes and code paths). Hashable; changing it recompiles."""
+    """Static settings of the jitted RBPF step (shapes and code paths). Hashable; changing it recompiles."""
 
     num_particles: int = 30
     """N, the number of SLAM particles (each with its own map)."""
     proposal: str = "smp"
     """Proposal distribution: "op" (odometry), "smp" (scan matching), "lp" (look-ahead)."""
-    resolution: float = 0.05
-    """Map cell size (m), used when ``grid`` is None."""
-    map_padding: float = 8.0
-    """Metres added around the odometry's extent when the grid is sized from a log."""
     grid: GridSpec | None = None
-    """The map's shape and placement; None sizes it from the log (see ``map_padding``)."""
+    """The map's shape and placement; None: ``rbpf.run`` sizes it from the log
+    (``RunSettings.resolution`` and ``map_padding``)."""
     max_insert_range: float = 15.0
     """Beams are inserted into the map up to this range (m); sets samples per beam."""
     field_radius: int = 4
     """Radius (cells) of the likelihood field around each registered endpoint."""
-    likelihood_field: str = "endpoints"
-    """What the likelihood field measures distances to: "endpoints" (every endpoint ever
-    registered, a scatter-min per beam) or "occupied" (the cells whose log-odds is above 0, so
-    endpoints that later beams see through stop counting, as in GMapping; the field is
-    recomputed in a window round each inserted scan). See ``jaxslam.grid.insert_scan``."""
     likelihood_lookup: str = "nearest"
     """How a beam's endpoint reads the likelihood field in the particle weights (every proposal,
     the SMP's fitted Gaussian, the LP's localizers): "nearest" (the cell it falls in) or
     "bilinear" (interpolated between the four surrounding cells, so the likelihood is continuous
-    in the pose; four gathers per beam). See ``jaxslam.sensor``."""
+    in the pose; four gathers per beam). See ``jaxslam.likelihood_field``."""
     match_lookup: str = "bilinear"
     """The same choice for the hill-climbing scan matcher (the SMP's and LP-SM's match, and the
     refinement's matches and their covariances). "bilinear" (the default) lets the matcher
     settle between cells instead of stopping wherever a whole cell stops improving: on Intel,
-    ACES and MIT CSAIL it is as accurate or more (docs/tuning.md, "Reading the field between
-    cells"). "nearest" is what the datasets and box-world tables were measured with."""
+    ACES and MIT CSAIL it is as accurate or more (docs/results.md). "nearest" is what the
+    box-world tables were measured with."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
-    linear_update: float = 1.0
-    """Process a scan after this much travel (m) since the last processed one (GMapping)."""
-    angular_update: float = 0.5
-    """... or after this much rotation (rad)."""
     resampler: str = "systematic"
     """Resampling scheme: systematic, stratified, multinomial or residual."""
     match_iterations: int = 24
@@ -82,24 +75,13 @@ class SlamConfig:
     lookahead_initial: str = "odometry"
     """Where the LP draws its L time-t localizers: "odometry" (the motion model, as in the paper)
     or "scan_match" (a Gaussian fitted around the scan-matched pose, importance-corrected)."""
-    lookahead_weight: str = "filter"
-    """The LP's SLAM weight. "filter" (DESIGN.md step 5): the evidence of scan t, with the
-    selection correction (``lookahead.selection_correction``), so the particles target the
-    filtering posterior. "lookahead": the particles target the posterior given the k scans ahead
-    too (block sampling, Doucet, Briers and Senecal 2006): the increment is the localizer filter's
-    log p(z_{t+k} | x_{t-1}, z_{t:t+k-1}), and the pose drawn by the look-ahead is not corrected
-    back; the SLAM resampling then sees k scans ahead."""
 
     def __post_init__(self):
         checks = [
             (self.num_particles >= 1, "num_particles must be >= 1"),
             (self.proposal in PROPOSALS, f"proposal must be one of {PROPOSALS}, got {self.proposal!r}"),
-            (self.resolution > 0, "resolution must be > 0"),
-            (self.map_padding >= 0, "map_padding must be >= 0"),
             (self.max_insert_range > 0, "max_insert_range must be > 0"),
             (1 <= self.field_radius <= 11, "field_radius must be in 1..11 (its squared distances fit uint8)"),
-            (self.likelihood_field in LIKELIHOOD_FIELDS,
-             f"likelihood_field must be one of {LIKELIHOOD_FIELDS}, got {self.likelihood_field!r}"),
             (self.likelihood_lookup in FIELD_LOOKUPS,
              f"likelihood_lookup must be one of {FIELD_LOOKUPS}, got {self.likelihood_lookup!r}"),
             (self.match_lookup in FIELD_LOOKUPS,
@@ -111,8 +93,6 @@ class SlamConfig:
             (self.horizon >= 0, "horizon must be >= 0"),
             (self.lookahead_initial in ("odometry", "scan_match"),
              f"lookahead_initial must be 'odometry' or 'scan_match', got {self.lookahead_initial!r}"),
-            (self.lookahead_weight in ("filter", "lookahead"),
-             f"lookahead_weight must be 'filter' or 'lookahead', got {self.lookahead_weight!r}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -122,6 +102,32 @@ class SlamConfig:
     def lookahead_steps(self) -> int:
         """Future scans each step carries: the horizon for LP, none otherwise."""
         return self.horizon if self.proposal == "lp" else 0
+
+
+@dataclasses.dataclass(frozen=True)
+class RunSettings:
+    """Host-side settings of ``rbpf.run``: which scans are processed and how a grid is sized
+    from a log. Never part of the jitted step, so changing them never recompiles it."""
+
+    linear_update: float = 1.0
+    """Process a scan after this much travel (m) since the last processed one (GMapping)."""
+    angular_update: float = 0.5
+    """... or after this much rotation (rad)."""
+    resolution: float = 0.05
+    """Map cell size (m) of a grid sized from the log (``SlamConfig.grid`` None)."""
+    map_padding: float = 8.0
+    """Metres added around the odometry's extent when the grid is sized from the log."""
+
+    def __post_init__(self):
+        checks = [
+            (self.linear_update >= 0, "linear_update must be >= 0"),
+            (self.angular_update >= 0, "angular_update must be >= 0"),
+            (self.resolution > 0, "resolution must be > 0"),
+            (self.map_padding >= 0, "map_padding must be >= 0"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"RunSettings: {message}")
 
 
 class ScanMatchParams(NamedTuple):
@@ -153,15 +159,9 @@ class LookaheadParams(NamedTuple):
     1 uses each scan's own sharpness, as the SMP's fit does. The SLAM weight increment is
     then scaled by ``likelihood.gain / localizer_gain`` (the tempered evidence), so setting
     it equal to ``likelihood.gain`` tempers the localizers and leaves the increment as is."""
-    match_share: Float[Array, ""]
-    """``lookahead_initial="scan_match"`` only: the share in [0, 1] of the time-t localizers drawn
-    around the scan-matched pose; the others are drawn from the motion model, as in the paper's
-    LP, and every g is weighted against the mixture of the two (so the estimate stays unbiased).
-    1 (default): all from the match; a match that slid along a weak structure then leaves no
-    localizer near the truth, which the odometry-drawn share keeps."""
     selection_correction: Float[Array, ""]
     """How much of the selection correction the SLAM weight keeps, in [0, 1]. The increment is
-    log mean_i exp(g_i) + c (g_J - logsumexp(g) - log p_J): c = 1 (default) is the DESIGN's
+    log mean_i exp(g_i) + c (g_J - logsumexp(g) - log p_J): c = 1 (default) is the design's
     g_J - log L - log p_J, unbiased for alpha > 0 but noisy, since it depends on which sample
     was drawn; c = 0 weighs every SLAM particle by its evidence estimate alone, unbiased for
     every alpha (the paper's 0 included) and independent of the draw, so the look-ahead then
@@ -197,7 +197,7 @@ _DEFAULTS: dict[str, float] = {
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
     "scan_match.min_std_fraction": 0.1, "scan_match.start_noise": 1.0,
     "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
-    "lookahead.match_share": 1.0, "lookahead.selection_correction": 1.0,
+    "lookahead.selection_correction": 1.0,
     "resample_threshold": 0.5,
 }
 
@@ -221,8 +221,6 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
             raise ConfigError(f"parameter {name} must be a number, got {value!r}") from None
     if not 0.0 <= merged["lookahead.alpha"] < 1.0:
         raise ConfigError(f"parameter lookahead.alpha must be in [0, 1), got {merged['lookahead.alpha']}")
-    if not 0.0 <= merged["lookahead.match_share"] <= 1.0:
-        raise ConfigError(f"parameter lookahead.match_share must be in [0, 1], got {merged['lookahead.match_share']}")
     if not 0.0 <= merged["lookahead.selection_correction"] <= 1.0:
         raise ConfigError("parameter lookahead.selection_correction must be in [0, 1], "
                           f"got {merged['lookahead.selection_correction']}")
@@ -256,26 +254,51 @@ def params_to_dict(params: SlamParams) -> dict[str, float]:
     return out
 
 
-def config_to_dict(config: SlamConfig) -> dict[str, Any]:
-    """Plain-data view of a ``SlamConfig`` (JSON-ready)."""
-    out = dataclasses.asdict(config)
-    return out
+def config_to_dict(config) -> dict[str, Any]:
+    """Plain-data view of a ``SlamConfig`` or ``RunSettings`` (JSON-ready)."""
+    return dataclasses.asdict(config)
 
 
-def config_from_dict(values: dict[str, Any]) -> SlamConfig:
-    """Build a ``SlamConfig`` from field names; unknown names or bad types raise ``ConfigError``."""
-    fields = {f.name: f for f in dataclasses.fields(SlamConfig)}
-    unknown = sorted(set(values) - set(fields))
-    if unknown:
-        raise ConfigError(f"unknown config field(s) {unknown}; known: {sorted(fields)}")
+def _dataclass_from_dict(cls, values: dict[str, Any]):
+    """``cls(**values)`` with every value converted to its field's type; bad types raise ``ConfigError``."""
     kwargs = {}
     for name, value in values.items():
         if name == "grid":
-            kwargs[name] = None if value is None else GridSpec(tuple(value["shape"]), value["resolution"], tuple(value["origin"]))
+            kwargs[name] = None if value is None else GridSpec(tuple(value["shape"]), value["resolution"],
+                                                               tuple(value["origin"]))
             continue
-        default = getattr(SlamConfig, name)
+        default = getattr(cls, name)
         try:
             kwargs[name] = type(default)(value) if not isinstance(default, str) else str(value)
         except (TypeError, ValueError):
             raise ConfigError(f"config field {name} must be a {type(default).__name__}, got {value!r}") from None
-    return SlamConfig(**kwargs)
+    return cls(**kwargs)
+
+
+CONFIG_FIELDS = tuple(f.name for f in dataclasses.fields(SlamConfig))
+"""Names that set a :class:`SlamConfig` field."""
+SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(RunSettings))
+"""Names that set a :class:`RunSettings` field."""
+
+
+def config_from_dict(values: dict[str, Any]) -> SlamConfig:
+    """Build a ``SlamConfig`` from field names; unknown names or bad types raise ``ConfigError``."""
+    unknown = sorted(set(values) - set(CONFIG_FIELDS))
+    if unknown:
+        raise ConfigError(f"unknown config field(s) {unknown}; known: {sorted(CONFIG_FIELDS)}")
+    return _dataclass_from_dict(SlamConfig, values)
+
+
+def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamParams]:
+    """The config, run settings and parameters of one flat dictionary of names.
+
+    ``values`` maps :data:`CONFIG_FIELDS` names to ``SlamConfig`` fields, :data:`SETTINGS_FIELDS`
+    names to ``RunSettings`` fields and dotted names (``motion.srr``) to parameters; anything
+    missing keeps its default. This is the one builder behind ``--set``, config files and the
+    experiments' method tables. Unknown names and bad values raise ``ConfigError``.
+    """
+    config_values = {k: v for k, v in values.items() if k in CONFIG_FIELDS}
+    settings_values = {k: v for k, v in values.items() if k in SETTINGS_FIELDS}
+    param_values = {k: v for k, v in values.items() if k not in CONFIG_FIELDS and k not in SETTINGS_FIELDS}
+    return (config_from_dict(config_values), _dataclass_from_dict(RunSettings, settings_values),
+            params_from_dict(param_values))

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxslam.geometry import between
-from jaxslam.sensor import SensorSpec
+from jaxslam.laser import SensorSpec
 
 
 class LogError(ValueError):

@@ -24,7 +24,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from jaxslam.geometry import between, compose, wrap_angle
 
-_LOG_2PI = 1.8378770664093453
+LOG_2PI = 1.8378770664093453
 
 
 class MotionParams(NamedTuple):
@@ -69,4 +69,4 @@ def log_density(new_pose: Float[Array, "... 3"], pose: Float[Array, "... 3"], mo
     residual = between(pose, new_pose) - motion
     residual = residual.at[..., 2].set(wrap_angle(residual[..., 2]))
     z = residual / std
-    return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * _LOG_2PI, axis=-1)
+    return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * LOG_2PI, axis=-1)

@@ -36,7 +36,7 @@ def run_warnings(result) -> list[str]:
 def summarize(log, result, params, seed: int, source: str) -> dict:
     """The ``summary.json`` content of a run."""
     info = result.info
-    config = config_to_dict(result.config)
+    config = config_to_dict(result.config) | config_to_dict(result.settings)
     return {
         "source": source,
         "seed": seed,
@@ -51,7 +51,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         "resampling_steps": int(np.sum(info.resampled)),
         "mean_ess": float(np.mean(info.ess)) if info.ess.size else None,
         "fallbacks": int(np.sum(info.num_fallbacks)),
-        "log_evidence": float(np.sum(info.log_evidence_increment)),
+        "log_evidence": float(np.sum(info.log_evidence)),
         "warnings": run_warnings(result),
     }
 
@@ -77,7 +77,7 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    best = int(np.argmax(np.asarray(result.state.log_weights)))
+    best = result.best_particle
     logodds = np.asarray(result.state.maps.logodds[best])
     write_map(out / "map", logodds, result.config.grid)
     write_trajectory(out / "trajectory.txt", log.timestamps, result.trajectory)

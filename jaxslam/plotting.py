@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxslam.binary_bayes import probability
 from jaxslam.grid import GridSpec
 
 
 def plot_map(ax, logodds, spec: GridSpec, cmap: str = "gray_r"):
     """Draw an occupancy map (log-odds (H, W)) as p(occupied): white free, black occupied, grey unknown."""
-    prob = 1.0 / (1.0 + np.exp(-np.asarray(logodds, np.float64)))
+    prob = probability(np.asarray(logodds))
     image = ax.imshow(prob, origin="lower", extent=spec.extent, cmap=cmap, vmin=0.0, vmax=1.0,
                       interpolation="nearest")
     ax.set_aspect("equal")
@@ -57,7 +58,7 @@ def plot_slam_result(result, log=None, world=None, ax=None):
     fig = None
     if ax is None:
         fig, ax = plt.subplots(figsize=(8, 8))
-    best = int(np.argmax(np.asarray(result.state.log_weights)))
+    best = result.best_particle
     plot_map(ax, result.state.maps.logodds[best], result.config.grid)
     idx = result.selection.indices
     if log is not None:

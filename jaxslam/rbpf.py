@@ -7,9 +7,10 @@ inserts the scan into its map at the new pose, and resamples when the ESS
 falls below ``resample_threshold * N`` (maps are copied only then).
 
 ``init`` / ``step`` are pure and jittable (``config`` static); ``run`` drives
-a whole :class:`~jaxslam.laserlog.LaserLog`: update selection in NumPy, then a
-``lax.scan`` over the processed scans in fixed-size chunks so that a tqdm bar
-shows progress and the step compiles once.
+a whole :class:`~jaxslam.laserlog.LaserLog`: update selection in NumPy (the host-side
+:class:`~jaxslam.config.RunSettings`), then a ``lax.scan`` over the processed scans in
+fixed-size chunks (:mod:`jaxslam.driver`) so that a tqdm bar shows progress and the step
+compiles once.
 """
 
 from __future__ import annotations
@@ -24,14 +25,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from jaxslam import resampling
-from jaxslam.config import SlamConfig, SlamParams
-from jaxslam.geometry import weighted_mean_and_covariance
-from jaxslam.grid import GridMap, GridSpec, empty_map, flat_index, insert_scan, world_to_cell
+from jaxslam import particle_filter, resampling
+from jaxslam.config import RunSettings, SlamConfig, SlamParams
+from jaxslam.driver import run_in_chunks
+from jaxslam.grid import GridSpec, flat_index, world_to_cell
+from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.laserlog import LaserLog, UpdateSelection, select_updates
+from jaxslam.occupancy import GridMap, empty_map, insert_scan
 from jaxslam.proposals import lookahead, odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
-from jaxslam.sensor import SensorSpec, subsample_beams
 
 
 class SlamState(NamedTuple):
@@ -60,8 +62,9 @@ class SlamInfo(NamedTuple):
     """Weighted mean of the proposed poses (circular mean in theta)."""
     pose_covariance: Float[Array, "3 3"]
     """Weighted covariance of the proposed poses."""
-    log_evidence_increment: Float[Array, ""]
-    """log p(z_t | z_{1:t-1}, u_{1:t}) as estimated by the filter."""
+    log_evidence: Float[Array, ""]
+    """log p(z_t | z_{1:t-1}, u_{1:t}) as estimated by the filter (the step's increment of the
+    log-likelihood; -inf when ``degenerate``)."""
     degenerate: Bool[Array, ""]
     """Every particle got weight zero (-inf); the weights were reset to uniform."""
     proposed_poses: Float[Array, "N 3"]
@@ -103,8 +106,7 @@ def init(
     n = config.num_particles
     pose = jnp.zeros(3, jnp.float32) if initial_pose is None else jnp.asarray(initial_pose, jnp.float32)
     one_map, _ = insert_scan(spec, empty_map(spec), pose, jnp.asarray(first_ranges, jnp.float32), sensor,
-                             params.insertion, config.max_insert_range, config.field_radius,
-                             config.likelihood_field)
+                             params.insertion, config.max_insert_range, config.field_radius)
     maps = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), one_map)
     return SlamState(
         poses=jnp.broadcast_to(pose, (n, 3)),
@@ -141,41 +143,33 @@ def step(
         jax.random.split(key_prop, n), state.poses, state.maps, lik_inputs, lik_sensor, params, config
     )
 
-    log_weights = state.log_weights + out.log_weight_increment
-    log_weights = jnp.where(jnp.isnan(log_weights), -jnp.inf, log_weights)
-    normalized, log_evidence = resampling.normalize_log_weights(log_weights)
-    degenerate = ~jnp.isfinite(log_evidence)
-    weights = jnp.exp(normalized)
-    mean_pose, cov = weighted_mean_and_covariance(out.pose, weights)
+    update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
+                                                   params.resample_threshold, config.resampler)
 
     def insert(grid_map, pose):
         return insert_scan(spec, grid_map, pose, inputs.ranges, sensor, params.insertion,
-                           config.max_insert_range, config.field_radius, config.likelihood_field)
+                           config.max_insert_range, config.field_radius)
 
     maps, outside = jax.vmap(insert)(state.maps, out.pose)
-
-    ancestors, new_log_weights, resampled = resampling.resample_if_needed(
-        key_res, normalized, params.resample_threshold, resampling.RESAMPLERS[config.resampler]
-    )
     # Survivors keep their slots, so only the maps of dead particles are overwritten, in place.
-    ancestors = resampling.keep_survivors_in_place(ancestors)
+    ancestors = resampling.keep_survivors_in_place(update.ancestors)
     maps = copy_particles_in_place(maps, ancestors)
     pose_cells = world_to_cell(spec, out.pose[:, :2])
     info = SlamInfo(
-        ess=resampling.ess(normalized),
-        resampled=resampled,
-        best_particle=jnp.argmax(normalized).astype(jnp.int32),
-        mean_pose=mean_pose,
-        pose_covariance=cov,
-        log_evidence_increment=log_evidence,
-        degenerate=degenerate,
+        ess=update.ess,
+        resampled=update.resampled,
+        best_particle=jnp.argmax(update.log_weights).astype(jnp.int32),
+        mean_pose=update.mean_pose,
+        pose_covariance=update.pose_covariance,
+        log_evidence=update.log_evidence,
+        degenerate=update.degenerate,
         proposed_poses=out.pose,
         ancestors=ancestors,
         num_fallbacks=jnp.sum(out.fallback).astype(jnp.int32),
         outside_samples=jnp.sum(outside).astype(jnp.int32),
         poses_outside=jnp.sum(flat_index(spec, pose_cells) == spec.num_cells).astype(jnp.int32),
     )
-    new_state = SlamState(out.pose[ancestors], new_log_weights, maps, state.step + 1)
+    new_state = SlamState(out.pose[ancestors], update.new_log_weights, maps, state.step + 1)
     return new_state, info
 
 
@@ -212,6 +206,8 @@ class SlamResult(NamedTuple):
     """The processed scans and the motion between them."""
     config: SlamConfig
     """The config used, with the grid resolved."""
+    settings: RunSettings
+    """The host-side settings used (update rule, grid sizing)."""
     best_path: np.ndarray
     """(S, 3) poses at the processed scans along the ancestry of the final best particle."""
     trajectory: np.ndarray
@@ -220,13 +216,18 @@ class SlamResult(NamedTuple):
     """Seconds: ``compile`` (first chunk, compile included), ``total`` wall time, and
     ``real_time_factor`` = log duration / total."""
 
+    @property
+    def best_particle(self) -> int:
+        """Index of the final particle with the largest weight (whose map and path are the result's)."""
+        return particle_filter.best_particle(self.state.log_weights)
 
-def auto_grid(log: LaserLog, config: SlamConfig, indices: np.ndarray | None = None) -> GridSpec:
-    """A grid covering the odometry's extent plus ``config.map_padding`` metres, at ``config.resolution``."""
+
+def auto_grid(log: LaserLog, settings: RunSettings, indices: np.ndarray | None = None) -> GridSpec:
+    """A grid covering the odometry's extent plus ``settings.map_padding`` metres, at ``settings.resolution``."""
     xy = log.odometry[:, :2] if indices is None else log.odometry[indices, :2]
-    lo = xy.min(axis=0) - config.map_padding
-    hi = xy.max(axis=0) + config.map_padding
-    return GridSpec.from_bounds(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), config.resolution)
+    lo = xy.min(axis=0) - settings.map_padding
+    hi = xy.max(axis=0) + settings.map_padding
+    return GridSpec.from_bounds(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), settings.resolution)
 
 
 def build_inputs(log: LaserLog, selection: UpdateSelection, lookahead_steps: int) -> StepInputs:
@@ -309,23 +310,29 @@ def run(
     log: LaserLog,
     config: SlamConfig,
     params: SlamParams,
+    settings: RunSettings = RunSettings(),
     *,
     chunk_size: int = 32,
     progress: bool = True,
 ) -> SlamResult:
     """Map a whole log: select the scans, then ``lax.scan`` the step over them in chunks.
 
-    The grid is sized from the log when ``config.grid`` is None. Every chunk has
-    ``chunk_size`` steps (the last is padded with no-op steps), so the step compiles once.
+    Args:
+      key: the run's randomness (the same key reproduces the run bit for bit).
+      log: the laser log.
+      config: static settings of the step; ``config.grid`` None sizes the grid from the log.
+      params: traced numbers.
+      settings: host-side settings: the update rule and the grid sizing.
+      chunk_size: steps per compiled call (every chunk has this many steps, the last padded
+        with no-op steps, so the step compiles once).
+      progress: show a tqdm bar.
     """
-    from tqdm.auto import tqdm
-
-    from jaxslam.io.trajectory import trajectory_per_scan
+    from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
 
     t_start = time.perf_counter()
-    selection = select_updates(log, config.linear_update, config.angular_update)
+    selection = select_updates(log, settings.linear_update, settings.angular_update)
     if config.grid is None:
-        config = dataclasses.replace(config, grid=auto_grid(log, config, selection.indices))
+        config = dataclasses.replace(config, grid=auto_grid(log, settings, selection.indices))
     sensor = log.sensor
     initial_pose = jnp.asarray(log.odometry[0], jnp.float32)
     key_init, key_steps = jax.random.split(key)
@@ -334,40 +341,22 @@ def run(
     inputs = build_inputs(log, selection, config.lookahead_steps)
     num_steps = selection.indices.size - 1
     step_keys = jax.random.split(key_steps, max(num_steps, 1))
-    padded = max(1, math.ceil(num_steps / chunk_size)) * chunk_size
-    pad = padded - num_steps
 
-    def padded_array(a):
-        a = np.asarray(a)
-        return np.concatenate([a, np.zeros((pad,) + a.shape[1:], a.dtype)]) if pad else a
+    def chunk_fn(state, xs, valid):
+        keys, chunk_inputs = xs
+        return _run_chunk(state, keys, chunk_inputs, valid, sensor, params, config)
 
-    inputs = jax.tree.map(padded_array, inputs)
-    step_keys = jnp.concatenate([step_keys[:num_steps], jax.random.split(key_steps, pad)]) if pad else step_keys
-    valid = np.arange(padded) < num_steps
+    chunked = run_in_chunks(chunk_fn, (step_keys, inputs), num_steps, chunk_size, state, progress=progress,
+                            desc=f"RBPF {config.proposal.upper()} N={config.num_particles}", unit="scan")
+    state, info = chunked.carry, chunked.outputs
 
-    infos = []
-    compile_time = None
-    bar = tqdm(total=num_steps, desc=f"RBPF {config.proposal.upper()} N={config.num_particles}",
-               unit="scan", disable=not progress)
-    for start in range(0, padded, chunk_size):
-        sl = slice(start, start + chunk_size)
-        t0 = time.perf_counter()
-        state, info = _run_chunk(state, step_keys[sl], jax.tree.map(lambda a: a[sl], inputs), valid[sl],
-                                 sensor, params, config)
-        infos.append(jax.tree.map(np.asarray, info))  # blocks until the chunk is done
-        if compile_time is None:
-            compile_time = time.perf_counter() - t0
-        bar.update(int(valid[sl].sum()))
-    bar.close()
-    info = jax.tree.map(lambda *xs: np.concatenate(xs)[:num_steps], *infos)
-
-    final_best = int(np.argmax(np.asarray(state.log_weights)))
-    best_path = np.concatenate([np.asarray(initial_pose)[None], backtrack_path(info, final_best)])
+    best = particle_filter.best_particle(state.log_weights)  # SlamResult.best_particle
+    best_path = np.concatenate([np.asarray(initial_pose)[None], backtrack_path(info, best)])
     trajectory = trajectory_per_scan(log, selection.indices, best_path)
     total = time.perf_counter() - t_start
     timings = {
-        "compile": compile_time,
+        "compile": chunked.first_chunk_seconds,
         "total": total,
         "real_time_factor": log.duration / total if total > 0 else float("inf"),
     }
-    return SlamResult(state, info, selection, config, best_path, trajectory, timings)
+    return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings)

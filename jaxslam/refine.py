@@ -38,9 +38,10 @@ from jaxtyping import Array, Float, UInt8
 from jaxslam import motion
 from jaxslam.geometry import between_np, weighted_mean_and_covariance, wrap_angle_np
 from jaxslam.grid import GridSpec
-from jaxslam.proposals.scan_match import stencil_poses
-from jaxslam.scan_matching import match
-from jaxslam.sensor import SensorSpec, endpoint_log_likelihoods, subsample_beams
+from jaxslam.driver import run_in_chunks
+from jaxslam.laser import SensorSpec, subsample_beams
+from jaxslam.likelihood_field import endpoint_log_likelihoods
+from jaxslam.scan_matching import match, stencil_poses
 
 
 class RefinedTrajectory(NamedTuple):
@@ -92,25 +93,19 @@ def refine_trajectory(
     if poses.ndim != 2 or poses.shape[1] != 3 or ranges.shape[0] != poses.shape[0]:
         raise ValueError(f"refine_trajectory: poses {poses.shape} and ranges {ranges.shape} do not match")
     num = poses.shape[0]
-    lik_sensor, lik_ranges = subsample_beams(sensor, ranges, config.beam_stride)
-    padded = -(-num // chunk_size) * chunk_size
-    pose_in = np.zeros((padded, 3), np.float32)
-    pose_in[:num] = poses
-    ranges_in = np.zeros((padded, lik_ranges.shape[1]), np.float32)
-    ranges_in[:num] = lik_ranges
     if odometry is not None and np.shape(odometry) != poses.shape:
         raise ValueError(f"refine_trajectory: odometry {np.shape(odometry)} and poses {poses.shape} do not match")
-    out_pose, out_score, out_cov = [], [], []
-    for start in range(0, padded, chunk_size):
-        sl = slice(start, start + chunk_size)
-        p, s, c = _match_chunk(spec, hit_dist2, jnp.asarray(pose_in[sl]), jnp.asarray(ranges_in[sl]), lik_sensor,
-                               params, config.match_iterations, config.match_lookup)
-        out_pose.append(np.asarray(p))
-        out_score.append(np.asarray(s))
-        out_cov.append(np.asarray(c))
-    matched_pose = np.concatenate(out_pose)[:num].astype(np.float64)
-    scores = np.concatenate(out_score)[:num]
-    covariances = np.concatenate(out_cov)[:num].astype(np.float64)
+    lik_sensor, lik_ranges = subsample_beams(sensor, ranges, config.beam_stride)
+
+    def chunk_fn(_, xs, valid):
+        chunk_poses, chunk_ranges = xs
+        return None, _match_chunk(spec, hit_dist2, jnp.asarray(chunk_poses), jnp.asarray(chunk_ranges), lik_sensor,
+                                  params, config.match_iterations, config.match_lookup)
+
+    matched_pose, scores, covariances = run_in_chunks(
+        chunk_fn, (poses.astype(np.float32), lik_ranges), num, chunk_size).outputs
+    matched_pose = matched_pose.astype(np.float64)
+    covariances = covariances.astype(np.float64)
     ok = scores >= float(params.scan_match.min_score)
     matched_pose = np.where(ok[:, None], matched_pose, poses)
     matched_pose[:, 2] = wrap_angle_np(matched_pose[:, 2])

@@ -94,17 +94,17 @@ RESAMPLERS: dict[str, ResampleFn] = {
 def resample_if_needed(
     key: PRNGKeyArray,
     log_weights: Float[Array, "N"],
-    ess_threshold: Float[Array, ""],
+    resample_threshold: Float[Array, ""],
     resample_fn: ResampleFn = systematic,
 ) -> tuple[Int[Array, "N"], Float[Array, "N"], Bool[Array, ""]]:
-    """Selective resampling: resample when ESS < ``ess_threshold`` * N.
+    """Selective resampling: resample when ESS < ``resample_threshold`` * N.
 
     Returns ``(ancestors, new_log_weights, resampled)``: identity ancestors and the
     normalised weights when no resampling happens, uniform weights after it.
     """
     n = log_weights.shape[0]
     normalized, _ = normalize_log_weights(log_weights)
-    do = ess(normalized) < ess_threshold * n
+    do = ess(normalized) < resample_threshold * n
     drawn = resample_fn(key, normalized, n)
     ancestors = jnp.where(do, drawn, jnp.arange(n, dtype=jnp.int32))
     new_log_weights = jnp.where(do, jnp.full_like(normalized, -jnp.log(n)), normalized)

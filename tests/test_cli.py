@@ -75,6 +75,23 @@ def test_config_file_and_flags(tmp_path, small_log):
     assert summary["params"]["likelihood.sigma"] == pytest.approx(0.08)
 
 
+def test_config_file_sets_what_no_flag_overrides(tmp_path, small_log):
+    """The command's defaults (--particles 30, --proposal smp) yield to the file; a flag that is
+    given wins over it."""
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=12)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"config": {"num_particles": 2, "proposal": "op", "linear_update": 0.3}}))
+    out = tmp_path / "out"
+    assert main(["map", str(log_path), "--config", str(cfg), "--no-progress", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["config"]["num_particles"], summary["config"]["proposal"]) == (2, "op")
+    assert main(["map", str(log_path), "--config", str(cfg), "--particles", "3", "--no-progress",
+                 "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["config"]["num_particles"], summary["config"]["proposal"]) == (3, "op")
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

@@ -10,10 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import binary_bayes, doors, mcl
+from jaxslam import binary_bayes
+from jaxslam.localization import doors, mcl
 from jaxslam.geometry import between
-from jaxslam.sensor import beam_model_log_likelihood, make_beam_model_params, make_sensor, uniform_beams
-from jaxslam.sim.raycast import raycast
+from jaxslam.laser import make_sensor, uniform_beams
+from jaxslam.localization.beam_model import beam_model_log_likelihood, make_beam_model_params
+from jaxslam.segment_map import raycast
 
 ZERO_MOTION = mcl.default_motion_params(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
@@ -84,7 +86,7 @@ def test_factored_posterior_matches_brute_force_enumeration():
     want_marginals, want_evidence = _brute_force(walls, door_segments, poses, scans, sensor, beam, gain, initial,
                                                  p_oo, p_oc)
 
-    params = doors.make_params(door_map, motion=ZERO_MOTION, beam=beam, likelihood_gain=gain, ess_threshold=0.0)
+    params = doors.make_params(door_map, motion=ZERO_MOTION, beam=beam, likelihood_gain=gain, resample_threshold=0.0)
     config = doors.DoorConfig(num_particles=1)
     state = doors.init(mcl.MclState(jnp.asarray(poses[:1]), jnp.zeros(1), jnp.zeros((), jnp.int32)), door_map)
     evidence = 0.0
@@ -105,7 +107,7 @@ def test_unobserved_door_decays_to_closed_form():
     sensor = make_sensor(uniform_beams(31, np.pi / 2), 0.0, 4.0)  # sees the south-east corner only
     p_oo, p_oc, initial = np.array([0.97, 0.9, 0.99]), np.array([0.05, 0.2, 0.001]), np.array([0.95, 0.1, 0.5])
     door_map = doors.make_door_map(walls, door_segments, initial, p_oo, p_oc)
-    params = doors.make_params(door_map, motion=ZERO_MOTION, ess_threshold=0.0)
+    params = doors.make_params(door_map, motion=ZERO_MOTION, resample_threshold=0.0)
     config = doors.DoorConfig(num_particles=2)
     pose = jnp.array([8.0, 1.0, -0.5])
     state = doors.init(mcl.MclState(jnp.stack([pose, pose]), jnp.log(jnp.full(2, 0.5)), jnp.zeros((), jnp.int32)),
@@ -142,7 +144,7 @@ def _small_run_setup(num_particles=64):
 
 def test_memoryless_baseline_equals_hybrid_with_half_transitions():
     door_map, sensor, inputs, state = _small_run_setup()
-    params = doors.make_params(door_map, likelihood_gain=0.3, ess_threshold=0.7)
+    params = doors.make_params(door_map, likelihood_gain=0.3, resample_threshold=0.7)
     key = jax.random.key(11)
     a, info_a = doors.run(key, state, inputs, door_map, sensor, params, doors.DoorConfig(64, memory=False))
     b, info_b = doors.run(key, state, inputs, door_map, sensor, doors.memoryless_params(params),

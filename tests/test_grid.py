@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 
 from jaxslam import grid as G
-from jaxslam.sensor import make_sensor
+from jaxslam import occupancy as O
+from jaxslam.laser import make_sensor
 
 SPEC = G.GridSpec((12, 16), 0.25, (-1.3, -0.7))  # x in [-1.3, 2.7], y in [-0.7, 2.3]
-PARAMS = G.InsertionParams(*(jnp.float32(v) for v in (0.9, -0.4, -2.0, 3.5, 1.3)))
+PARAMS = O.InsertionParams(*(jnp.float32(v) for v in (0.9, -0.4, -2.0, 3.5, 1.3)))
 MAX_RANGE = 2.6  # max_insert_range: 12 samples per beam, 0 .. 2.75 m
 RADIUS = 3
 
-insert = jax.jit(G.insert_scan, static_argnums=(0, 6, 7))
+insert = jax.jit(O.insert_scan, static_argnums=(0, 6, 7))
 
 
 # ----------------------------------------------------------------------------- cell maths
@@ -75,9 +76,9 @@ def test_far_away_points_are_out_of_map_without_overflow():
 
 
 def test_empty_map():
-    m = G.empty_map(SPEC)
-    assert m.logodds.shape == SPEC.shape and m.logodds.dtype == G.LOGODDS_DTYPE
-    assert m.hit_dist2.dtype == jnp.uint8 and np.all(np.asarray(m.hit_dist2) == G.FAR)
+    m = O.empty_map(SPEC)
+    assert m.logodds.shape == SPEC.shape and m.logodds.dtype == O.LOGODDS_DTYPE
+    assert m.hit_dist2.dtype == jnp.uint8 and np.all(np.asarray(m.hit_dist2) == O.FAR)
     assert np.all(np.asarray(m.logodds) == 0)
 
 
@@ -158,7 +159,7 @@ class Reference:
                     d2 = dr * dr + dc * dc
                     r, c = er + dr, ec + dc
                     if d2 <= radius * radius and 0 <= r < h and 0 <= c < w:
-                        new_hit[r, c] = min(new_hit[r, c], d2, G.FAR)
+                        new_hit[r, c] = min(new_hit[r, c], d2, O.FAR)
         assert self.closest > self.margin, "a sample lies on a cell edge: move the test scan"
         return new_logodds, new_hit, outside, inc
 
@@ -187,11 +188,11 @@ def prior_map(seed=0):
     logodds = rng.uniform(-2.0, 3.5, SPEC.shape).astype(np.float32)
     logodds[rng.random(SPEC.shape) < 0.15] = -2.0  # at the clamps: insertion saturates here
     logodds[rng.random(SPEC.shape) < 0.15] = 3.5
-    hit = np.full(SPEC.shape, G.FAR, np.uint8)
+    hit = np.full(SPEC.shape, O.FAR, np.uint8)
     hit[3, 4] = 0
     hit[9, 12] = 2
     hit[6, 10] = 1
-    return G.GridMap(jnp.asarray(logodds), jnp.asarray(hit))
+    return O.GridMap(jnp.asarray(logodds), jnp.asarray(hit))
 
 
 def check_against_reference(spec, grid_map, pose, ranges, sensor, max_range=MAX_RANGE, radius=RADIUS):
@@ -230,7 +231,7 @@ def test_no_return_clears_no_further_than_range_max():
     # a no-return beam says only that nothing lies within 1.0 m, so no cell beyond is cleared
     # (a 4 m laser with the default 5 m would erase obstacles it cannot see).
     short = make_sensor(SENSOR.beam_angles, range_min=0.12, range_max=1.0, laser_pose=(0.11, -0.04, 0.21))
-    _, _, inc = check_against_reference(SPEC, G.empty_map(SPEC), POSE, np.full_like(RANGES, 1.0), short)
+    _, _, inc = check_against_reference(SPEC, O.empty_map(SPEC), POSE, np.full_like(RANGES, 1.0), short)
     rows, cols = np.nonzero(inc)
     assert rows.size > 0 and np.all(inc[rows, cols] < 0)
     origin = np_compose(POSE.astype(np.float64), np.asarray(short.laser_pose, np.float64))
@@ -242,7 +243,7 @@ def test_no_return_clears_no_further_than_range_max():
 
 
 def test_insert_scan_into_empty_map_and_accumulation():
-    m = G.empty_map(SPEC)
+    m = O.empty_map(SPEC)
     m1, _, _ = check_against_reference(SPEC, m, POSE, RANGES, SENSOR)
     # A second scan from elsewhere, on top of the first.
     check_against_reference(SPEC, m1, np.array([1.2, 1.5, -2.0], np.float32), RANGES, SENSOR)
@@ -256,9 +257,9 @@ def test_insert_scan_pose_rotations_match_reference():
 
 def test_insert_scan_vmaps_over_particles():
     poses = np.array([[0.37, 0.81, 0.13], [1.21, 1.52, -2.0], [0.1, 0.2, 2.9]], np.float32)
-    maps = G.GridMap(jnp.stack([prior_map(i).logodds for i in range(3)]),
+    maps = O.GridMap(jnp.stack([prior_map(i).logodds for i in range(3)]),
                      jnp.stack([prior_map(i).hit_dist2 for i in range(3)]))
-    batched = jax.jit(jax.vmap(lambda m, p: G.insert_scan(SPEC, m, p, jnp.asarray(RANGES), SENSOR, PARAMS,
+    batched = jax.jit(jax.vmap(lambda m, p: O.insert_scan(SPEC, m, p, jnp.asarray(RANGES), SENSOR, PARAMS,
                                                           MAX_RANGE, RADIUS)))
     new, outside = batched(maps, jnp.asarray(poses))
     for i in range(3):
@@ -308,14 +309,14 @@ def test_field_radius_larger_than_uint8_squares():
     pose = np.array([3.06, 5.06, 0.0], np.float32)  # endpoint in cell (20, 20)
     ranges = np.array([2.0], np.float32)
     try:
-        new, _ = insert(spec, G.empty_map(spec), jnp.asarray(pose), jnp.asarray(ranges), sensor, PARAMS,
+        new, _ = insert(spec, O.empty_map(spec), jnp.asarray(pose), jnp.asarray(ranges), sensor, PARAMS,
                         4.0, 16)
     except ValueError:
         return  # refusing a radius whose squares do not fit is also correct
-    _, ref_hit, _, _ = Reference(spec).insert(np.zeros(spec.shape), np.full(spec.shape, G.FAR), pose, ranges,
+    _, ref_hit, _, _ = Reference(spec).insert(np.zeros(spec.shape), np.full(spec.shape, O.FAR), pose, ranges,
                                               sensor, PARAMS, 4.0, 16)
     got = np.asarray(new.hit_dist2)
-    assert got[20, 4] == G.FAR, f"cell 16 cells from the only endpoint reads {got[20, 4]}"
+    assert got[20, 4] == O.FAR, f"cell 16 cells from the only endpoint reads {got[20, 4]}"
     np.testing.assert_array_equal(got, ref_hit)
 
 
@@ -325,77 +326,13 @@ def test_insert_scan_is_traced_once_per_spec():
 
     def counted(*args):
         traces.append(1)
-        return G.insert_scan(*args)
+        return O.insert_scan(*args)
 
     f = jax.jit(counted, static_argnums=(0, 6, 7))
-    m = G.empty_map(SPEC)
+    m = O.empty_map(SPEC)
     f(SPEC, m, jnp.asarray(POSE), jnp.asarray(RANGES), SENSOR, PARAMS, MAX_RANGE, RADIUS)
     p2 = PARAMS._replace(logodds_free=jnp.float32(-0.7))
     f(SPEC, m, jnp.asarray(POSE) + 0.1, jnp.asarray(RANGES) * 0.9, SENSOR, p2, MAX_RANGE, RADIUS)
     f(SPEC, m, jnp.asarray(POSE), jnp.asarray(RANGES), SENSOR._replace(laser_pose=jnp.zeros(3)), PARAMS,
       MAX_RANGE, RADIUS)
     assert len(traces) == 1
-
-
-# ------------------------------------------------------------- likelihood field "occupied"
-
-def _brute_force_field(occupied: np.ndarray, radius: int) -> np.ndarray:
-    out = np.full(occupied.shape, G.FAR, np.int64)
-    cells = np.argwhere(occupied)
-    for r in range(occupied.shape[0]):
-        for c in range(occupied.shape[1]):
-            if cells.size:
-                d2 = int(((cells - [r, c]) ** 2).sum(axis=1).min())
-                if d2 <= radius * radius:
-                    out[r, c] = min(d2, G.FAR)
-    return out
-
-
-@pytest.mark.parametrize("radius", [1, 3, 5])
-def test_occupied_field_matches_brute_force(radius):
-    occupied = np.random.default_rng(radius).random((23, 31)) < 0.03
-    occupied[0, 5] = occupied[22, 30] = True  # on the array's edges
-    got = np.asarray(G.occupied_field(jnp.asarray(occupied), radius))
-    np.testing.assert_array_equal(got, _brute_force_field(occupied, radius))
-
-
-BIG_SPEC = G.GridSpec((60, 80), 0.1, (0.0, 0.0))  # larger than the refresh window (35 cells)
-RING = make_sensor(np.linspace(-np.pi, np.pi, 45, endpoint=False), range_min=0.05, range_max=3.0)
-insert_occupied = jax.jit(G.insert_scan, static_argnums=(0, 6, 7, 8))
-
-
-def test_occupied_mode_keeps_the_field_of_the_current_occupancy():
-    """After scans in the middle and at every edge of a map larger than the refresh window,
-    ``hit_dist2`` is exactly the field of the cells whose log-odds is now above 0."""
-    rng = np.random.default_rng(4)
-    grid_map = G.empty_map(BIG_SPEC)
-    poses = [(4.0, 3.0, 0.3), (0.3, 0.4, 1.0), (7.7, 5.7, -2.0), (0.2, 5.8, 0.0), (7.9, 0.1, 2.5), (4.2, 3.1, 0.0)]
-    for x, y, theta in poses:
-        ranges = rng.uniform(0.2, 1.4, RING.beam_angles.shape).astype(np.float32)
-        ranges[::7] = 3.0  # no return
-        grid_map, _ = insert_occupied(BIG_SPEC, grid_map, jnp.array([x, y, theta], jnp.float32), jnp.asarray(ranges),
-                                      RING, PARAMS, 1.0, RADIUS, "occupied")
-        expected = _brute_force_field(np.asarray(grid_map.logodds, np.float32) > 0, RADIUS)
-        np.testing.assert_array_equal(np.asarray(grid_map.hit_dist2), expected)
-
-
-def test_an_endpoint_seen_through_leaves_only_the_occupied_field():
-    sensor = make_sensor([0.0], range_min=0.05, range_max=3.0)
-    pose = jnp.array([2.05, 3.05, 0.0], jnp.float32)
-    endpoint_cell = (30, 25)  # x = 2.55, y = 3.05
-    fields = {}
-    for mode in G.LIKELIHOOD_FIELDS:
-        grid_map, _ = insert_occupied(BIG_SPEC, G.empty_map(BIG_SPEC), pose, jnp.array([0.5]), sensor, PARAMS,
-                                      1.5, RADIUS, mode)
-        assert int(grid_map.hit_dist2[endpoint_cell]) == 0
-        for _ in range(4):  # a longer beam passes through it: 0.9 - 4 x 0.4 < 0, now free
-            grid_map, _ = insert_occupied(BIG_SPEC, grid_map, pose, jnp.array([1.2]), sensor, PARAMS, 1.5, RADIUS,
-                                          mode)
-        assert float(grid_map.logodds[endpoint_cell]) < 0
-        fields[mode] = int(grid_map.hit_dist2[endpoint_cell])
-    assert fields == {"endpoints": 0, "occupied": G.FAR}  # the new endpoint is 7 cells away
-
-
-def test_unknown_likelihood_field_is_an_error():
-    with pytest.raises(ValueError, match="likelihood_field"):
-        G.insert_scan(BIG_SPEC, G.empty_map(BIG_SPEC), jnp.zeros(3), jnp.ones(45), RING, PARAMS, 1.0, RADIUS, "hits")

@@ -19,7 +19,7 @@ from jaxslam.io import (
     write_trajectory,
 )
 from jaxslam.laserlog import LaserLog, LogError
-from jaxslam.sensor import make_sensor, uniform_beams
+from jaxslam.laser import make_sensor, uniform_beams
 
 # --------------------------------------------------------------------------- maps
 

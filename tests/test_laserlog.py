@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from jaxslam.laserlog import LaserLog, LogError, select_updates
-from jaxslam.sensor import make_sensor
+from jaxslam.laser import make_sensor
 
 SENSOR = make_sensor([-0.5, 0.0, 0.5], range_min=0.1, range_max=10.0)
 

@@ -1,4 +1,4 @@
-"""The look-ahead proposal (DESIGN.md section 5): the math on a toy model, then the grid LP."""
+"""The look-ahead proposal (docs/design.md): the math on a toy model, then the grid LP."""
 
 from __future__ import annotations
 
@@ -13,14 +13,16 @@ import numpy as np
 import pytest
 
 from jaxslam import rbpf
-from jaxslam.config import SlamConfig, default_params
+from jaxslam.config import RunSettings, SlamConfig, default_params
 from jaxslam.geometry import between, compose
-from jaxslam.grid import GridSpec, empty_map, insert_scan
+from jaxslam.grid import GridSpec
+from jaxslam.occupancy import empty_map, insert_scan
 from jaxslam.laserlog import LaserLog
 from jaxslam.proposals import lookahead as la
 from jaxslam.proposals.base import StepInputs
-from jaxslam.sensor import endpoint_log_likelihood, make_sensor, uniform_beams
-from jaxslam.sim.raycast import raycast
+from jaxslam.laser import make_sensor, uniform_beams
+from jaxslam.likelihood_field import endpoint_log_likelihood
+from jaxslam.segment_map import raycast
 
 # ---------------------------------------------------------------------------------------------
 # 1-D linear-Gaussian toy model: x_s = x_{s-1} + u_s + N(0, q^2), z_s = x_s + N(0, r^2).
@@ -44,9 +46,9 @@ def toy_loglik(x, step_input):
 
 
 # Jitted (the numbers traced, the sizes static) so that each test compiles once per shape.
-@functools.partial(jax.jit, static_argnames=("num", "weight"))
+@functools.partial(jax.jit, static_argnames=("num",))
 def toy_increment(key, alpha, z_t, future_u, future_z, num, threshold, valid=None, offsets=None,
-                  selection_correction=1.0, weight="filter"):
+                  selection_correction=1.0):
     """One LP weight increment with x_{t-1} = 0 and u_t = 0; ``offsets`` (K,) are added
     to every future log-likelihood of step s (a scale change of p(z_s | x_s))."""
     k0, k1 = jax.random.split(key)
@@ -64,15 +66,15 @@ def toy_increment(key, alpha, z_t, future_u, future_z, num, threshold, valid=Non
         return toy_move(key, x, step_input[:2])
 
     draw, _, _ = la.lookahead_core(k1, x, g, (future_u, future_z, offsets), valid, move, loglik, alpha, threshold,
-                                   selection_correction=selection_correction, weight=weight)
+                                   selection_correction=selection_correction)
     return draw, g
 
 
-@functools.partial(jax.jit, static_argnames=("num", "weight"))
-def toy_increments(keys, alpha, z_t, future_u, future_z, num, threshold, selection_correction=1.0, weight="filter"):
+@functools.partial(jax.jit, static_argnames=("num",))
+def toy_increments(keys, alpha, z_t, future_u, future_z, num, threshold, selection_correction=1.0):
     """:func:`toy_increment` for a batch of keys (one run of the look-ahead per key)."""
     return jax.vmap(lambda k: toy_increment(k, alpha, z_t, future_u, future_z, num, threshold,
-                                            selection_correction=selection_correction, weight=weight))(keys)
+                                            selection_correction=selection_correction))(keys)
 
 
 @pytest.mark.parametrize("alpha", [0.0, 0.1, 0.5, 0.9])
@@ -135,7 +137,7 @@ def test_without_selection_correction_the_increment_is_the_evidence_estimate(alp
 
 
 def test_partial_selection_correction_matches_numpy_reference():
-    """c in (0, 1) scales log[softmax(g)_J / p_J]; c = 1 is the DESIGN's increment bit for bit."""
+    """c in (0, 1) scales log[softmax(g)_J / p_J]; c = 1 is the design's increment bit for bit."""
     log_v = jnp.array([-1.0, -jnp.inf, 0.5, -2.0, 0.2])
     g = jnp.array([-0.3, -1.2, 0.4, -0.8, -0.1])
     for alpha in (0.0, 0.3):
@@ -155,50 +157,6 @@ def test_partial_selection_correction_matches_numpy_reference():
     assert np.isneginf(float(la.select(jax.random.key(0), dead, g, 0.0, 0.5).log_weight_increment))
     np.testing.assert_allclose(float(la.select(jax.random.key(0), dead, g, 0.0, 0.0).log_weight_increment),
                                float(jax.scipy.special.logsumexp(g)) - math.log(5), atol=1e-6)
-
-
-def _kalman_predictive_log_density(observations):
-    """log p(z_last | x_{t-1} = 0, z_t .. z_{last - 1}) of the toy model (all u = 0)."""
-    mean, var = 0.0, 0.0
-    for z in observations[:-1]:
-        var += Q**2
-        gain = var / (var + R**2)
-        mean, var = mean + gain * (z - mean), (1 - gain) * var
-    var += Q**2
-    s2 = var + R**2
-    return -0.5 * (observations[-1] - mean) ** 2 / s2 - 0.5 * math.log(2 * math.pi * s2)
-
-
-def test_lookahead_weight_is_the_predictive_of_the_newest_scan():
-    """weight="lookahead": the increment estimates log p(z_{t+k} | x_{t-1}, z_{t:t+k-1}), which a
-    Kalman filter gives exactly. L = 2000, k = 3, ESS-triggered resampling; 200 runs. The log of a
-    ratio of two estimates is biased by O(1/L); the tolerance is 4 standard errors of the mean."""
-    keys = jax.random.split(jax.random.key(11), 200)
-    draws, _ = toy_increments(keys, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 2000, 0.5, weight="lookahead")
-    inc = np.asarray(draws.log_weight_increment, np.float64)
-    exact = _kalman_predictive_log_density([TOY_Z_T, *np.asarray(TOY_FUTURE_Z).tolist()])
-    se = inc.std(ddof=1) / math.sqrt(inc.size)
-    assert abs(inc.mean() - exact) < 4 * se + 1e-3, (inc.mean(), se, exact)
-    # The filter's increment estimates a different number, log p(z_t | x_{t-1}), far from it.
-    assert abs(math.log(TOY_EXACT) - exact) > 0.5
-
-
-def test_lookahead_weight_at_the_ends_of_the_horizon():
-    key = jax.random.key(4)
-    empty = jnp.zeros((0,))
-    k0, g = toy_increment(key, 0.5, TOY_Z_T, empty, empty, 50, 0.5, weight="lookahead")
-    np.testing.assert_allclose(k0.log_weight_increment, jax.scipy.special.logsumexp(g) - math.log(50), atol=2e-6)
-    # The horizon reached the end of the log: the previous step's target already held every
-    # remaining scan, so the weight does not change.
-    shrunk, _ = toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5,
-                              valid=jnp.array([True, True, False]), weight="lookahead")
-    assert float(shrunk.log_weight_increment) == 0.0
-    # The draw is the look-ahead's either way: only the weight differs.
-    full, _ = toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5)
-    ahead, _ = toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5, weight="lookahead")
-    assert int(full.index) == int(ahead.index)
-    with pytest.raises(ValueError, match="weight"):
-        toy_increment(key, 0.5, TOY_Z_T, jnp.zeros(3), TOY_FUTURE_Z, 50, 0.5, weight="smoother")
 
 
 def test_back_propagation_matches_numpy_reference():
@@ -335,7 +293,8 @@ def room_inputs(horizon, valid=None):
 
 def test_fused_likelihood_equals_direct_formula(room_map):
     """The table-based many-pose likelihood the LP uses equals the per-beam formula on endpoint_fit."""
-    from jaxslam.sensor import endpoint_fit, endpoint_log_likelihoods
+    from jaxslam.likelihood_field import endpoint_log_likelihoods
+    from jaxslam.scan_matching import endpoint_fit
 
     params = default_params()
     lik = params.likelihood
@@ -377,7 +336,7 @@ def test_scan_matched_localizers_are_importance_weighted(room_map):
     g_i = log p(z | x_i) + log p(x_i | x_{t-1}, u) - log q(x_i); with k = 0 the increment is
     log mean exp(g), an importance-sampling estimate of the same p(z_t | x_{t-1}, m, u_t)."""
     from jaxslam import motion
-    from jaxslam.proposals import scan_match
+    from jaxslam.scan_matching import gaussian_log_density, matched_gaussian
 
     # Equal gains: the increment is the localizers' own log mean weight, unscaled. No start
     # noise, so that the Gaussian recomputed here is the one the proposal drew from.
@@ -386,13 +345,13 @@ def test_scan_matched_localizers_are_importance_weighted(room_map):
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0, lookahead_initial="scan_match")
     ex = _jit_explain(jax.random.key(3), pose, room_map, inputs, SENSOR, params, config)
-    gaussian = scan_match.matched_gaussian(pose, room_map, inputs, SENSOR, params, config,
+    gaussian = matched_gaussian(pose, room_map, inputs, SENSOR, params, config,
                                            fit_gain=params.lookahead.localizer_gain)
     assert bool(gaussian.matched)
     lik = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
                                                      params.likelihood))(ex.poses_t)
     g = (lik + motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
-         - scan_match.gaussian_log_density(ex.poses_t, gaussian))
+         - gaussian_log_density(ex.poses_t, gaussian))
     np.testing.assert_allclose(ex.log_lik_t, g, rtol=1e-5, atol=1e-3)
     expected = jax.scipy.special.logsumexp(g) - math.log(config.num_localizers)
     np.testing.assert_allclose(ex.draw.log_weight_increment, expected, rtol=1e-5, atol=1e-3)
@@ -437,7 +396,7 @@ def test_lp_step_compiles_once_per_config(room_map):
         params = default_params(**{"lookahead.alpha": alpha, "lookahead.resample_threshold": 0.3 + 0.2 * i})
         state, info = lp_step(jax.random.key(i), state, inputs._replace(ranges=inputs.ranges + 0.01 * i),
                               params, config)
-        assert np.isfinite(float(info.log_evidence_increment))
+        assert np.isfinite(float(info.log_evidence))
         assert int(info.num_fallbacks) == 0
     with pytest.raises(AssertionError):  # the counter does count: a new config retraces
         lp_step(jax.random.key(0), state, inputs, params, dataclasses.replace(config, num_localizers=8))
@@ -453,18 +412,17 @@ def test_lp_run_end_to_end_on_a_simulated_log():
         odom.append(np.asarray(compose(jnp.asarray(odom[-1]), jnp.asarray(m)), np.float64))
     ranges = np.stack([np.asarray(scan_at(p)) for p in truth])
     log = LaserLog(np.arange(14, dtype=np.float64), np.stack(odom), ranges, SENSOR, truth, "room")
-    config = SlamConfig(num_particles=4, proposal="lp", num_localizers=24, horizon=2, map_padding=2.5,
-                        linear_update=0.0, angular_update=0.0, max_insert_range=10.0)
+    config = SlamConfig(num_particles=4, proposal="lp", num_localizers=24, horizon=2, max_insert_range=10.0)
+    settings = RunSettings(linear_update=0.0, angular_update=0.0, map_padding=2.5)
     params = default_params(**{"lookahead.alpha": 0.1})
-    for config in (config, dataclasses.replace(config, lookahead_weight="lookahead")):
-        result = rbpf.run(jax.random.key(0), log, config, params, chunk_size=8, progress=False)
-        assert result.best_path.shape == (14, 3)
-        info = result.info
-        assert np.all(np.isfinite(info.log_evidence_increment))
-        assert not info.degenerate.any() and int(info.num_fallbacks.sum()) == 0
-        # The LP path follows the truth far better than the odometry's drift allows to fail.
-        error = np.hypot(*(result.best_path[:, :2] - truth[:, :2]).T)
-        assert error.max() < 0.15, (config.lookahead_weight, error)
+    result = rbpf.run(jax.random.key(0), log, config, params, settings, chunk_size=8, progress=False)
+    assert result.best_path.shape == (14, 3)
+    info = result.info
+    assert np.all(np.isfinite(info.log_evidence))
+    assert not info.degenerate.any() and int(info.num_fallbacks.sum()) == 0
+    # The LP path follows the truth far better than the odometry's drift allows to fail.
+    error = np.hypot(*(result.best_path[:, :2] - truth[:, :2]).T)
+    assert error.max() < 0.15, error
 
 
 # ---------------------------------------------------------------------------------------------
@@ -508,14 +466,14 @@ def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
     """scan_match.start_noise: 0 starts the hill climber at the prediction (bit for bit the same
     as no start key); 1 starts each particle from its own odometry draw, as GMapping does: the
     matches differ (the particles keep diversity) but stay on the same optimum."""
-    from jaxslam.proposals import scan_match
+    from jaxslam.scan_matching import gaussian_log_density, matched_gaussian
 
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0)
 
     def fit(noise, key=None):
         params = default_params(**{"scan_match.start_noise": noise})
-        return scan_match.matched_gaussian(pose, room_map, inputs, SENSOR, params, config, 1.0, start_key=key)
+        return matched_gaussian(pose, room_map, inputs, SENSOR, params, config, 1.0, start_key=key)
 
     reference = fit(0.0)
     np.testing.assert_array_equal(fit(0.0, jax.random.key(1)).mean, reference.mean)
@@ -525,46 +483,39 @@ def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
     np.testing.assert_allclose(means[:, 2], np.full(12, float(reference.mean[2])), atol=0.03)
 
 
-def test_mixed_localizers_estimate_the_same_evidence(room_map):
-    """lookahead.match_share: some localizers from the matched Gaussian, the rest from the motion
-    model, all weighted against the mixture. With k = 0 the increment is exactly log mean exp(g)
-    with g so defined, and exp(increment) estimates the same p(z_t | x_{t-1}, m, u_t) whatever the
-    share: the means over 400 draws agree within 3 Monte Carlo standard errors."""
+def test_scan_matched_localizers_estimate_the_same_evidence(room_map):
+    """LP-SM: localizers drawn from the matched Gaussian q and weighted g_i = log p(z_t | x_i)
+    + log p(x_i | x_{t-1}, u_t) - log q(x_i). With k = 0 the increment is exactly log mean
+    exp(g) with g so defined, and exp(increment) estimates the same p(z_t | x_{t-1}, m, u_t) as the
+    paper's odometry-drawn localizers: the means over 400 draws agree within 3 Monte Carlo
+    standard errors."""
     from jaxslam import motion
-    from jaxslam.proposals import scan_match
+    from jaxslam.scan_matching import gaussian_log_density, matched_gaussian
 
     inputs, pose = room_inputs(0)
+    params = default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1,
+                               "scan_match.start_noise": 0.0})
     config = lp_config(horizon=0, lookahead_initial="scan_match")
-
-    def params_for(share):
-        return default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1,
-                                 "scan_match.start_noise": 0.0, "lookahead.match_share": share})
-
-    # The weights against the mixture, recomputed by hand for share 0.5.
-    params = params_for(0.5)
+    # The importance weights, recomputed by hand.
     ex = _jit_explain(jax.random.key(5), pose, room_map, inputs, SENSOR, params, config)
-    gaussian = scan_match.matched_gaussian(pose, room_map, inputs, SENSOR, params, config, fit_gain=0.1)
+    gaussian = matched_gaussian(pose, room_map, inputs, SENSOR, params, config, fit_gain=0.1)
     assert bool(gaussian.matched)
     lik = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
                                                      params.likelihood))(ex.poses_t)
     log_motion = motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
-    log_q = np.logaddexp(np.log(0.5) + scan_match.gaussian_log_density(ex.poses_t, gaussian), np.log(0.5) + log_motion)
-    np.testing.assert_allclose(ex.log_lik_t, lik + log_motion - log_q, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(ex.log_lik_t, lik + log_motion - gaussian_log_density(ex.poses_t, gaussian),
+                               rtol=1e-5, atol=1e-3)
     np.testing.assert_allclose(ex.draw.log_weight_increment,
                                jax.scipy.special.logsumexp(ex.log_lik_t) - math.log(config.num_localizers),
                                rtol=1e-5, atol=1e-3)
-    # Half the cloud sits on the match, half spreads like the motion model's.
-    half = config.num_localizers // 2
-    spread = lambda poses: float(np.std(np.asarray(poses)[:, :2], axis=0).mean())  # noqa: E731
-    assert spread(ex.poses_t[:half]) < 0.5 * spread(ex.poses_t[half:])
 
     keys = jax.random.split(jax.random.key(11), 400)
     stats = {}
-    for share in (0.0, 0.5, 1.0):
-        draws = jax.vmap(lambda k, p=params_for(share): _jit_explain(k, pose, room_map, inputs, SENSOR, p, config)
+    for initial in ("odometry", "scan_match"):
+        cfg = lp_config(horizon=0, lookahead_initial=initial)
+        draws = jax.vmap(lambda k, c=cfg: _jit_explain(k, pose, room_map, inputs, SENSOR, params, c)
                          .draw.log_weight_increment)(keys)
         values = np.exp(np.asarray(draws, np.float64))
-        stats[share] = (values.mean(), values.std(ddof=1) / math.sqrt(values.size))
-    for a, b in [(0.0, 0.5), (0.5, 1.0), (0.0, 1.0)]:
-        (ma, sa), (mb, sb) = stats[a], stats[b]
-        assert abs(ma - mb) < 3.0 * math.hypot(sa, sb), (a, b, stats)
+        stats[initial] = (values.mean(), values.std(ddof=1) / math.sqrt(values.size))
+    (ma, sa), (mb, sb) = stats["odometry"], stats["scan_match"]
+    assert abs(ma - mb) < 3.0 * math.hypot(sa, sb), stats

@@ -10,8 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import mcl
-from jaxslam.sensor import beam_model_log_likelihood, make_beam_model_params
+from jaxslam import particle_filter
+from jaxslam.localization import mcl
+from jaxslam.localization.beam_model import beam_model_log_likelihood, make_beam_model_params
 from jaxslam.sim.door_worlds import corridors_scenario, office_doors_scenario
 
 
@@ -85,7 +86,7 @@ def test_mcl_tracks_a_simulated_run(office):
                           params, config)
     err = np.hypot(*(np.asarray(info.mean_pose[:, :2]) - office.true_poses[:steps, :2]).T)
     assert err[-20:].max() < 0.15, err
-    assert np.all(np.isfinite(np.asarray(info.ess))) and not np.any(np.asarray(info.all_rejected))
+    assert np.all(np.isfinite(np.asarray(info.ess))) and not np.any(np.asarray(info.degenerate))
     assert final.poses.shape == (300, 3)
 
 
@@ -119,14 +120,15 @@ def test_init_global_stays_in_regions():
     assert p[:, 2].min() >= -0.2 and p[:, 2].max() <= 0.3
 
 
-def test_all_rejected_is_reported_not_nan():
+def test_degenerate_step_is_reported_not_nan():
     config = mcl.MclConfig(num_particles=8)
     state = mcl.init_tracked(jax.random.key(0), jnp.zeros(3), jnp.full(3, 0.1), config)
-    ancestors, log_w, info = mcl.weigh_and_resample(jax.random.key(1), state.poses, state.log_weights,
-                                                    jnp.full(8, -jnp.inf).at[3].set(jnp.nan), jnp.float32(0.5),
-                                                    "systematic")
-    assert bool(info.all_rejected)
-    assert np.all(np.isfinite(np.asarray(log_w))) and np.all(np.isfinite(np.asarray(info.mean_pose)))
+    update = particle_filter.reweight_and_resample(jax.random.key(1), state.poses, state.log_weights,
+                                                   jnp.full(8, -jnp.inf).at[3].set(jnp.nan), jnp.float32(0.5),
+                                                   "systematic")
+    assert bool(update.degenerate) and bool(mcl.MclInfo.of(update).degenerate)
+    assert np.all(np.isfinite(np.asarray(update.new_log_weights)))
+    assert np.all(np.isfinite(np.asarray(update.mean_pose)))
 
 
 def test_mcl_step_compiles_once(office):
@@ -142,6 +144,6 @@ def test_mcl_step_compiles_once(office):
     state = mcl.init_tracked(jax.random.key(0), jnp.asarray(office.true_poses[0], jnp.float32), jnp.full(3, 0.1),
                              config)
     for t in range(3):
-        params = mcl.make_params(likelihood_gain=0.1 + 0.1 * t, ess_threshold=0.3 + 0.1 * t)
+        params = mcl.make_params(likelihood_gain=0.1 + 0.1 * t, resample_threshold=0.3 + 0.1 * t)
         state, _ = stepper(jax.random.key(t), state, mcl.ScanInputs(inputs.motion[t], inputs.ranges[t]), params)
     chex.clear_trace_counter()

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from jaxslam.config import SlamConfig, default_params
-from jaxslam.grid import GridSpec, empty_map, insert_scan
+from jaxslam.grid import GridSpec
+from jaxslam.occupancy import empty_map, insert_scan
 from jaxslam.refine import refine_trajectory
 from jaxslam.sim import office_scenario
 

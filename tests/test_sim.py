@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from jaxslam.geometry import between, wrap_angle_np
 from jaxslam.motion import noise_std
-from jaxslam.sensor import make_sensor, uniform_beams
+from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.sim import (
     box_segments,
     box_world_path,
@@ -34,7 +34,6 @@ from jaxslam.sim import (
     wall_segments,
     waypoint_path,
 )
-from jaxslam.sim.scenarios import UTURNS
 
 # ------------------------------------------------------------------ reference ray caster
 
@@ -526,33 +525,3 @@ def test_box_world_field_of_view():
     assert np.any(wide.log.ranges[0][behind] < range_max)
     assert np.max(np.abs(np.asarray(narrow.log.sensor.beam_angles))) <= np.pi / 2 + 1e-6
 
-
-def test_box_world_uturn_right_turns_through_north_and_keeps_the_hedge_in_view():
-    left, _ = box_world_path(laps=1, laps_per_visit=1)
-    right, _ = box_world_path(laps=1, laps_per_visit=1, uturn="right")
-    # Same positions and the same number of steps; only the headings at the turnaround differ.
-    np.testing.assert_array_equal(left[:, :2], right[:, :2])
-    at = np.hypot(*(left[:, :2] - np.array([-2.5, 0.0])).T) < 1e-6
-    assert at.sum() > 30
-    np.testing.assert_array_equal(left[~at], right[~at])
-    # Left goes through south (sin(heading) < 0), right through north, one mirrored step at a time.
-    assert np.sin(left[at, 2]).min() < -0.99 and np.sin(left[at, 2]).max() < 1e-9
-    assert np.sin(right[at, 2]).max() > 0.99 and np.sin(right[at, 2]).min() > -1e-9
-    turn_steps = np.abs(wrap_angle_np(np.diff(right[:, 2])))
-    assert turn_steps.max() <= 0.1 + 1e-9
-    # The laser sees the hedge in every scan of the first turn when turning right, not when turning left.
-    sees_hedge = {}
-    for name in UTURNS:
-        scenario = box_world_scenario(jax.random.key(0), laps=1, laps_per_visit=1, uturn=name)
-        first_turn = np.flatnonzero(np.hypot(*(scenario.true_poses[:, :2] - np.array([-2.5, 0.0])).T) < 1e-6)
-        first_turn = first_turn[first_turn < first_turn[0] + 32]
-        hits = _hit_groups(scenario)[first_turn]
-        sees_hedge[name] = np.isin(hits, scenario.world.groups["hedge"]).any(axis=1)
-    assert sees_hedge["right"].all() and not sees_hedge["left"].all()
-
-
-def test_box_world_uturn_rejects_unknown_names():
-    with pytest.raises(ValueError, match="uturn must be one of"):
-        box_world_path(uturn="north")
-    with pytest.raises(ValueError, match="uturn must be one of"):
-        box_world_scenario(jax.random.key(0), laps=1, laps_per_visit=1, uturn="clockwise")

@@ -30,7 +30,7 @@ import numpy as np
 from jaxslam.geometry import between
 from jaxslam.io.trajectory import poses_at
 from jaxslam.laserlog import LaserLog, LogError
-from jaxslam.sensor import make_sensor, uniform_beams
+from jaxslam.laser import make_sensor, uniform_beams
 
 __all__ = ["FLASER_NO_RETURN", "read_carmen"]
 

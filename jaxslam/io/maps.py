@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxslam.binary_bayes import probability
 from jaxslam.grid import GridSpec
 from jaxslam.laserlog import LogError
 
@@ -55,10 +56,10 @@ def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65,
         raise ValueError(
             f"need 0 <= free_thresh < 0.5 < occupied_thresh <= 1, got {free_thresh}, {occupied_thresh}"
         )
-    probability = 1.0 / (1.0 + np.exp(-grid))
+    p_occupied = probability(grid)
     pixels = np.full(grid.shape, UNKNOWN_PIXEL, dtype=np.uint8)
-    pixels[probability > occupied_thresh] = OCCUPIED_PIXEL
-    pixels[probability < free_thresh] = FREE_PIXEL
+    pixels[p_occupied > occupied_thresh] = OCCUPIED_PIXEL
+    pixels[p_occupied < free_thresh] = FREE_PIXEL
     image = np.ascontiguousarray(pixels[::-1])  # image row 0 is the top: the largest y
 
     stem = Path(os.fspath(path_stem))

@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxslam.io.trajectory import poses_at
 from jaxslam.laserlog import LaserLog, LogError
-from jaxslam.sensor import make_sensor
+from jaxslam.laser import make_sensor
 
 __all__ = ["read_rosbag"]
 

@@ -3,7 +3,7 @@
 For one SLAM particle (pose x_{t-1}, map m = m_{t-1}) the LP runs a small particle
 filter of L *localizer* particles k scans into the future in the fixed map m and uses
 how well each time-t sample explains the future to choose the particle's new pose
-(DESIGN.md section 5):
+(docs/design.md, "The look-ahead proposal"):
 
 1. Draw x_t^(i) ~ p(x_t | x_{t-1}, u_t), i = 1..L; g_i = a_i = log p(z_t | x_t^(i), m);
    origin_i = i; log Z = 0.
@@ -58,9 +58,10 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion, resampling
 from jaxslam.grid import GridSpec
-from jaxslam.proposals import scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
-from jaxslam.sensor import SensorSpec, endpoint_log_likelihoods
+from jaxslam.laser import SensorSpec
+from jaxslam.likelihood_field import endpoint_log_likelihoods
+from jaxslam.scan_matching import gaussian_log_density, matched_gaussian, sample_gaussian
 
 # Fixed fold-in tags so that the random numbers of horizon step s do not depend on
 # the horizon length K: a run whose last steps are invalid then equals a shorter run.
@@ -280,14 +281,12 @@ def lookahead_core(
     resample_fn: resampling.ResampleFn = resampling.systematic,
     return_history: bool = False,
     selection_correction: Float[Array, ""] = 1.0,
-    weight: str = "filter",
 ) -> tuple[LookaheadDraw, HorizonResult, HorizonHistory | None]:
     """Steps 2-5 for given time-t samples (step 1 is the caller's: it owns the model).
 
     ``key`` is split by fold-in tags, never by the horizon length. See :func:`run_horizon`
-    for the arguments; ``selection_correction`` and ``weight`` (static, "filter" or
-    "lookahead") choose the increment (:func:`select`, :func:`lookahead_increment`). Returns
-    the draw, the final horizon state and (optionally) history.
+    for the arguments and :func:`select` for ``selection_correction``. Returns the draw, the
+    final horizon state and (optionally) history.
     """
     horizon, history = run_horizon(
         jax.random.fold_in(key, _TAG_HORIZON), states_t, log_lik_t, future_inputs, future_valid,
@@ -295,35 +294,7 @@ def lookahead_core(
     )
     log_v = back_propagate(horizon.log_a, horizon.origin, horizon.log_z, log_lik_t.shape[0])
     draw = select(jax.random.fold_in(key, _TAG_SELECT), log_v, log_lik_t, alpha, selection_correction)
-    if weight == "lookahead":
-        draw = draw._replace(log_weight_increment=lookahead_increment(log_lik_t, horizon.log_evidence, future_valid))
-    elif weight != "filter":
-        raise ValueError(f"weight must be 'filter' or 'lookahead', got {weight!r}")
     return draw, horizon, history
-
-
-def lookahead_increment(
-    log_lik_t: Float[Array, "L"],
-    log_evidence: Float[Array, "K"],
-    future_valid: Bool[Array, "K"],
-) -> Float[Array, ""]:
-    """The SLAM weight increment when the particles target p(x_{0:t} | z_{1:t+k}) (block sampling).
-
-    With the look-ahead's ideal proposal p(x_t | x_{t-1}, z_{t:t+k}) the weight of that target
-    is p(z_{t:t+k} | x_{t-1}) / p(z_{t:t+k-1} | x_{t-1}) = p(z_{t+k} | x_{t-1}, z_{t:t+k-1}):
-    the new scan that entered the horizon, predicted by the localizer filter. Both evidences
-    come from this horizon's run (``log_evidence``; time t alone is log mean exp(g)):
-    - k = 0: log mean exp(g), the filter's increment;
-    - the horizon reached past the end of the log (last step invalid): 0, the previous step's
-      target already held every remaining scan.
-    A ratio of two estimates from one run: consistent in L, not unbiased.
-    """
-    log_evidence_t = _log_mean_exp(log_lik_t)
-    if log_evidence.shape[0] == 0:
-        return log_evidence_t
-    previous = log_evidence_t if log_evidence.shape[0] == 1 else log_evidence[-2]
-    increment = jnp.where(future_valid[-1], log_evidence[-1] - previous, 0.0)
-    return jnp.where(jnp.isnan(increment), -jnp.inf, increment)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -379,32 +350,18 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
         # estimates the same p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
         # The matcher's random start (scan_match.start_noise) only picks which q is used; drawn
         # independently of the samples, it leaves the estimate unbiased.
-        #
-        # With lookahead.match_share = s < 1 the first round(s L) localizers come from the match
-        # and the rest from the motion model (the draws above), and q is the mixture
-        # s N(match) + (1 - s) p(x | x_{t-1}, u): with a fixed count from each component this
-        # "deterministic mixture" weighting keeps mean_i exp(g_i) unbiased (Veach and Guibas's
-        # balance heuristic), so a match that slid still leaves the motion-drawn localizers to
-        # the look-ahead.
-        gaussian = scan_match.matched_gaussian(pose, grid_map, inputs, sensor, params, config,
-                                               fit_gain=localizer_gain,
-                                               start_key=jax.random.fold_in(key_initial, 2))
-        matched_t = scan_match.sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
-        # The share actually drawn (a count: no gradient, and none through log(0) at 0 or 1).
-        share = jax.lax.stop_gradient(jnp.round(params.lookahead.match_share * num) / num)
-        from_match = (jnp.arange(num) < share * num) & gaussian.matched
-        mixed_t = jnp.where(from_match[:, None], matched_t, poses_t)
-        log_motion = motion.log_density(mixed_t, pose, inputs.motion, params.motion)
-        log_q = jnp.logaddexp(jnp.log(share) + scan_match.gaussian_log_density(mixed_t, gaussian),
-                              jnp.log1p(-share) + log_motion)
-        log_weight_t = log_likelihood(mixed_t, (inputs.motion, inputs.ranges)) + log_motion - log_q
-        poses_t = mixed_t  # the motion draws throughout when the match failed
+        gaussian = matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain=localizer_gain,
+                                    start_key=jax.random.fold_in(key_initial, 2))
+        matched_t = sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
+        log_motion = motion.log_density(matched_t, pose, inputs.motion, params.motion)
+        log_weight_t = (log_likelihood(matched_t, (inputs.motion, inputs.ranges)) + log_motion
+                        - gaussian_log_density(matched_t, gaussian))
+        poses_t = jnp.where(gaussian.matched, matched_t, poses_t)
         log_lik_t = jnp.where(gaussian.matched, log_weight_t, log_lik_t)
     draw, horizon, history = lookahead_core(
         key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
         move, log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,
         resampling.RESAMPLERS[config.resampler], return_history, params.lookahead.selection_correction,
-        config.lookahead_weight,
     )
     draw = draw._replace(log_weight_increment=evidence_scale * draw.log_weight_increment)
     return poses_t, log_lik_t, draw, horizon, history

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 
 from jaxslam import motion
 from jaxslam.proposals.base import ProposalOutput, StepInputs
-from jaxslam.sensor import endpoint_log_likelihood
+from jaxslam.likelihood_field import endpoint_log_likelihood
 
 
 def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> ProposalOutput:

@@ -1,7 +1,7 @@
 """Simulation: segment worlds, exact ray casting, noisy odometry, scenarios."""
 
 from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path, waypoint_path_length
-from jaxslam.sim.raycast import raycast
+from jaxslam.segment_map import raycast
 from jaxslam.sim.scenarios import (
     Scenario,
     box_world,

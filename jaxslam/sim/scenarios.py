@@ -22,7 +22,7 @@ from jaxtyping import PRNGKeyArray
 from jaxslam.geometry import wrap_angle_np
 from jaxslam.laserlog import LaserLog
 from jaxslam.motion import MotionParams
-from jaxslam.sensor import make_sensor, uniform_beams
+from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path, waypoint_path_length
 from jaxslam.sim.simulate import simulate_log
 from jaxslam.sim.world import (
@@ -241,24 +241,17 @@ def box_world() -> SegmentWorld:
     )
 
 
-UTURNS = ("left", "right")
-"""Ways round for the turns on the spot at the turnaround point: "left" (counter-clockwise,
-through south, away from the hedge: the laser sees nothing for part of the turn) or "right"
-(clockwise, through north: the hedge stays in view)."""
-
-
 def box_world_path(
     laps: int = 15,
     laps_per_visit: int = 5,
     circle_radius: float = 1.75,
     step_length: float = 0.1,
     max_turn_per_step: float = 0.1,
-    uturn: str = "left",
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The true path of :func:`box_world_scenario` and facts about it.
 
     The robot starts at X facing box 1 and the hedge, drives to the turnaround point, turns
-    on the spot (``uturn``, one of :data:`UTURNS`), drives back over X and on a line tangent
+    on the spot (counter-clockwise), drives back over X and on a line tangent
     to the circle round box 2, circles
     it counter-clockwise ``laps_per_visit`` times, leaves on the tangent through X, turns at
     the turnaround point, comes back over X to the circle, and so on; after the last lap it
@@ -268,8 +261,6 @@ def box_world_path(
       ``(poses, info)``: (T, 3) float64 poses and a dict with ``lap_end_indices`` (index of
       the pose that completes each lap) and ``turn_radius``.
     """
-    if uturn not in UTURNS:
-        raise ValueError(f"box_world_path: uturn must be one of {UTURNS}, got {uturn!r}")
     radius = circle_radius
     # Tangent points on the circle for lines through X: with cos(beta) = r / d, the robot
     # enters at polar angle pi + beta (south of the X-box line) heading counter-clockwise
@@ -305,12 +296,6 @@ def box_world_path(
         out = [leave, CHECKPOINT_X, TURNAROUND] + ([] if last else [CHECKPOINT_X, enter])
         parts.append(line(out, start_heading=loop[-1, 2]))
     poses = concat_paths(*parts, atol=1e-5)
-    if uturn == "right":
-        # The planner turns an exact reversal counter-clockwise: heading pi + delta at the
-        # turnaround. Mirroring those headings (pi - delta) turns the same steps clockwise; the
-        # headings arriving (pi) and leaving (0) are their own mirror images.
-        at_turnaround = np.hypot(*(poses[:, :2] - TURNAROUND).T) < 1e-6
-        poses[at_turnaround, 2] = wrap_angle_np(-poses[at_turnaround, 2])
     return poses, dict(lap_end_indices=np.array(lap_ends, dtype=np.int64), turn_radius=turn_radius)
 
 
@@ -335,7 +320,6 @@ def box_world_scenario(
     dt: float = 0.1,
     motion: MotionParams | None = None,
     field_of_view: float = np.pi,
-    uturn: str = "left",
 ) -> Scenario:
     """The box world of Grzonka et al. (Figs. 1 and 4), the test case for look-ahead proposals.
 
@@ -349,10 +333,9 @@ def box_world_scenario(
     With the defaults: 2,351 scans (0.1 m steps, 1 m/s at 10 Hz; U-turns on the spot in
     0.1 rad steps), 229 m.
 
-    ``uturn`` (:data:`UTURNS`): the turns at the turnaround point go "left" (the default,
-    through south: for part of each turn, and on the drive back until box 2 is in range, the
-    laser sees nothing, so the odometry's heading error of the first U-turn is in box 2's map)
-    or "right" (through north, facing the hedge for the whole turn).
+    The turns at the turnaround point go counter-clockwise, through south: for part of each
+    turn, and on the drive back until box 2 is in range, the laser sees nothing, so the
+    odometry's heading error of the first U-turn is in box 2's map.
 
     Laser: ``num_beams`` = 180 beams over ``field_of_view`` = 180 degrees (forward-facing), range_max 4 m,
     Gaussian range noise 0.02 m. We keep the 180-degree field of view of the SICK LMS on
@@ -387,7 +370,7 @@ def box_world_scenario(
     if motion is None:
         motion = BOX_WORLD_MOTION
     world = box_world()
-    true_poses, info = box_world_path(laps, laps_per_visit, circle_radius, step_length, max_turn_per_step, uturn)
+    true_poses, info = box_world_path(laps, laps_per_visit, circle_radius, step_length, max_turn_per_step)
     sensor = make_sensor(uniform_beams(num_beams, field_of_view), range_min=0.05, range_max=range_max)
     log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<box world scenario>")
     metadata = dict(

@@ -1,6 +1,6 @@
 """Simulated laser scans and odometry in a :class:`~jaxslam.sim.world.SegmentWorld`.
 
-Scans are exact ray casts (:func:`jaxslam.sim.raycast`) plus Gaussian range
+Scans are exact ray casts (:func:`jaxslam.segment_map.expected_ranges`) plus Gaussian range
 noise. Odometry is the true path with GMapping-style noise
 (:func:`jaxslam.motion.noise_std`) added to every true relative motion, so it
 drifts like a real robot's and the filter's motion model is the generating model.
@@ -13,11 +13,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from jaxslam.geometry import between, compose, wrap_angle_np
+from jaxslam.driver import run_in_chunks
+from jaxslam.geometry import between, wrap_angle_np
+from jaxslam.laser import SensorSpec
 from jaxslam.laserlog import LaserLog
 from jaxslam.motion import MotionParams, noise_std
-from jaxslam.sensor import SensorSpec
-from jaxslam.sim.raycast import raycast
+from jaxslam.segment_map import expected_ranges
 from jaxslam.sim.world import SegmentWorld
 
 # Scans cast per vmapped batch: bounds the (batch, B, M) intermediates of the ray
@@ -27,9 +28,7 @@ _SCAN_BATCH = 128
 
 def _scan(key, segments, pose, sensor, range_noise_std, max_range, active):
     """One noisy scan; the body that :func:`simulate_scan` and :func:`simulate_scans` share."""
-    origin = compose(pose, sensor.laser_pose)  # laser pose in the world
-    angles = origin[2] + sensor.beam_angles
-    exact, hit = raycast(segments, origin[:2], angles, max_range, active)
+    exact, hit = expected_ranges(segments, pose, sensor, active, max_range)
     noisy = exact + range_noise_std * jax.random.normal(key, exact.shape, exact.dtype)
     noisy = jnp.clip(noisy, 0.0, sensor.range_max)
     # A beam that hits nothing reads exactly range_max: the log's "no return".
@@ -117,21 +116,17 @@ def simulate_scans(
         raise ValueError(f"simulate_scans: active has shape {active.shape}, expected "
                          f"({num_scans}, {num_segments}) or ({num_segments},)")
     active = np.broadcast_to(active, (num_scans, num_segments))
-    # Fixed-size batches, the last one padded, prepared on the host: one compilation per
-    # world and sensor whatever the path's length, and bounded memory for long logs.
-    pad = -num_scans % _SCAN_BATCH
-    indices = np.arange(num_scans + pad, dtype=np.uint32)
-    poses = np.concatenate([poses, np.repeat(poses[:1], pad, axis=0)])
-    active = np.concatenate([active, np.repeat(active[:1], pad, axis=0)])
+    # Fixed-size batches, the last one padded: one compilation per world and sensor whatever
+    # the path's length, and bounded memory for long logs.
     segments = jnp.asarray(world.segments)
     noise, reach = jnp.float32(range_noise_std), _max_range(sensor, max_range)
-    # Dispatch every batch before reading any back, so the host work overlaps the casting.
-    batches = [
-        _batch_jit(key, indices[i:i + _SCAN_BATCH], segments, poses[i:i + _SCAN_BATCH], sensor,
-                   noise, reach, active[i:i + _SCAN_BATCH])
-        for i in range(0, num_scans + pad, _SCAN_BATCH)
-    ]
-    return np.concatenate([np.asarray(batch) for batch in batches])[:num_scans]
+    indices = np.arange(num_scans, dtype=np.uint32)
+
+    def chunk_fn(_, xs, valid):
+        batch_indices, batch_poses, batch_active = xs
+        return None, _batch_jit(key, batch_indices, segments, batch_poses, sensor, noise, reach, batch_active)
+
+    return run_in_chunks(chunk_fn, (indices, poses, active), num_scans, _SCAN_BATCH).outputs
 
 
 @jax.jit

@@ -3,7 +3,7 @@
 A :class:`SegmentWorld` is host-side data (NumPy): an (M, 4) float32 array of
 segments ``[x1, y1, x2, y2]`` in metres, the rectangle it lives in, and named
 groups of segment indices ("box2", "walls", ...) so that tests and experiments
-can ask which object a ray hit (see :func:`jaxslam.sim.raycast`). Worlds are
+can ask which object a ray hit (see :func:`jaxslam.segment_map.raycast`). Worlds are
 built once, with NumPy; only the ray casting runs in JAX.
 """
 

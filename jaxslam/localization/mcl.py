@@ -2,16 +2,17 @@
 
 Each of N particles is a pose with a log-weight. A step moves every particle by
 the odometry motion model (:func:`jaxslam.motion.sample`), casts the scan's beams
-from it into the map (:func:`jaxslam.sim.raycast`, exact), scores the measured
-ranges with the beam model (:func:`jaxslam.sensor.beam_model_log_likelihood`),
-and resamples selectively (ESS below ``ess_threshold * N``).
+from it into the map (:func:`jaxslam.segment_map.expected_ranges`, exact), scores the
+measured ranges with the beam model (:mod:`jaxslam.localization.beam_model`), and
+reweighs and resamples selectively (ESS below ``resample_threshold * N``) with the core
+shared by every filter (:func:`jaxslam.particle_filter.reweight_and_resample`).
 
 Shape of the code: a static :class:`MclConfig` (particle count, beam stride,
 resampler; changing it recompiles), traced :class:`MclParams`, named
 :class:`MclState` / :class:`MclInfo`; ``init_tracked`` / ``init_global`` /
 ``step`` / ``run`` are pure, and ``run`` is one ``lax.scan`` over the scans.
-The same pieces (:func:`laser_rays`, :func:`weigh_and_resample`) serve the door
-filter in :mod:`jaxslam.doors`.
+MCL serves localization only (a known map); the door filter in
+:mod:`jaxslam.localization.doors` builds on it.
 """
 
 from __future__ import annotations
@@ -26,12 +27,13 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion as motion_model
-from jaxslam import resampling
-from jaxslam.geometry import between, compose, weighted_mean_and_covariance, wrap_angle
+from jaxslam import particle_filter, resampling
+from jaxslam.geometry import between, wrap_angle
+from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.laserlog import LaserLog
+from jaxslam.localization.beam_model import BeamModelParams, beam_model_log_likelihood, make_beam_model_params
 from jaxslam.motion import MotionParams
-from jaxslam.sensor import BeamModelParams, SensorSpec, beam_model_log_likelihood, make_beam_model_params
-from jaxslam.sim.raycast import raycast
+from jaxslam.segment_map import expected_ranges
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,8 +66,8 @@ class MclParams(NamedTuple):
     likelihood_gain: Float[Array, ""]
     """Multiplier of every beam's log-likelihood (< 1 tempers the over-confidence of
     treating neighbouring beams as independent)."""
-    ess_threshold: Float[Array, ""]
-    """Resample when ESS < ess_threshold * N (0: never, 1: every step)."""
+    resample_threshold: Float[Array, ""]
+    """Resample when ESS < resample_threshold * N (0: never, 1: every step)."""
 
 
 def default_motion_params(srr=0.05, srt=0.02, str_=0.05, stt=0.05, min_translation_std=0.01,
@@ -76,13 +78,13 @@ def default_motion_params(srr=0.05, srt=0.02, str_=0.05, stt=0.05, min_translati
 
 
 def make_params(motion: MotionParams | None = None, beam: BeamModelParams | None = None,
-                likelihood_gain=0.5, ess_threshold=0.5) -> MclParams:
+                likelihood_gain=0.5, resample_threshold=0.5) -> MclParams:
     """An :class:`MclParams` with float32 leaves; None picks the defaults."""
     return MclParams(
         default_motion_params() if motion is None else motion,
         make_beam_model_params() if beam is None else beam,
         jnp.asarray(likelihood_gain, jnp.float32),
-        jnp.asarray(ess_threshold, jnp.float32),
+        jnp.asarray(resample_threshold, jnp.float32),
     )
 
 
@@ -110,9 +112,17 @@ class MclInfo(NamedTuple):
     """Weighted covariance of the poses (theta residuals wrapped)."""
     log_evidence: Float[Array, ""]
     """log sum_i w_{t-1,i} p(z_t | x_t,i): the log-likelihood increment of the step (-inf
-    when every particle was rejected)."""
-    all_rejected: Bool[Array, ""]
+    when ``degenerate``)."""
+    degenerate: Bool[Array, ""]
     """Every particle's weight was -inf (or NaN) this step; the weights were reset to uniform."""
+    ancestors: Int[Array, "N"]
+    """After the step, particle i descends from moved particle ``ancestors[i]``."""
+
+    @classmethod
+    def of(cls, update: particle_filter.WeightUpdate) -> "MclInfo":
+        """The info of a :class:`~jaxslam.particle_filter.WeightUpdate`."""
+        return cls(update.ess, update.resampled, update.mean_pose, update.pose_covariance, update.log_evidence,
+                   update.degenerate, update.ancestors)
 
 
 class ScanInputs(NamedTuple):
@@ -164,54 +174,14 @@ def _uniform_state(poses):
                     jnp.zeros((), jnp.int32))
 
 
-def laser_rays(pose: Float[Array, "3"], sensor: SensorSpec, beam_stride: int = 1
-               ) -> tuple[Float[Array, "2"], Float[Array, "B"]]:
-    """The laser's origin (m, world) and the world angles (rad) of its (subsampled) beams."""
-    origin = compose(pose, sensor.laser_pose)
-    return origin[:2], origin[2] + sensor.beam_angles[::beam_stride]
-
-
-def expected_ranges(segments: Float[Array, "M 4"], pose: Float[Array, "3"], sensor: SensorSpec,
-                    active: Bool[Array, "M"] | None = None, beam_stride: int = 1) -> Float[Array, "B"]:
-    """Ranges (m) the map predicts for each (subsampled) beam of a scan taken at ``pose``."""
-    origin, angles = laser_rays(pose, sensor, beam_stride)
-    ranges, _ = raycast(segments, origin, angles, sensor.range_max, active)
-    return ranges
-
-
 def scan_log_likelihood(segments: Float[Array, "M 4"], pose: Float[Array, "3"], ranges: Float[Array, "B"],
                         sensor: SensorSpec, params: MclParams, active: Bool[Array, "M"] | None = None,
                         beam_stride: int = 1) -> Float[Array, ""]:
     """``gain * sum_b log p(z_b | x, map)`` of one scan (all B beams given; the stride is applied here)."""
-    expected = expected_ranges(segments, pose, sensor, active, beam_stride)
-    per_beam = beam_model_log_likelihood(expected, ranges[::beam_stride], sensor.range_max, params.beam)
+    lik_sensor, lik_ranges = subsample_beams(sensor, ranges, beam_stride)
+    expected, _ = expected_ranges(segments, pose, lik_sensor, active)
+    per_beam = beam_model_log_likelihood(expected, lik_ranges, sensor.range_max, params.beam)
     return params.likelihood_gain * jnp.sum(per_beam)
-
-
-def weigh_and_resample(
-    key: PRNGKeyArray,
-    poses: Float[Array, "N 3"],
-    log_weights: Float[Array, "N"],
-    log_likelihoods: Float[Array, "N"],
-    ess_threshold: Float[Array, ""],
-    resampler: str,
-) -> tuple[Int[Array, "N"], Float[Array, "N"], MclInfo]:
-    """The weight update, diagnostics and selective resampling shared by MCL and the door filter.
-
-    Returns ``(ancestors, new_log_weights, info)``: the caller gathers its per-particle state
-    (poses, door beliefs) with ``ancestors``. A NaN likelihood counts as -inf; when every
-    particle is rejected the weights become uniform and ``info.all_rejected`` says so.
-    """
-    log_likelihoods = jnp.where(jnp.isnan(log_likelihoods), -jnp.inf, log_likelihoods)
-    unnormalised = log_weights + log_likelihoods
-    normalised, log_evidence = resampling.normalize_log_weights(unnormalised)
-    all_rejected = ~jnp.isfinite(log_evidence)
-    ess = resampling.ess(normalised)
-    mean, cov = weighted_mean_and_covariance(poses, jnp.exp(normalised))
-    ancestors, new_log_weights, resampled = resampling.resample_if_needed(
-        key, normalised, ess_threshold, resampling.RESAMPLERS[resampler])
-    info = MclInfo(ess, resampled, mean, cov, log_evidence, all_rejected)
-    return ancestors, new_log_weights, info
 
 
 def step(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float[Array, "M 4"],
@@ -233,9 +203,9 @@ def step(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float
     poses = motion_model.sample(k_motion, state.poses, inputs.motion, params.motion)
     log_lik = jax.vmap(lambda p: scan_log_likelihood(segments, p, inputs.ranges, sensor, params, active,
                                                      config.beam_stride))(poses)
-    ancestors, log_weights, info = weigh_and_resample(k_resample, poses, state.log_weights, log_lik,
-                                                      params.ess_threshold, config.resampler)
-    return MclState(poses[ancestors], log_weights, state.step + 1), info
+    update = particle_filter.reweight_and_resample(k_resample, poses, state.log_weights, log_lik,
+                                                   params.resample_threshold, config.resampler)
+    return MclState(poses[update.ancestors], update.new_log_weights, state.step + 1), MclInfo.of(update)
 
 
 step_jit = jax.jit(step, static_argnames=("config",))

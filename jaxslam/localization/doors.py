@@ -4,7 +4,7 @@ A door map is static walls plus K doors, each a segment with an id, an initial
 belief p(open) and a transition model p(open | open), p(open | closed)
 (:class:`DoorMap`). The hybrid filter keeps, per particle, a pose and the K
 probabilities pi_k that door k is open, conditioned on that particle's path.
-Per step (DESIGN.md section 5):
+Per step (docs/design.md, "Door-state estimation"):
 
 1. move the poses (:func:`jaxslam.motion.sample`) and predict every door,
    pi+ = p(open|open) pi + p(open|closed) (1 - pi)            (Eq. 24);
@@ -29,7 +29,7 @@ beam to exactly one door, and this is the exact likelihood of "door k open, the
 others closed". When no beam path crosses two doors, both choices agree.
 
 Baselines: static MCL on the map as given (:func:`static_segments` with
-:mod:`jaxslam.mcl`), and door-aware MCL without memory (``DoorConfig(memory=False)``:
+:mod:`jaxslam.localization.mcl`), and door-aware MCL without memory (``DoorConfig(memory=False)``:
 every door is 50% open before every update, which equals the hybrid filter
 with p(open|open) = p(open|closed) = 0.5; a test pins that down).
 """
@@ -45,15 +45,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from jaxslam import binary_bayes
-from jaxslam import mcl
+from jaxslam import binary_bayes, particle_filter, resampling
 from jaxslam import motion as motion_model
-from jaxslam import resampling
 from jaxslam.geometry import wrap_angle
-from jaxslam.mcl import MclInfo, ScanInputs, laser_rays
+from jaxslam.laser import SensorSpec, laser_rays, subsample_beams
+from jaxslam.localization import mcl
+from jaxslam.localization.beam_model import BeamModelParams, beam_model_log_likelihood
+from jaxslam.localization.mcl import MclInfo, ScanInputs
 from jaxslam.motion import MotionParams
-from jaxslam.sensor import BeamModelParams, SensorSpec, beam_model_log_likelihood
-from jaxslam.sim.raycast import raycast
+from jaxslam.segment_map import raycast
 
 FILTERS = ("hybrid", "static", "memoryless")
 
@@ -146,8 +146,8 @@ class DoorParams(NamedTuple):
     likelihood_gain: Float[Array, ""]
     """Multiplier of every beam's log-likelihood (applied before the door mixture, so the
     door posterior and the weights use the same tempered likelihoods)."""
-    ess_threshold: Float[Array, ""]
-    """Resample when ESS < ess_threshold * N."""
+    resample_threshold: Float[Array, ""]
+    """Resample when ESS < resample_threshold * N."""
     p_open_open: Float[Array, "K"]
     """p(open_t | open_{t-1}) per door, per step."""
     p_open_closed: Float[Array, "K"]
@@ -155,14 +155,14 @@ class DoorParams(NamedTuple):
 
     def mcl_params(self) -> mcl.MclParams:
         """The shared numbers, for static MCL."""
-        return mcl.MclParams(self.motion, self.beam, self.likelihood_gain, self.ess_threshold)
+        return mcl.MclParams(self.motion, self.beam, self.likelihood_gain, self.resample_threshold)
 
 
 def make_params(door_map: DoorMap, motion: MotionParams | None = None, beam: BeamModelParams | None = None,
-                likelihood_gain=0.5, ess_threshold=0.5) -> DoorParams:
+                likelihood_gain=0.5, resample_threshold=0.5) -> DoorParams:
     """:class:`DoorParams` with the door map's transition probabilities."""
-    base = mcl.make_params(motion, beam, likelihood_gain, ess_threshold)
-    return DoorParams(base.motion, base.beam, base.likelihood_gain, base.ess_threshold,
+    base = mcl.make_params(motion, beam, likelihood_gain, resample_threshold)
+    return DoorParams(base.motion, base.beam, base.likelihood_gain, base.resample_threshold,
                       door_map.p_open_open, door_map.p_open_closed)
 
 
@@ -189,7 +189,7 @@ class DoorInfo(NamedTuple):
     """Diagnostics of one step (stacked over time by :func:`run`)."""
 
     mcl: MclInfo
-    """ESS, resampled, mean pose, covariance, log-evidence increment, all_rejected."""
+    """ESS, resampled, mean pose, covariance, log-evidence increment, degenerate, ancestors."""
     door_belief: Float[Array, "K"]
     """sum_i w_i pi_i,k: the filter's marginal probability that door k is open (after the update,
     before resampling)."""
@@ -255,9 +255,9 @@ class DoorLikelihoods(NamedTuple):
 def scan_door_likelihoods(door_map: DoorMap, pose: Float[Array, "3"], ranges: Float[Array, "B"],
                           sensor: SensorSpec, params: DoorParams, beam_stride: int = 1) -> DoorLikelihoods:
     """Split one scan's beam-model log-likelihood at ``pose`` into static and per-door parts."""
-    origin, angles = laser_rays(pose, sensor, beam_stride)
+    lik_sensor, z = subsample_beams(sensor, ranges, beam_stride)
+    origin, angles = laser_rays(pose, lik_sensor)
     att = attribute_beams(door_map, origin, angles, sensor.range_max)
-    z = ranges[::beam_stride]
     gain = params.likelihood_gain
     ll_closed = gain * beam_model_log_likelihood(att.range_closed, z, sensor.range_max, params.beam)
     ll_open = gain * beam_model_log_likelihood(att.range_open, z, sensor.range_max, params.beam)
@@ -288,7 +288,7 @@ def step(key: PRNGKeyArray, state: DoorState, inputs: ScanInputs, door_map: Door
     """One step of the hybrid filter (or of the memoryless baseline, ``config.memory=False``).
 
     Args:
-      key: PRNG key (split into motion and resampling keys, as :func:`jaxslam.mcl.step`).
+      key: PRNG key (split into motion and resampling keys, as :func:`jaxslam.localization.mcl.step`).
       state: poses (N, 3), door beliefs (N, K), log-weights (N,).
       inputs: odometry motion (3,) since the previous scan and the (B,) ranges (m).
       door_map: walls and doors.
@@ -305,12 +305,13 @@ def step(key: PRNGKeyArray, state: DoorState, inputs: ScanInputs, door_map: Door
     lik = jax.vmap(lambda p: scan_door_likelihoods(door_map, p, inputs.ranges, sensor, params,
                                                    config.beam_stride))(poses)
     posterior, log_lik = jax.vmap(door_update)(predicted, lik)
-    ancestors, log_weights, info = mcl.weigh_and_resample(k_resample, poses, state.log_weights, log_lik,
-                                                          params.ess_threshold, config.resampler)
-    w = jnp.exp(state.log_weights + log_lik - jnp.where(info.all_rejected, 0.0, info.log_evidence))
-    w = jnp.where(info.all_rejected, jnp.exp(state.log_weights), w)
-    door_info = DoorInfo(info, w @ posterior, w @ (lik.num_beams > 0).astype(jnp.float32), w @ lik.num_beams)
-    new_state = DoorState(poses[ancestors], posterior[ancestors], log_weights, state.step + 1)
+    update = particle_filter.reweight_and_resample(k_resample, poses, state.log_weights, log_lik,
+                                                   params.resample_threshold, config.resampler)
+    w = jnp.exp(update.log_weights)  # after the update, before resampling (uniform when degenerate)
+    door_info = DoorInfo(MclInfo.of(update), w @ posterior, w @ (lik.num_beams > 0).astype(jnp.float32),
+                         w @ lik.num_beams)
+    ancestors = update.ancestors
+    new_state = DoorState(poses[ancestors], posterior[ancestors], update.new_log_weights, state.step + 1)
     return new_state, door_info
 
 

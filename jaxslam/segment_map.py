@@ -1,9 +1,16 @@
-"""Exact ray casting against line segments, vectorised over rays and segments."""
+"""Segment maps: walls and doors as line segments, and exact ray casting against them.
+
+The map model of the localization filters (:mod:`jaxslam.localization`) and of the
+simulator (:mod:`jaxslam.sim`): a map is an (M, 4) array of segments [x1, y1, x2, y2]
+(m), optionally with an (M,) mask of the segments present (an open door is transparent).
+"""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
+
+from jaxslam.laser import SensorSpec, laser_rays
 
 _EPS = 1e-9
 
@@ -56,3 +63,11 @@ def raycast(
     best = jnp.min(t, axis=-1)
     found = best < max_range
     return jnp.where(found, best, max_range), jnp.where(found, first, -1).astype(jnp.int32)
+
+
+def expected_ranges(segments: Float[Array, "M 4"], pose: Float[Array, "3"], sensor: SensorSpec,
+                    active: Bool[Array, "M"] | None = None, max_range=None) -> tuple[Float[Array, "B"], Int[Array, "B"]]:
+    """The ranges (m) the map predicts for every beam of a scan taken at robot ``pose``, and
+    the segment each beam hits first (-1: none within ``max_range``, default ``range_max``)."""
+    origin, angles = laser_rays(pose, sensor)
+    return raycast(segments, origin, angles, sensor.range_max if max_range is None else max_range, active)

@@ -1,4 +1,4 @@
-"""The endpoint (likelihood-field) model (jaxslam.sensor) against a NumPy reference."""
+"""The endpoint (likelihood-field) model (jaxslam.likelihood_field) against a NumPy reference."""
 
 from __future__ import annotations
 
@@ -9,9 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import sensor as S
+from jaxslam import likelihood_field as S
 from jaxslam.geometry import compose
-from jaxslam.grid import FAR, GridSpec
+from jaxslam.grid import GridSpec
+from jaxslam.laser import make_sensor, subsample_beams, uniform_beams
+from jaxslam.occupancy import FAR
 
 SPEC = GridSpec((10, 12), 0.2, (-0.5, -0.3))  # x in [-0.5, 1.9], y in [-0.3, 1.7]
 PARAMS = S.LikelihoodParams(*(jnp.float32(v) for v in (0.25, 0.8, 0.05, 0.7)))
@@ -91,7 +93,7 @@ def setup():
     angles, ranges, origin_cell = scan()
     hit = hit_map()
     hit[origin_cell] = 0
-    sensor = S.make_sensor(angles, RANGE_MIN, RANGE_MAX, LASER_POSE)
+    sensor = make_sensor(angles, RANGE_MIN, RANGE_MAX, LASER_POSE)
     return hit, ranges, sensor
 
 
@@ -186,10 +188,10 @@ def test_gradient_wrt_sigma_is_finite_and_correct():
 
 
 def test_uniform_beams_and_subsample():
-    a = np.asarray(S.uniform_beams(5, np.pi / 2))
+    a = np.asarray(uniform_beams(5, np.pi / 2))
     np.testing.assert_allclose(a, np.linspace(-np.pi / 4, np.pi / 4, 5), atol=1e-6)
-    sensor = S.make_sensor(a)
-    sub, r = S.subsample_beams(sensor, jnp.arange(10.0).reshape(2, 5), 2)
+    sensor = make_sensor(a)
+    sub, r = subsample_beams(sensor, jnp.arange(10.0).reshape(2, 5), 2)
     np.testing.assert_allclose(np.asarray(sub.beam_angles), a[::2])
     np.testing.assert_allclose(np.asarray(r), [[0, 2, 4], [5, 7, 9]])
 
@@ -242,7 +244,7 @@ def test_bilinear_equals_nearest_at_cell_centres_and_is_continuous():
     hit = hit_map()
     # One beam straight ahead from a laser at the origin of the robot; the endpoint is moved by
     # moving the robot along x.
-    one = S.make_sensor(np.array([0.0], np.float32), RANGE_MIN, RANGE_MAX)
+    one = make_sensor(np.array([0.0], np.float32), RANGE_MIN, RANGE_MAX)
     ranges = jnp.array([0.5], jnp.float32)
     centre = cell_centre(5, 7)  # d2 = 1 there; its neighbours are FAR or 0 elsewhere
 

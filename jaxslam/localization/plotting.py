@@ -1,101 +1,18 @@
-"""Door experiments: running a scenario with the three filters over many seeds, and the figures.
-
-The reusable part of ``experiments/doors.py`` and ``jaxslam doors``:
-:func:`corridor_settings` (the filter settings of the experiment),
-:func:`evaluate` (S seeds x one filter -> errors, success, door beliefs),
-and the figures of Avots et al.: the map with doors drawn by belief (Figs. 1, 3),
-the histogram of a door's belief over the particles (Fig. 4), the decay of an
+"""Figures of the door filter, after Avots et al.: the map with doors drawn by belief (Figs.
+1, 3), the histogram of a door's belief over the particles (Fig. 4), the decay of an
 unobserved door's belief toward the stationary value, and position error over time.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import binary_bayes, doors, mcl
-from jaxslam.sensor import make_beam_model_params
-from jaxslam.sim.door_worlds import DoorScenario
-
-SUCCESS_POSITION = 0.5
-"""Final position error (m) below which a run succeeds."""
-SUCCESS_HEADING_DEG = 10.0
-"""... and final heading error (degrees)."""
-
-
-def corridor_settings(scenario: DoorScenario, num_particles: int = 1000, beam_stride: int = 2
-                      ) -> tuple[doors.DoorConfig, doors.DoorParams]:
-    """The experiment's filter settings: a beam model with sigma_hit = 0.2 m, likelihood gain 0.1
-    (31 of 61 beams, treated as about 3 independent ones: a particle cloud of 0.6 m x 0.3 rad does
-    not collapse on the first scan), ESS threshold 0.5, the map's door transitions."""
-    config = doors.DoorConfig(num_particles=num_particles, beam_stride=beam_stride)
-    params = doors.make_params(scenario.door_map, beam=make_beam_model_params(sigma_hit=0.2), likelihood_gain=0.1,
-                               ess_threshold=0.5)
-    return config, params
-
-
-def stack_inputs(scenarios: list[DoorScenario]) -> tuple[mcl.ScanInputs, jnp.ndarray]:
-    """(S, T, ...) inputs and (S, T, 3) true poses of same-length scenario logs."""
-    inputs = [mcl.log_inputs(s.log) for s in scenarios]
-    stacked = mcl.ScanInputs(jnp.stack([i.motion for i in inputs]), jnp.stack([i.ranges for i in inputs]))
-    return stacked, jnp.stack([jnp.asarray(s.true_poses, jnp.float32) for s in scenarios])
-
-
-class Evaluation(NamedTuple):
-    """One filter over S seeds (NumPy)."""
-
-    filter_kind: str
-    position_error: np.ndarray
-    """(S, T) m."""
-    heading_error_deg: np.ndarray
-    """(S, T) degrees."""
-    success: np.ndarray
-    """(S,) bool: final position error < 0.5 m and heading error < 10 degrees."""
-    door_belief: np.ndarray
-    """(S, T, K) marginal p(open)."""
-    door_accuracy: float
-    """Fraction of (seed, door) pairs, over doors the robot observed, whose final belief is on the
-    right side of 0.65 / 0.35 (NaN for static MCL, which has no door beliefs)."""
-
-
-def evaluate(keys, scenarios: list[DoorScenario], filter_kind: str, config: doors.DoorConfig,
-             params: doors.DoorParams, batch_size: int = 5) -> Evaluation:
-    """Run ``filter_kind`` on every scenario (one key each; global initialisation over the
-    scenario's start regions) in one jitted ``lax.map`` over vmapped batches of seeds."""
-    first = scenarios[0]
-    inputs, truth = stack_inputs(scenarios)
-    out = doors.run_filter_batch(keys, inputs, truth, jnp.asarray(first.start_regions), first.door_map,
-                                 first.log.sensor, params, config, filter_kind, tuple(first.heading_range),
-                                 batch_size)
-    pos = np.asarray(out.position_error)
-    head = np.rad2deg(np.asarray(out.heading_error))
-    success = (pos[:, -1] < SUCCESS_POSITION) & (head[:, -1] < SUCCESS_HEADING_DEG)
-    belief = np.asarray(out.door_belief)
-    observed = np.stack([s.observed_doors.any(axis=0) for s in scenarios])
-    truth_open = np.stack([s.true_door_open[-1] for s in scenarios])
-    accuracy = float("nan") if filter_kind == "static" else doors.door_state_accuracy(belief[:, -1], truth_open,
-                                                                                       observed)
-    return Evaluation(filter_kind, pos, head, success, belief, accuracy)
-
-
-def summary(ev: Evaluation) -> dict:
-    """JSON-ready numbers of an :class:`Evaluation`."""
-    return {
-        "filter": ev.filter_kind,
-        "seeds": int(ev.success.shape[0]),
-        "success_rate": float(ev.success.mean()),
-        "final_position_error_median_m": float(np.median(ev.position_error[:, -1])),
-        "mean_position_error_over_time_m": np.round(ev.position_error.mean(axis=0), 4).tolist(),
-        "door_state_accuracy": None if np.isnan(ev.door_accuracy) else ev.door_accuracy,
-    }
-
-
-# ------------------------------------------------------------------------------------- figures
-
+from jaxslam import binary_bayes
+from jaxslam.localization import doors, mcl
 
 def _door_style(p_open: float):
     """Black when > 65% closed, grey within 15% of 50%, blank (dotted outline) when > 65% open."""
@@ -106,7 +23,7 @@ def _door_style(p_open: float):
     return dict(color="0.85", lw=1.0, ls=":")
 
 
-def plot_door_map(ax, scenario: DoorScenario, door_belief, title: str = "", path=None, particles=None):
+def plot_door_map(ax, scenario, door_belief, title: str = "", path=None, particles=None):
     """The map, its doors drawn by belief (Figs. 1 and 3 of Avots et al.), optionally a path
     ((T, 2+), m) and particles ((N, 2+), m)."""
     dm = scenario.door_map
@@ -129,7 +46,8 @@ def plot_door_map(ax, scenario: DoorScenario, door_belief, title: str = "", path
 def plot_belief_histograms(axes, door_open_history, log_weight_history, door: int, times, door_name: str = ""):
     """Fig. 4: particle weight per 0.01 bin of p(open) of ``door`` at each of ``times``.
 
-    ``door_open_history`` (T, N, K) and ``log_weight_history`` (T, N) from :func:`jaxslam.doors.run_history`.
+    ``door_open_history`` (T, N, K) and ``log_weight_history`` (T, N) from
+    :func:`jaxslam.localization.doors.run_history`.
     """
     bins = np.linspace(0.0, 1.0, 101)
     for ax, t in zip(axes, times):
@@ -166,22 +84,26 @@ def plot_belief_decay(ax, door_belief, observed, p_open_open: float, p_open_clos
     ax.legend(fontsize=7)
 
 
-def plot_position_errors(ax, evaluations: list[Evaluation]):
-    """Mean position error over time of each filter (with the 10-90% band over seeds)."""
-    for ev in evaluations:
-        t = np.arange(ev.position_error.shape[1])
-        ax.plot(t, ev.position_error.mean(axis=0), label=f"{ev.filter_kind} ({100 * ev.success.mean():.0f}% ok)")
-        lo, hi = np.percentile(ev.position_error, [10, 90], axis=0)
+def plot_position_errors(ax, position_errors: dict[str, np.ndarray]):
+    """Mean position error over time of each filter (with the 10-90% band over seeds).
+
+    ``position_errors`` maps a label (the filter, say) to its (S, T) errors (m) over S seeds.
+    """
+    for label, errors in position_errors.items():
+        errors = np.asarray(errors)
+        t = np.arange(errors.shape[1])
+        ax.plot(t, errors.mean(axis=0), label=label)
+        lo, hi = np.percentile(errors, [10, 90], axis=0)
         ax.fill_between(t, lo, hi, alpha=0.15)
     ax.set_xlabel("scan")
     ax.set_ylabel("position error (m)")
     ax.legend(fontsize=8)
 
 
-def figure_run(key, scenario: DoorScenario, config: doors.DoorConfig, params: doors.DoorParams,
+def figure_run(key, scenario, config: doors.DoorConfig, params: doors.DoorParams,
                memory: bool = True):
     """One hybrid run (``memory=False``: the memoryless baseline) with every step's particles, for
-    the figures: ``(infos, DoorHistory)``. Same key use as :func:`jaxslam.doors.run_filter`."""
+    the figures: ``(infos, DoorHistory)``. Same key use as :func:`jaxslam.localization.doors.run_filter`."""
     k_init, k_run = jax.random.split(key)
     state = doors.init(mcl.init_global(k_init, jnp.asarray(scenario.start_regions), config.mcl_config(),
                                        tuple(scenario.heading_range)), scenario.door_map)
@@ -190,9 +112,11 @@ def figure_run(key, scenario: DoorScenario, config: doors.DoorConfig, params: do
     return infos, history
 
 
-def save_figures(out_dir, scenario: DoorScenario, infos, history, params: doors.DoorParams,
-                 evaluations: list[Evaluation] | None = None, hist_door: int = 0, decay_door: int = 0) -> list[str]:
-    """Write the figures of one run (and of an evaluation over seeds) to ``out_dir``; returns the paths."""
+def save_figures(out_dir, scenario, infos, history, params: doors.DoorParams,
+                 position_errors: dict[str, np.ndarray] | None = None, hist_door: int = 0,
+                 decay_door: int = 0) -> list[str]:
+    """Write the figures of one run (and the position errors of filters over seeds, see
+    :func:`plot_position_errors`) to ``out_dir``; returns the paths."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -234,9 +158,9 @@ def save_figures(out_dir, scenario: DoorScenario, infos, history, params: doors.
     fig.savefig(p, dpi=110)
     plt.close(fig)
     paths.append(str(p))
-    if evaluations:
+    if position_errors:
         fig, ax = plt.subplots(figsize=(7, 3.5))
-        plot_position_errors(ax, evaluations)
+        plot_position_errors(ax, position_errors)
         fig.tight_layout()
         p = out / "position_error.png"
         fig.savefig(p, dpi=110)

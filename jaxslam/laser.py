@@ -1,0 +1,86 @@
+"""The planar laser scanner: its description and all beam geometry.
+
+A leaf module (it imports only :mod:`jaxslam.geometry`): the grid maps, the likelihood
+models, the ray caster, the simulator and the log readers all take a :class:`SensorSpec`
+and ask this module where the beams start and where they end.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from jaxslam.geometry import compose
+
+
+class SensorSpec(NamedTuple):
+    """A planar laser scanner (a pytree of arrays: traced, not static)."""
+
+    beam_angles: Float[Array, "B"]
+    """Angle of each beam in the laser frame (rad), counter-clockwise from the laser's x axis."""
+    range_min: Float[Array, ""]
+    """Ranges below this (m) are invalid readings."""
+    range_max: Float[Array, ""]
+    """Ranges at or above this (m) mean "no return"."""
+    laser_pose: Float[Array, "3"]
+    """Pose [x, y, theta] of the laser in the robot frame (m, m, rad)."""
+
+
+def make_sensor(beam_angles, range_min=0.0, range_max=30.0, laser_pose=(0.0, 0.0, 0.0)) -> SensorSpec:
+    """A :class:`SensorSpec` with float32 arrays."""
+    return SensorSpec(
+        jnp.asarray(beam_angles, jnp.float32),
+        jnp.asarray(range_min, jnp.float32),
+        jnp.asarray(range_max, jnp.float32),
+        jnp.asarray(laser_pose, jnp.float32),
+    )
+
+
+def uniform_beams(num_beams: int, fov: float = jnp.pi) -> Float[Array, "B"]:
+    """``num_beams`` angles spanning ``fov`` radians centred on the laser's x axis, both ends included."""
+    return jnp.linspace(-fov / 2, fov / 2, num_beams, dtype=jnp.float32)
+
+
+def subsample_beams(sensor: SensorSpec, ranges: Float[Array, "... B"], stride: int):
+    """Every ``stride``-th beam (static stride), for a likelihood; maps get all beams.
+
+    Returns ``(sensor, ranges)`` with B' = ceil(B / stride) beams.
+    """
+    if stride == 1:
+        return sensor, ranges
+    return sensor._replace(beam_angles=sensor.beam_angles[::stride]), ranges[..., ::stride]
+
+
+def laser_rays(pose: Float[Array, "3"], sensor: SensorSpec) -> tuple[Float[Array, "2"], Float[Array, "B"]]:
+    """Where the beams of a scan taken at robot ``pose`` start: the laser's world position
+    (2,) in metres and the world angle (B,) of every beam in radians."""
+    origin = compose(pose, sensor.laser_pose)
+    return origin[:2], origin[2] + sensor.beam_angles
+
+
+def valid_returns(ranges: Float[Array, "... B"], sensor: SensorSpec) -> Bool[Array, "... B"]:
+    """The beams that returned an endpoint: range_min <= r < range_max."""
+    return (ranges < sensor.range_max) & (ranges >= sensor.range_min)
+
+
+def beam_endpoints(
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+) -> tuple[Float[Array, "L B 2"], Bool[Array, "B"]]:
+    """World (x, y) in metres of every beam's endpoint for L robot poses, and which beams
+    returned one (:func:`valid_returns`). The endpoints are computed once in the robot frame
+    (B trig calls, shared by all poses and, under vmap, by all particles), after which a pose
+    costs one rotation per beam."""
+    valid = valid_returns(ranges, sensor)
+    beam_x = ranges * jnp.cos(sensor.beam_angles)  # (B,) endpoints in the laser frame (m)
+    beam_y = ranges * jnp.sin(sensor.beam_angles)
+    lc, ls = jnp.cos(sensor.laser_pose[2]), jnp.sin(sensor.laser_pose[2])
+    robot_x = sensor.laser_pose[0] + lc * beam_x - ls * beam_y  # laser -> robot frame, once per scan
+    robot_y = sensor.laser_pose[1] + ls * beam_x + lc * beam_y
+    c, s = jnp.cos(poses[:, 2:3]), jnp.sin(poses[:, 2:3])  # (L, 1)
+    ends = jnp.stack([poses[:, 0:1] + c * robot_x - s * robot_y,
+                      poses[:, 1:2] + s * robot_x + c * robot_y], axis=-1)  # (L, B, 2)
+    return ends, valid

@@ -1,0 +1,136 @@
+"""The endpoint (likelihood-field) laser model of the SLAM filters.
+
+The endpoint (likelihood-field) model scores a scan in a grid map with one
+lookup per beam, in the map's ``hit_dist2`` field (see :mod:`jaxslam.occupancy`):
+
+    p(z_b | x, m) = z_hit * exp(-d_b^2 / (2 sigma^2)) + z_rand,
+
+d_b being the distance from beam b's endpoint to the nearest registered
+endpoint in the map (infinite beyond the field radius, and for endpoints outside
+the map). Beams without a return (r >= range_max) or shorter than range_min are
+skipped. The sum over beams is multiplied by the gain (``likelihood.gain``) (< 1 tempers the
+over-confidence of treating correlated beams as independent).
+
+``lookup`` (static, :data:`FIELD_LOOKUPS`) says how an endpoint reads the field: "nearest"
+takes the cell it falls in (one gather per beam; the likelihood is then constant while the
+endpoint stays in its cell, so a pose is only resolved to about a cell), "bilinear"
+interpolates the per-beam log-likelihood of the four cells whose centres surround it (four
+gathers; the likelihood is continuous in the pose, so the scan matcher can settle between
+cells).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, UInt8
+
+from jaxslam.grid import GridSpec, cell_clip_bound, flat_index, world_to_cell
+from jaxslam.laser import SensorSpec, beam_endpoints
+from jaxslam.occupancy import FAR
+
+FIELD_LOOKUPS = ("nearest", "bilinear")
+"""How an endpoint reads the likelihood field (see the module docstring)."""
+
+
+class LikelihoodParams(NamedTuple):
+    """Traced numbers of the endpoint model (a view of the filter's ``Params``)."""
+
+    sigma: Float[Array, ""]
+    """Std (m) of the endpoint's distance to the nearest obstacle."""
+    z_hit: Float[Array, ""]
+    """Weight of the Gaussian term."""
+    z_rand: Float[Array, ""]
+    """Floor for unexplained beams (people, glass, unmapped space); > 0 keeps logs finite."""
+    gain: Float[Array, ""]
+    """Multiplier of the summed log-likelihood."""
+
+
+def endpoint_log_likelihood(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    pose: Float[Array, "3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    params: LikelihoodParams,
+    lookup: str = "nearest",
+) -> Float[Array, ""]:
+    """log p(z | x, m) of one scan at one robot pose in one map, in nats.
+
+    ``gain * sum_b log(z_hit * fit_b + z_rand)`` over the beams that count (see
+    :func:`endpoint_fit`), each beam's term read from the field by ``lookup`` (static,
+    :data:`FIELD_LOOKUPS`). vmap it over poses and maps, or call
+    :func:`endpoint_log_likelihoods` for many poses in one map.
+    """
+    return endpoint_log_likelihoods(spec, hit_dist2, pose[None], ranges, sensor, params, lookup)[0]
+
+
+def endpoint_log_likelihoods(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    params: LikelihoodParams,
+    lookup: str = "nearest",
+) -> Float[Array, "L"]:
+    """:func:`endpoint_log_likelihood` of one scan at L robot poses in one map (nats).
+
+    The hot loop of every proposal, so it is fused: the beam endpoints are computed once
+    in the robot frame (B trig calls, shared by all poses and, under vmap, by all SLAM
+    particles), after which a pose costs one rotation per beam; and the per-beam term only
+    depends on the stored squared cell distance (uint8), so it is read from a 256-entry
+    table (:func:`per_beam_log_likelihood_table`) instead of evaluating exp and log per beam.
+    With ``lookup="bilinear"`` the terms of the four surrounding cells are interpolated.
+    """
+    if lookup not in FIELD_LOOKUPS:
+        raise ValueError(f"lookup must be one of {FIELD_LOOKUPS}, got {lookup!r}")
+    table = per_beam_log_likelihood_table(spec, params)
+    if lookup == "nearest":
+        d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
+        per_beam = table[d2.astype(jnp.int32)]
+    else:
+        ends, valid = beam_endpoints(poses, ranges, sensor)
+        # Cell coordinates of the endpoint relative to the cell centres (cell (r, c) has its
+        # centre at (c + 0.5, r + 0.5) cells from the origin): the four cells round it are
+        # ``base`` and its neighbours up and right.
+        xy = (ends - jnp.asarray(spec.origin, ends.dtype)) / spec.resolution - 0.5
+        big = cell_clip_bound(spec)
+        lower = jnp.clip(jnp.floor(xy), -big, big)
+        # Position inside that square, (x, y) in [0, 1]; clipped so that the weights stay a
+        # convex combination where a far-away point was clipped (all four cells are FAR there).
+        frac = jnp.clip(xy - lower, 0.0, 1.0)
+        base = jnp.stack([lower[..., 1], lower[..., 0]], axis=-1).astype(jnp.int32)  # (row, col)
+        per_beam = 0.0
+        for d_row, d_col in ((0, 0), (0, 1), (1, 0), (1, 1)):
+            term = table[field_at_cells(spec, hit_dist2, base + jnp.array([d_row, d_col])).astype(jnp.int32)]
+            weight = ((frac[..., 1] if d_row else 1.0 - frac[..., 1])
+                      * (frac[..., 0] if d_col else 1.0 - frac[..., 0]))
+            per_beam = per_beam + weight * term
+    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+
+
+def field_at_cells(spec: GridSpec, hit_dist2: UInt8[Array, "H W"], cells) -> UInt8[Array, "..."]:
+    """The field at (row, col) cells; ``FAR`` outside the map."""
+    return hit_dist2.reshape(-1).at[flat_index(spec, cells)].get(mode="fill", fill_value=FAR)
+
+
+def endpoint_cell_distances(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+) -> tuple[UInt8[Array, "L B"], Bool[Array, "B"]]:
+    """The stored squared cell distance at every beam's endpoint for L robot poses (``FAR``
+    outside the map or the field radius), and which beams count (a return within range)."""
+    ends, valid = beam_endpoints(poses, ranges, sensor)
+    return field_at_cells(spec, hit_dist2, world_to_cell(spec, ends)), valid
+
+
+def per_beam_log_likelihood_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:
+    """log(z_hit * fit + z_rand) for every uint8 squared cell distance (``FAR``: fit 0)."""
+    d2 = jnp.arange(FAR + 1, dtype=jnp.float32)
+    fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2 * spec.resolution**2 / params.sigma**2))
+    return jnp.log(params.z_hit * fit + params.z_rand)
