@@ -1,137 +1,116 @@
-"""The low-structure box-world experiment of Grzonka et al. (Figs. 4 and 5).
+"""The low-structure box-world experiment of Grzonka et al. (Figs. 4 and 5), run from a table.
 
-The robot starts at checkpoint X, circles box 2 fifteen times (passing over X after
-every fifth lap) and returns over X (:func:`jaxslam.sim.box_world_scenario`). For each
-proposal and SLAM particle count we run R independent simulated runs (seed r draws the
-odometry and range noise of run r and the filter's randomness) and score each by the
-revisiting accuracy RA between the first and the last passage over X
-(:func:`jaxslam.metrics.revisiting_accuracy`); a run with RA < 0.2 counts as a success.
+The robot circles box 2 fifteen times from checkpoint X and returns over X
+(:func:`jaxslam.sim.box_world_scenario`). A run is scored by the revisiting accuracy RA between
+its first and last passage over X (:func:`jaxslam.metrics.revisiting_accuracy`), a success when
+RA < 0.2 m; seed r draws run r's odometry and range noise and the filter's randomness.
 
-Proposals: OP, SMP, and the look-ahead LP with L = 100 localizers and k = 5 once as
-in the paper (alpha = 0, Eq. 10) and once with the defensive share ``--alpha``, plus
-LP with L = 50, k = 3 (defensive); ``--lp-sm`` adds the LP with scan-matched localizers,
-``--evidence-weights`` the LPs without the selection correction (label "c=0",
-``lookahead.selection_correction = 0``).
-Particle counts 20 and 50. Every method uses the package's default parameters except the
-update rule (a scan every 0.5 m or 0.25 rad: the box world's scans are 0.1 m apart) and the
-odometry noise, which is the simulator's, matched to that rule (:data:`MOTION_SCALE`);
-``--set NAME=VALUE`` overrides any parameter for all methods; ``--localizers L`` and
-``--horizon K`` resize every LP row (the labels follow), and ``--seeds S ...`` runs exactly
-those seeds instead of ``--first-seed`` .. ``--first-seed + --runs - 1``.
+``box_world.json`` is the experiment as data: the settings common to every method, the methods
+(a name and a flat dict of names for :func:`jaxslam.config.build_setup`, the builder behind the
+CLI's ``--set``) and named tables: methods x SLAM particle counts N x odometry scales (the
+simulated robot's proportional odometry-noise terms times the scale; the filter's model
+follows). Its "notes" say what each number is. A cell is (method record, N, scale), keyed by the
+JSON of the method's resolved names, N and the scale, never by the method's name: tables share
+their common cells, and a renamed method keeps its runs.
 
-Writes ``DIR/results.json`` after every run (resumable: finished cells are skipped,
-a half-finished cell resumes at its next run), ``DIR/fig5.png`` (mean +- std of RA
-and success rate against N, like the paper's Fig. 5), ``DIR/maps/*.npz`` and
-``DIR/examples.png`` (the best particle's map and path, first run of each cell, like
-Fig. 4), ``DIR/failures.png`` (the same for the worst failed run of each method), and
-``DIR/ra_distribution.png``.
+Writes DIR/results.json after every run (``experiments/_runs.py``: finished runs are skipped on
+restart, earlier calls' runs are kept, a folder written with other world settings is refused),
+then for the table's cells DIR/ra_distribution.png, DIR/fig5.png (RA and success rate against N,
+the paper's Fig. 5; for several N), DIR/examples.png and DIR/failures.png (the best particle's
+map and path: each method's first seed and worst failure, as Fig. 4), and for several scales
+DIR/noise_scale.png and DIR/noise_scale.md (success rate +- binomial standard error).
+``box_world_merge.py`` merges result folders, old-format ones included, into one.
 
-    python experiments/box_world.py --runs 30 --out results/box_world [--quick]
+    python experiments/box_world.py --table table --out results/box_world
+    python experiments/box_world.py --table noise --out results/box_world_noise
+    python experiments/box_world.py --table quick --runs 2 --out /tmp/bw          # a smoke test
+    python experiments/box_world.py --methods LP --set lookahead.alpha=0.3 --out results/bw_a03
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
+import math
 import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
+from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the shared resume helper
 
 from jaxslam import rbpf
 from jaxslam.cli import parse_assignments
-from jaxslam.config import SlamConfig, default_params, params_to_dict
-from jaxslam.geometry import wrap_angle_np
+from jaxslam.config import CONFIG_FIELDS, SETTINGS_FIELDS, ConfigError, build_setup
 from jaxslam.grid import GridSpec
 from jaxslam.metrics import checkpoint_passages, passage_errors, revisiting_accuracy
 from jaxslam.rbpf import particle_paths
 from jaxslam.sim import box_world_scenario
 from jaxslam.sim.scenarios import BOX_WORLD_MOTION
 
-SUCCESS_RA = 0.2
-"""RA (m) under which a run counts as a success (the paper's threshold)."""
-
-MOTION_SCALE = 0.45
-"""Default scale of the filter's odometry-noise coefficients against the simulator's.
-The simulator draws independent noise for every 0.1 m step, so over the about 5 steps
-between processed scans (0.5 m, or 0.25 rad on the circle) the true error std grows as
-sqrt(5) times a step's, while GMapping's model, linear in the composed motion, grows as 5
-times: 1 / sqrt(5) = 0.45 matches the two. With scale 1 the filter spreads its particles
-2.2 times wider than the odometry errs."""
+DEFAULT_CONFIG = Path(__file__).resolve().parent / "box_world.json"
+WORLD_KEYS = ("success_ra", "rotation_weight", "motion_scale", "grid_margin", "grid_resolution",
+              "insert_range_margin")
+"""The json's numbers that every run of a folder shares (with the table's scenario)."""
+RUN_FIELDS = ("seed", "ra", "ra_position", "ra_heading", "best_particle_error", "seconds", "num_steps",
+              "num_fallbacks", "num_degenerate", "num_resamplings", "min_ess")
+"""A run record's fields (besides its cell's key)."""
 
 
-@dataclasses.dataclass(frozen=True)
-class Method:
-    label: str
-    proposal: str
-    num_localizers: int = 0
-    horizon: int = 0
-    alpha: float = 0.0
-    initial: str = "odometry"
-    selection_correction: float = 1.0
+# ----------------------------------------------------------------------------- the experiment as data
+
+def load_experiment(path=DEFAULT_CONFIG) -> dict:
+    """The experiment file, checked: every table names known methods and every method builds."""
+    exp = json.loads(Path(path).read_text())
+    missing = [k for k in (*WORLD_KEYS, "common", "methods", "tables") if k not in exp]
+    if missing:
+        raise ConfigError(f"{path}: missing {missing}")
+    for name, table in exp["tables"].items():
+        unknown = [m for m in table["methods"] if m not in exp["methods"]]
+        if unknown or not table["particles"] or not table["odometry_scales"]:
+            raise ConfigError(f"{path}: table {name!r}: unknown methods {unknown} or no particles/odometry_scales")
+    for name in exp["methods"]:
+        method_settings(exp, name)
+    return exp
 
 
-def methods(alpha: float, lp_sm: bool = False, evidence_weights: bool = False) -> list[Method]:
-    out = [
-        Method("OP", "op"),
-        Method("SMP", "smp"),
-        Method("LP a=0 L=100 k=5", "lp", 100, 5, 0.0),
-        Method(f"LP a={alpha:g} L=100 k=5", "lp", 100, 5, alpha),
-        Method(f"LP a={alpha:g} L=50 k=3", "lp", 50, 3, alpha),
-    ]
-    if lp_sm:  # not in the paper: localizers drawn around the scan-matched pose (importance-corrected)
-        out.append(Method(f"LP-SM a={alpha:g} L=100 k=5", "lp", 100, 5, alpha, "scan_match"))
-    if evidence_weights:  # lookahead.selection_correction = 0: the SLAM weight is the evidence estimate alone
-        out.append(Method(f"LP a={alpha:g} c=0 L=100 k=5", "lp", 100, 5, alpha, selection_correction=0.0))
-        if lp_sm:
-            out.append(Method(f"LP-SM a={alpha:g} c=0 L=100 k=5", "lp", 100, 5, alpha, "scan_match", 0.0))
-    return out
+def method_settings(exp: dict, name: str, overrides: dict | None = None) -> dict:
+    """Method ``name``'s flat names: the json's common ones, the method's, then ``overrides``; checked
+    and typed by ``build_setup`` (so "2" and 2 give one record), sorted."""
+    flat = {**exp["common"], **exp["methods"][name], **(overrides or {})}
+    if {"grid", "num_particles"} & set(flat):
+        raise ConfigError("grid and num_particles are the experiment's (grid_margin, a table's particles)")
+    config, settings, _ = build_setup(flat)
+    typed = {k: getattr(config, k) if k in CONFIG_FIELDS else getattr(settings, k) if k in SETTINGS_FIELDS
+             else float(v) for k, v in flat.items()}
+    return dict(sorted(typed.items()))
 
 
-def _capped(method: Method, max_localizers: int, max_horizon: int) -> Method:
-    """``--quick``: at most this many localizers and horizon steps; the label says what runs."""
-    return _resized(method, min(method.num_localizers, max_localizers), min(method.horizon, max_horizon))
+def cell_record(settings: dict, n: int, scale: float) -> dict:
+    return {"settings": settings, "N": int(n), "odometry_scale": float(scale)}
 
 
-def _resized(method: Method, num: int, horizon: int) -> Method:
-    """The LP ``method`` with ``num`` localizers and horizon ``horizon``; the label says what runs."""
-    if method.proposal != "lp":
-        return method
-    label = method.label.replace(f"L={method.num_localizers} k={method.horizon}", f"L={num} k={horizon}")
-    return dataclasses.replace(method, label=label, num_localizers=num, horizon=horizon)
+def cell_key(record: dict) -> str:
+    """The cell's identity: its record as canonical JSON (the method's name is not part of it)."""
+    return json.dumps({k: record[k] for k in ("settings", "N", "odometry_scale")}, sort_keys=True,
+                      separators=(",", ":"))
 
 
-def cell_key(method: Method, n: int) -> str:
-    return f"{method.label} | N={n}"
+def world_settings(exp: dict, table: dict) -> dict:
+    """What every run in a results folder shares beyond its cell record."""
+    return {"scenario": table.get("scenario", {}), **{k: exp[k] for k in WORLD_KEYS}}
 
 
-def filter_setup(method: Method, n: int, scenario, args):
-    """The filter's config and params for one cell. The motion model is the simulator's,
-    its proportional terms scaled by ``--motion-scale`` (see :data:`MOTION_SCALE`)."""
-    # One fixed grid for every run (the world's bounds plus a margin for drifting
-    # estimates), so that the filter compiles once per cell, not once per run.
-    xmin, ymin, xmax, ymax = scenario.world.bounds
-    margin = 6.0
-    grid = GridSpec.from_bounds(xmin - margin, ymin - margin, xmax + margin, ymax + margin, 0.05)
-    config = SlamConfig(
-        num_particles=n, proposal=method.proposal, grid=grid,
-        max_insert_range=scenario.log.sensor.range_max.item() + 0.5, beam_stride=args.beam_stride,
-        linear_update=args.linear_update, angular_update=args.angular_update,
-        num_localizers=max(method.num_localizers, 1), horizon=method.horizon,
-        lookahead_initial=method.initial, likelihood_field=args.likelihood_field,
-        lookahead_weight=args.lookahead_weight,
-        match_lookup=args.match_lookup,  # the tables were measured with "nearest", the default here
-    )
-    noise = scaled_noise(scenario.metadata["motion_params"], args.motion_scale)
-    overrides = {f"motion.{name}": value for name, value in noise.items()}
-    overrides["lookahead.alpha"] = method.alpha
-    overrides["lookahead.selection_correction"] = method.selection_correction
-    overrides.update(parse_assignments(args.set or []))
-    return config, default_params(**overrides)
+def table_cells(exp: dict, table: dict, methods: list[str], overrides: dict) -> list[dict]:
+    """The table's cells in order (scale, N, method), each {"method": name, **record}."""
+    return [{"method": name, **cell_record(method_settings(exp, name, overrides), n, scale)}
+            for scale in table["odometry_scales"] for n in table["particles"] for name in methods]
 
+
+# ----------------------------------------------------------------------------- one run
 
 def scaled_noise(motion, scale: float) -> dict[str, float]:
     """The fields of ``motion`` (MotionParams) as floats, the proportional terms (srr, srt, str,
@@ -142,38 +121,52 @@ def scaled_noise(motion, scale: float) -> dict[str, float]:
     return values
 
 
-def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
-    if args.world_odometry_scale != 1.0:
-        noise = scaled_noise(BOX_WORLD_MOTION, args.world_odometry_scale)
-        world_motion = BOX_WORLD_MOTION._replace(**{k: np.float32(v) for k, v in noise.items()})
-        scenario_kwargs = {**scenario_kwargs, "motion": world_motion}
-    scenario = box_world_scenario(jax.random.key(seed), **scenario_kwargs)
-    config, params = filter_setup(method, n, scenario, args)
+def scenario_for(seed: int, scale: float, world: dict):
+    """Run ``seed``'s box world, the robot's proportional odometry noise times ``scale``."""
+    kwargs = dict(world["scenario"])
+    if scale != 1.0:
+        noise = scaled_noise(BOX_WORLD_MOTION, scale)
+        kwargs["motion"] = BOX_WORLD_MOTION._replace(**{k: np.float32(v) for k, v in noise.items()})
+    return box_world_scenario(jax.random.key(seed), **kwargs)
+
+
+def filter_setup(record: dict, scenario, world: dict):
+    """The filter's config, run settings and params for one cell: the cell's names, over the fixed
+    grid, the insertion range and the simulator's odometry noise times ``motion_scale``."""
+    xmin, ymin, xmax, ymax = scenario.world.bounds
+    m = world["grid_margin"]
+    grid = GridSpec.from_bounds(xmin - m, ymin - m, xmax + m, ymax + m, world["grid_resolution"])
+    noise = scaled_noise(scenario.metadata["motion_params"], world["motion_scale"])
+    flat = {"max_insert_range": scenario.log.sensor.range_max.item() + world["insert_range_margin"],
+            **{f"motion.{name}": value for name, value in noise.items()}, **record["settings"],
+            "num_particles": record["N"]}
+    config, settings, params = build_setup(flat)
+    return dataclasses.replace(config, grid=grid), settings, params
+
+
+def run_once(record: dict, seed: int, world: dict, progress: bool = False):
+    """One run of a cell: its record (fields :data:`RUN_FIELDS`), the filter's result and the scenario."""
+    scenario = scenario_for(seed, record["odometry_scale"], world)
+    config, settings, params = filter_setup(record, scenario, world)
     t0 = time.perf_counter()
-    result = rbpf.run(jax.random.key(10_000 + seed), scenario.log, config, params, progress=args.progress)
+    result = rbpf.run(jax.random.key(10_000 + seed), scenario.log, config, params, settings, progress=progress)
     seconds = time.perf_counter() - t0
-    truth = scenario.true_poses
+    truth, lam = scenario.true_poses, world["rotation_weight"]
     passages = scenario.metadata.get("x_passages")
     if passages is None or len(passages) < 2:
         passages = checkpoint_passages(truth, scenario.metadata["checkpoint_x"], 0.3)
     idx = result.selection.indices
     # The processed scans nearest to the first and last passage; RA compares the relative
     # pose between them with the true one at the same scans.
-    first = int(np.argmin(np.abs(idx - passages[0])))
-    last = int(np.argmin(np.abs(idx - passages[-1])))
+    first, last = (int(np.argmin(np.abs(idx - p))) for p in (passages[0], passages[-1]))
     paths = particle_paths(result.info.proposed_poses, result.info.ancestors, scenario.log.odometry[0])
     log_w = np.asarray(result.state.log_weights)
-    ra = revisiting_accuracy(paths, log_w, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
-    errors = passage_errors(paths, first, last, truth[idx[first]], truth[idx[last]], args.rotation_weight)
-    best = int(np.argmax(log_w))
-    # RA's two parts: RA is linear in lambda, so lambda = 0 gives the position part (m) and the
-    # rest divided by lambda the heading part (rad).
-    ra_position = revisiting_accuracy(paths, log_w, first, last, truth[idx[first]], truth[idx[last]], 0.0)
+    ends = (first, last, truth[idx[first]], truth[idx[last]])
+    ra = revisiting_accuracy(paths, log_w, *ends, lam)
+    ra_position = revisiting_accuracy(paths, log_w, *ends, 0.0)  # RA is linear in lambda
     run = {
-        "seed": seed, "ra": ra, "best_particle_error": float(errors[best]), "seconds": seconds,
-        "ra_position": ra_position,
-        "ra_heading": (ra - ra_position) / args.rotation_weight if args.rotation_weight else None,
-        **frame_diagnostics(result, scenario, passages),
+        "seed": seed, "ra": ra, "ra_position": ra_position, "ra_heading": (ra - ra_position) / lam if lam else None,
+        "best_particle_error": float(passage_errors(paths, *ends, lam)[result.best_particle]), "seconds": seconds,
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
         "min_ess": float(result.info.ess.min()),
@@ -181,152 +174,174 @@ def run_once(method: Method, n: int, seed: int, args, scenario_kwargs):
     return run, result, scenario
 
 
-def frame_diagnostics(result, scenario, passages) -> dict:
-    """Where a run's error comes from: box 2's frame, and how many hypotheses of it survive.
-
-    While the robot circles box 2 only box 2 is in view, so each particle's pose there is
-    right relative to its own map of box 2, and its error against the truth is the error of
-    that map's frame, fixed when box 2 was first mapped after the blind drive from the hedge.
-    At the end of the first lap (index ``lap1``):
-
-    - ``frame_error_lap1`` (m): the best final particle's position error there;
-    - ``cloud_error_lap1_min`` / ``_median`` (m): the same over the particles alive then, so
-      whether the filter held a hypothesis close to the truth at all;
-    - ``lineages_from_lap1``: how many distinct particles at lap 1 are ancestors of the
-      particles alive at the end of laps 5, 10 and 15 and at the end (path coalescence);
-    - ``odometry_heading_error_x1`` (rad): the odometry's heading error between the start and
-      the first return over X, the blind U-turn at the turnaround included.
-    """
-    idx = result.selection.indices
-    truth = scenario.true_poses[idx]
-    laps = scenario.metadata.get("lap_end_indices")
-    if laps is None or len(laps) == 0 or len(passages) < 2:
-        return {}
-
-    def nearest(scan):  # the processed scan nearest to a raw scan index
-        return int(np.argmin(np.abs(idx - scan)))
-
-    lap1 = nearest(laps[0])
-    proposed, ancestors = np.asarray(result.info.proposed_poses), np.asarray(result.info.ancestors)
-    start = scenario.log.odometry[0]
-
-    def alive_at_lap1(step):  # the path index lap1 of the particles alive after ``step``
-        return particle_paths(proposed[:step], ancestors[:step], start)[:, lap1]
-
-    cloud = np.hypot(*(alive_at_lap1(lap1)[:, :2] - truth[lap1, :2]).T)
-    checkpoints = {f"lap{k}": nearest(laps[k - 1]) for k in (5, 10, 15) if k <= len(laps)}
-    checkpoints["end"] = len(idx) - 1
-    lineages = {name: int(np.unique(alive_at_lap1(step), axis=0).shape[0]) for name, step in checkpoints.items()}
-    odometry, true_poses = np.asarray(scenario.log.odometry), scenario.true_poses
-    x1 = int(passages[1])
-
-    def turned(poses):  # heading change from the start to the first return over X
-        return poses[x1, 2] - poses[0, 2]
-
-    return {
-        "frame_error_lap1": float(np.hypot(*(result.best_path[lap1, :2] - truth[lap1, :2]))),
-        "cloud_error_lap1_min": float(cloud.min()), "cloud_error_lap1_median": float(np.median(cloud)),
-        "lineages_from_lap1": lineages,
-        "odometry_heading_error_x1": float(np.abs(wrap_angle_np(turned(odometry) - turned(true_poses)))),
-    }
-
-
 def save_example(path: Path, result, scenario, ra: float):
-    best = int(np.argmax(np.asarray(result.state.log_weights)))
-    spec = result.config.grid
+    best, idx = result.best_particle, result.selection.indices
     np.savez_compressed(
         path, logodds=np.asarray(result.state.maps.logodds[best]), best_path=result.best_path,
-        truth=scenario.true_poses[result.selection.indices], odometry=scenario.log.odometry[result.selection.indices],
-        segments=scenario.world.segments, extent=np.asarray(spec.extent), ra=ra,
-    )
+        truth=scenario.true_poses[idx], odometry=scenario.log.odometry[idx],
+        segments=scenario.world.segments, extent=np.asarray(result.config.grid.extent), ra=ra)
 
 
-def load_results(path: Path) -> dict:
-    if path.exists():
-        return json.loads(path.read_text())
-    return {"cells": {}}
+# ----------------------------------------------------------------------------- summaries and figures
+
+def binomial_se(successes: int, n: int) -> float:
+    """Standard error sqrt(p (1 - p) / n) of a success rate p = successes / n."""
+    if n == 0:
+        return float("nan")
+    p = successes / n
+    return math.sqrt(p * (1 - p) / n)
 
 
-def write_json(path: Path, data: dict):
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    tmp.replace(path)  # atomic: an interrupted write never leaves a broken results.json
+def summarize(runs: list[dict], success_ra: float) -> dict:
+    ra = np.array([r["ra"] for r in runs], dtype=float)
+    k = int((ra < success_ra).sum())
+    return {"num_runs": int(ra.size), "mean": float(ra.mean()) if ra.size else float("nan"),
+            "std": float(ra.std(ddof=1)) if ra.size > 1 else 0.0,
+            "median": float(np.median(ra)) if ra.size else float("nan"), "successes": k,
+            "success_rate": k / ra.size if ra.size else float("nan"), "standard_error": binomial_se(k, ra.size)}
 
 
-def summarize_cell(runs: list[dict]) -> dict:
-    ra = np.array([r["ra"] for r in runs])
-    return {"mean": float(ra.mean()), "std": float(ra.std(ddof=1)) if ra.size > 1 else 0.0,
-            "median": float(np.median(ra)), "success_rate": float(np.mean(ra < SUCCESS_RA)),
-            "num_runs": int(ra.size)}
+def runs_by_cell(runs: list[dict]) -> dict[str, list[dict]]:
+    out: dict = {}
+    for r in sorted(runs, key=lambda r: r["seed"]):
+        out.setdefault(r["cell"], []).append(r)
+    return out
 
 
-def make_figures(out: Path, data: dict):
+def noise_rows(cells: list[dict], runs: list[dict], success_ra: float) -> list[dict]:
+    """Success count, rate and its binomial standard error of every (method, N, scale) cell."""
+    by_cell = runs_by_cell(runs)
+    rows = []
+    for c in cells:
+        s = summarize(by_cell.get(cell_key(c), []), success_ra)
+        rows.append({"method": c["method"], "N": c["N"], "odometry_scale": c["odometry_scale"], "runs": s["num_runs"],
+                     "successes": s["successes"], "success_rate": s["success_rate"],
+                     "standard_error": s["standard_error"]})
+    return rows
+
+
+def _lines(rows: list[dict]) -> dict[str, list[dict]]:
+    """``rows`` grouped by method (and N, when there are several), in order."""
+    several_n = len({r["N"] for r in rows}) > 1
+    out: dict = {}
+    for r in rows:
+        out.setdefault(f"{r['method']}, N={r['N']}" if several_n else r["method"], []).append(r)
+    return out
+
+
+def noise_markdown(rows: list[dict], success_ra: float) -> str:
+    scales = sorted({r["odometry_scale"] for r in rows})
+    lines = [f"Success rate (RA < {success_ra:g} m) against the odometry noise scale: successes / runs, "
+             "rate ± binomial standard error.", "",
+             "| method | " + " | ".join(f"scale {s:g}" for s in scales) + " |", "|---" * (len(scales) + 1) + "|"]
+    for label, group in _lines(rows).items():
+        at = {r["odometry_scale"]: r for r in group}
+        lines.append(f"| {label} | " + " | ".join(
+            f"{at[s]['successes']}/{at[s]['runs']}: {at[s]['success_rate']:.2f} ± {at[s]['standard_error']:.2f}"
+            if s in at and at[s]["runs"] else "" for s in scales) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cells = data["cells"]
-    order = list(data.get("method_order", []))
-    labels = sorted({c["method"] for c in cells.values()}, key=lambda s: (order.index(s) if s in order else len(order), s))
-    fig, (ax_ra, ax_sr) = plt.subplots(1, 2, figsize=(11, 4))
-    for i, label in enumerate(labels):
-        rows = sorted((c for c in cells.values() if c["method"] == label and c["runs"]), key=lambda c: c["N"])
-        if not rows:
-            continue
-        ns = np.array([c["N"] for c in rows]) * (1 + 0.03 * (i - len(labels) / 2))  # dodge the error bars
-        stats = [summarize_cell(c["runs"]) for c in rows]
-        ax_ra.errorbar(ns, [s["mean"] for s in stats], yerr=[s["std"] for s in stats], marker="o", capsize=3,
-                       label=label)
-        ax_sr.plot([c["N"] for c in rows], [s["success_rate"] for s in stats], marker="o", label=label)
-    ax_ra.set_xlabel("SLAM particles N")
-    ax_ra.set_ylabel("revisiting accuracy RA (mean +- std)")
-    ax_ra.axhline(SUCCESS_RA, color="k", lw=0.5, ls=":")
-    ax_sr.set_xlabel("SLAM particles N")
-    ax_sr.set_ylabel(f"success rate (RA < {SUCCESS_RA})")
-    ax_sr.set_ylim(-0.05, 1.05)
-    ax_sr.legend(fontsize=8)
+    return plt
+
+
+def noise_figure(path: Path, rows: list[dict], success_ra: float):
+    plt = _pyplot()
+    groups = _lines([r for r in rows if r["runs"]])
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for i, (label, group) in enumerate(groups.items()):
+        dodge = 0.012 * (i - (len(groups) - 1) / 2)  # keep the error bars apart
+        ax.errorbar([r["odometry_scale"] + dodge for r in group], [r["success_rate"] for r in group],
+                    yerr=[r["standard_error"] for r in group], marker="o", capsize=3, label=label)
+    n = sorted({r["runs"] for r in rows if r["runs"]})
+    ax.set_xlabel("odometry noise scale (robot and filter model)")
+    ax.set_ylabel(f"success rate (RA < {success_ra:g} m)")
+    ax.set_title(f"{'/'.join(map(str, n))} runs a point, bars: binomial standard error", fontsize=9)
+    ax.set_ylim(-0.05, 1.05)
+    ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "fig5.png", dpi=120)
+    fig.savefig(path, dpi=120)
     plt.close(fig)
 
-    # RA distribution of every cell.
-    keys = [k for k in cells if cells[k]["runs"]]
-    if keys:
-        fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(keys)), 4))
-        ax.boxplot([[r["ra"] for r in cells[k]["runs"]] for k in keys], showfliers=True)
-        for j, k in enumerate(keys):
-            ra = [r["ra"] for r in cells[k]["runs"]]
-            ax.scatter(np.full(len(ra), j + 1) + np.random.default_rng(j).uniform(-0.15, 0.15, len(ra)), ra, s=6)
-        ax.set_xticks(range(1, len(keys) + 1), [k.replace(" | ", "\n") for k in keys], fontsize=7)
-        ax.set_yscale("log")
-        ax.axhline(SUCCESS_RA, color="k", lw=0.5, ls=":")
-        ax.set_ylabel("RA per run")
-        fig.tight_layout()
-        fig.savefig(out / "ra_distribution.png", dpi=120)
-        plt.close(fig)
 
-    # Example maps (first run of each method at the largest N available), like Fig. 4, and the
-    # worst failed run of each method (the true world drawn over the map shows which part of
-    # the map is off: box 2's frame against the hedge's).
-    for key, name in (("example", "examples.png"), ("worst_example", "failures.png")):
-        shown = []
-        for label in labels:
-            rows = sorted((c for c in cells.values() if c["method"] == label and c.get(key)), key=lambda c: -c["N"])
-            if rows:
-                shown.append((label, rows[0]))
-        if not shown:
+def _fig5(path: Path, lines: dict, by_cell: dict, success_ra: float, plt):
+    """RA (mean +- std) and success rate (+- binomial s.e.) against N, one line per method (the paper's Fig. 5)."""
+    fig, (ax_ra, ax_sr) = plt.subplots(1, 2, figsize=(11, 4))
+    for i, (name, group) in enumerate(lines.items()):
+        group = sorted(group, key=lambda c: c["N"])
+        stats = [summarize(by_cell[cell_key(c)], success_ra) for c in group]
+        ns = np.array([c["N"] for c in group], float)
+        ax_ra.errorbar(ns * (1 + 0.03 * (i - len(lines) / 2)), [s["mean"] for s in stats],
+                       yerr=[s["std"] for s in stats], marker="o", capsize=3, label=name)
+        ax_sr.errorbar(ns, [s["success_rate"] for s in stats], yerr=[s["standard_error"] for s in stats],
+                       marker="o", capsize=3, label=name)
+    ax_ra.set_ylabel("revisiting accuracy RA (mean +- std)")
+    ax_ra.axhline(success_ra, color="k", lw=0.5, ls=":")
+    ax_sr.set_ylabel(f"success rate (RA < {success_ra:g}) +- s.e.")
+    ax_sr.set_ylim(-0.05, 1.05)
+    ax_sr.legend(fontsize=8)
+    for ax in (ax_ra, ax_sr):
+        ax.set_xlabel("SLAM particles N")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def make_figures(out: Path, cells: list[dict], stored: dict, runs: list[dict], success_ra: float):
+    """fig5.png (for several N), ra_distribution.png, examples.png and failures.png of the table's ``cells``."""
+    plt = _pyplot()
+    by_cell = runs_by_cell(runs)
+    several = len({c["odometry_scale"] for c in cells}) > 1
+    label = {id(c): c["method"] + (f", scale {c['odometry_scale']:g}" if several else "") for c in cells}
+    lines: dict = {}
+    for c in cells:
+        if by_cell.get(cell_key(c)):
+            lines.setdefault(label[id(c)], []).append(c)
+    if not lines:
+        return
+    if len({c["N"] for c in cells}) > 1:
+        _fig5(out / "fig5.png", lines, by_cell, success_ra, plt)
+
+    shown = [c for c in cells if by_cell.get(cell_key(c))]
+    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(shown)), 4))
+    ax.boxplot([[r["ra"] for r in by_cell[cell_key(c)]] for c in shown], showfliers=True)
+    for j, c in enumerate(shown):
+        ra = [r["ra"] for r in by_cell[cell_key(c)]]
+        ax.scatter(j + 1 + np.random.default_rng(j).uniform(-0.15, 0.15, len(ra)), ra, s=6)
+    ax.set_xticks(range(1, len(shown) + 1), [f"{label[id(c)]}\nN={c['N']}".replace(", ", "\n") for c in shown],
+                  fontsize=7)
+    ax.set_yscale("log")
+    ax.axhline(success_ra, color="k", lw=0.5, ls=":")
+    ax.set_ylabel("RA per run")
+    fig.tight_layout()
+    fig.savefig(out / "ra_distribution.png", dpi=120)
+    plt.close(fig)
+
+    # Each method's map at its largest N (first seed; worst failure): the true world drawn over
+    # the map shows which part is off (box 2's frame against the hedge's).
+    for field, name in (("example", "examples.png"), ("worst_example", "failures.png")):
+        picks = {}
+        for c in sorted(cells, key=lambda c: (c["N"], -abs(c["odometry_scale"] - 1))):
+            if (out / stored.get(cell_key(c), {}).get(field, "-")).is_file():
+                picks[label[id(c)]] = (c, stored[cell_key(c)][field])
+        if not picks:
             continue
-        fig, axes = plt.subplots(1, len(shown), figsize=(4.2 * len(shown), 3.4), squeeze=False)
-        for ax, (label, cell) in zip(axes[0], shown):
-            ex = np.load(out / cell[key])
-            prob = 1.0 / (1.0 + np.exp(-ex["logodds"]))
-            ax.imshow(prob, origin="lower", extent=tuple(ex["extent"]), cmap="gray_r", vmin=0, vmax=1)
+        fig, axes = plt.subplots(1, len(picks), figsize=(4.2 * len(picks), 3.4), squeeze=False)
+        for ax, (text, (c, file)) in zip(axes[0], picks.items()):
+            ex = np.load(out / file)
+            ax.imshow(1 / (1 + np.exp(-ex["logodds"])), origin="lower", extent=tuple(ex["extent"]), cmap="gray_r",
+                      vmin=0, vmax=1)
             for seg in ex["segments"]:
                 ax.plot(seg[[0, 2]], seg[[1, 3]], color="tab:blue", lw=0.6)
             ax.plot(ex["truth"][:, 0], ex["truth"][:, 1], color="tab:green", lw=0.6, label="truth")
             ax.plot(ex["best_path"][:, 0], ex["best_path"][:, 1], color="tab:red", lw=0.6, label="best particle")
-            ax.set_title(f"{label}, N={cell['N']}\nRA = {float(ex['ra']):.3f}", fontsize=8)
+            ax.set_title(f"{text}, N={c['N']}\nRA = {float(ex['ra']):.3f}", fontsize=8)
             xs, ys = ex["segments"][:, [0, 2]], ex["segments"][:, [1, 3]]
             ax.set_xlim(xs.min() - 2.5, xs.max() + 2.5)  # the world and the circle round box 2
             ax.set_ylim(ys.min() - 2.5, ys.max() + 2.5)
@@ -338,157 +353,93 @@ def make_figures(out: Path, data: dict):
         plt.close(fig)
 
 
-def print_table(data: dict):
-    print(f"{'method':24s} {'N':>3s} {'runs':>4s} {'RA mean':>8s} {'RA std':>8s} {'median':>8s} {'success':>8s}")
-    for key, cell in data["cells"].items():
-        if not cell["runs"]:
-            continue
-        s = summarize_cell(cell["runs"])
-        print(f"{cell['method']:24s} {cell['N']:3d} {s['num_runs']:4d} {s['mean']:8.3f} {s['std']:8.3f} "
-              f"{s['median']:8.3f} {s['success_rate']:8.2f}{'' if cell.get('complete') else '  (partial)'}")
+def print_table(cells: list[dict], runs: list[dict], success_ra: float):
+    by_cell = runs_by_cell(runs)
+    print(f"{'method':18s} {'N':>4s} {'scale':>5s} {'runs':>4s} {'RA mean':>8s} {'RA std':>8s} {'median':>8s} "
+          f"{'success':>13s}")
+    for c in cells:
+        s = summarize(by_cell.get(cell_key(c), []), success_ra)
+        if s["num_runs"]:
+            print(f"{c['method']:18s} {c['N']:4d} {c['odometry_scale']:5g} {s['num_runs']:4d} {s['mean']:8.3f} "
+                  f"{s['std']:8.3f} {s['median']:8.3f} {s['success_rate']:6.2f} ± {s['standard_error']:.2f}")
 
 
-def main(argv=None):
+def write_summaries(out: Path, store: ResultStore, cells: list[dict], success_ra: float):
+    """Each cell's summary in results.json, the noise-scale numbers when the table has several
+    scales, the figures and the printed table."""
+    stored, by_cell = store.sections.setdefault("cells", {}), runs_by_cell(store.runs)
+    for key, cell in stored.items():
+        cell["summary"] = summarize(by_cell.get(key, []), success_ra)
+    if len({c["odometry_scale"] for c in cells}) > 1:
+        rows = noise_rows(cells, store.runs, success_ra)
+        store.write(noise_scale=rows)
+        noise_figure(out / "noise_scale.png", rows, success_ra)
+        (out / "noise_scale.md").write_text(noise_markdown(rows, success_ra))
+    store.write()
+    make_figures(out, cells, stored, store.runs, success_ra)
+
+
+# ----------------------------------------------------------------------------- main
+
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", type=int, default=30, help="independent runs per (proposal, N) cell")
+    ap.add_argument("--config", default=str(DEFAULT_CONFIG), help="the experiment file (default box_world.json)")
+    ap.add_argument("--table", default="table", help="a table of the experiment file (table, noise, quick, ...)")
+    ap.add_argument("--methods", nargs="+", metavar="NAME", help="run these methods of the file instead of the table's")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a build_setup name for every method (e.g. lookahead.alpha=0.3); a new cell record")
+    ap.add_argument("--runs", type=int, default=30, help="seeds per cell")
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + runs - 1")
     ap.add_argument("--out", default="results/box_world")
-    ap.add_argument("--first-seed", type=int, default=0,
-                    help="seeds first-seed .. first-seed + runs - 1 (tune on seeds the reported table does not use)")
-    ap.add_argument("--seeds", type=int, nargs="+", default=None,
-                    help="run exactly these seeds (instead of --first-seed .. + --runs)")
-    ap.add_argument("--localizers", type=int, default=None,
-                    help="localizers per SLAM particle in every LP row (relabels the rows 'L=...')")
-    ap.add_argument("--horizon", type=int, default=None,
-                    help="look-ahead steps k in every LP row (relabels the rows 'k=...')")
-    ap.add_argument("--quick", action="store_true", help="3 laps, N in (4, 8), L = 20: a smoke test in minutes")
-    ap.add_argument("--particles", type=int, nargs="+", default=None, help="SLAM particle counts (default 20 50)")
-    ap.add_argument("--alpha", type=float, default=0.5, help="defensive share of the defensive LP")
-    ap.add_argument("--only", nargs="*", default=None, help="run only methods whose label contains one of these")
-    ap.add_argument("--rotation-weight", type=float, default=1.0, help="lambda of RA (m/rad)")
-    ap.add_argument("--beam-stride", type=int, default=2, help="use every k-th of the 180 beams in likelihoods")
-    ap.add_argument("--linear-update", type=float, default=0.5, help="process a scan after this travel (m)")
-    ap.add_argument("--angular-update", type=float, default=0.25, help="... or this rotation (rad)")
-    ap.add_argument("--motion-scale", type=float, default=MOTION_SCALE,
-                    help="scale the filter's proportional odometry-noise coefficients (1: the simulator's "
-                         "per-step values applied to the composed motion)")
-    ap.add_argument("--set", action="append", metavar="NAME=VALUE",
-                    help="override a filter parameter for every method (dotted name, e.g. likelihood.gain=0.2)")
-    ap.add_argument("--lp-sm", action="store_true",
-                    help="also run the LP with scan-matched localizers (LP-SM, not in the paper)")
-    ap.add_argument("--evidence-weights", action="store_true",
-                    help="also run the LPs with lookahead.selection_correction = 0 (label 'c=0'): the SLAM "
-                         "weight is the evidence estimate alone, the look-ahead only picks the pose")
-    ap.add_argument("--fov-deg", type=float, default=None,
-                    help="the laser's field of view (degrees; default the scenario's 180), one beam per degree")
-    ap.add_argument("--likelihood-field", choices=("endpoints", "occupied"), default="endpoints",
-                    help="what the likelihood field measures distances to (SlamConfig.likelihood_field)")
-    ap.add_argument("--lookahead-weight", choices=("filter", "lookahead"), default="filter",
-                    help="the LPs' SLAM weight (SlamConfig.lookahead_weight): 'lookahead' weighs each "
-                         "particle by the k scans ahead too (block sampling)")
-    ap.add_argument("--match-lookup", choices=("nearest", "bilinear"), default="nearest",
-                    help="how the scan matcher (SMP, LP-SM) reads the likelihood field; the tables use nearest")
-    ap.add_argument("--uturn", choices=("left", "right"), default="left",
-                    help="way round for the turns on the spot at the turnaround point: left (through "
-                         "south, blind for part of the turn) or right (facing the hedge)")
-    ap.add_argument("--world-odometry-scale", type=float, default=1.0,
-                    help="scale the simulated robot's odometry noise (its proportional terms; the "
-                         "filter's model follows it): < 1 is a robot with better odometry")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
     args = ap.parse_args(argv)
-
-    out = Path(args.out)
-    (out / "maps").mkdir(parents=True, exist_ok=True)
-    scenario_kwargs = {}
-    particle_counts = args.particles or [20, 50]
-    method_list = methods(args.alpha, args.lp_sm, args.evidence_weights)
-    if args.fov_deg is not None:
-        scenario_kwargs = dict(field_of_view=float(np.radians(args.fov_deg)), num_beams=int(round(args.fov_deg)))
-    if args.uturn != "left":
-        scenario_kwargs["uturn"] = args.uturn
-    if args.quick:
-        scenario_kwargs.update(laps=3, laps_per_visit=3)
-        particle_counts = args.particles or [4, 8]
-        method_list = [_capped(m, 20, 3) for m in method_list]
-    if not args.world_odometry_scale > 0:
-        ap.error("--world-odometry-scale must be > 0")
-    if args.localizers is not None and args.localizers < 1:
-        ap.error("--localizers must be at least 1")
-    if args.horizon is not None and args.horizon < 0:
-        ap.error("--horizon must be at least 0")
-    if args.localizers is not None or args.horizon is not None:
-        resized = [_resized(m, args.localizers or m.num_localizers,
-                            m.horizon if args.horizon is None else args.horizon) for m in method_list]
-        # Two rows can become one (e.g. "L=50 k=3" resized to L=100, k=5): keep each label once.
-        method_list = list({m.label: m for m in resized}.values())
-    if args.only:
-        method_list = [m for m in method_list if any(s in m.label for s in args.only)]
-
-    path = out / "results.json"
-    data = load_results(path)
-    data["settings"] = {"runs": args.runs, "first_seed": args.first_seed, "seeds": args.seeds,
-                        "localizers": args.localizers, "horizon": args.horizon, "quick": args.quick, "scenario": scenario_kwargs,
-                        "alpha": args.alpha, "rotation_weight": args.rotation_weight,
-                        "beam_stride": args.beam_stride, "linear_update": args.linear_update,
-                        "angular_update": args.angular_update, "motion_scale": args.motion_scale,
-                        "world_odometry_scale": args.world_odometry_scale,
-                        "likelihood_field": args.likelihood_field, "match_lookup": args.match_lookup,
-                        "lookahead_weight": args.lookahead_weight,
-                        "set": args.set or [],
-                        "success_ra": SUCCESS_RA}
-    known = list(data.get("method_order", []))
-    data["method_order"] = known + [m.label for m in methods(args.alpha, True, True) if m.label not in known]
-
+    try:
+        exp = load_experiment(args.config)
+        if args.table not in exp["tables"]:
+            raise ConfigError(f"no table {args.table!r} in {args.config}; tables: {sorted(exp['tables'])}")
+        table = exp["tables"][args.table]
+        unknown = [m for m in args.methods or [] if m not in exp["methods"]]
+        if unknown:
+            raise ConfigError(f"unknown methods {unknown}; known: {list(exp['methods'])}")
+        overrides = {**table.get("set", {}), **parse_assignments(args.set)}
+        cells = table_cells(exp, table, args.methods or table["methods"], overrides)
+        world = world_settings(exp, table)
+        out = Path(args.out)
+        store = ResultStore(out / "results.json", world, key=lambda r: (r["cell"], r["seed"]))
+    except (ConfigError, SettingsMismatch, OSError, json.JSONDecodeError) as err:
+        print(f"box_world.py: {err}", file=sys.stderr)
+        return 2
     from tqdm.auto import tqdm
 
-    cells = [(m, n) for n in particle_counts for m in method_list]
-    seeds = list(dict.fromkeys(args.seeds)) if args.seeds else list(range(args.first_seed, args.first_seed + args.runs))
-    for method, n in cells:
-        key = cell_key(method, n)
-        cell = data["cells"].setdefault(key, {"method": method.label, "N": n, "runs": []})
-        cell.update({"proposal": method.proposal, "num_localizers": method.num_localizers,
-                     "horizon": method.horizon, "alpha": method.alpha})
-        done = {r["seed"] for r in cell["runs"]}
-        if done.issuperset(seeds):
-            cell["complete"] = True
+    (out / "maps").mkdir(parents=True, exist_ok=True)
+    stored = store.sections.setdefault("cells", {})
+    seeds = range(args.first_seed, args.first_seed + args.runs)
+    for c in cells:
+        key = cell_key(c)
+        cell = stored.setdefault(key, {})
+        cell.update(c)  # the record and its (latest) name
+        todo = [s for s in seeds if not store.done((key, s))]
+        if not todo:
             continue
-        bar = tqdm(seeds, desc=key, unit="run", file=sys.stdout)
-        bar.update(sum(seed in done for seed in seeds))
-        for seed in seeds:
-            if seed in done:
-                continue
-            run, result, scenario = run_once(method, n, seed, args, scenario_kwargs)
-            cell["runs"].append(run)
-            done.add(seed)
-            if "params" not in cell:
-                cell["params"] = params_to_dict(result_params(method, n, scenario, args))
-            if seed == seeds[0] or "example" not in cell:
-                name = f"maps/{method.label.replace(' ', '_').replace('=', '')}_N{n}_seed{seed}.npz"
-                save_example(out / name, result, scenario, run["ra"])
-                cell["example"] = name
-            worst = max(cell["runs"], key=lambda r: r["ra"])
-            if worst["seed"] == seed and run["ra"] >= SUCCESS_RA:
-                name = f"maps/{method.label.replace(' ', '_').replace('=', '')}_N{n}_worst.npz"
-                save_example(out / name, result, scenario, run["ra"])
-                cell["worst_example"] = name
-            cell["summary"] = summarize_cell(cell["runs"])
-            cell["complete"] = done.issuperset(seeds)
-            write_json(path, data)
+        stem = (f"maps/{c['method'].replace(' ', '_').replace('=', '')}_N{c['N']}_s{c['odometry_scale']:g}_"
+                f"{hashlib.sha1(key.encode()).hexdigest()[:8]}")
+        bar = tqdm(todo, desc=f"{c['method']} N={c['N']} scale={c['odometry_scale']:g}", unit="run", file=sys.stdout)
+        for seed in bar:
+            run, result, scenario = run_once(c, seed, world, args.progress)
+            if "example" not in cell:
+                save_example(out / f"{stem}_seed{seed}.npz", result, scenario, run["ra"])
+                cell["example"] = f"{stem}_seed{seed}.npz"
+            worst = max((r["ra"] for r in store.runs if r["cell"] == key), default=-np.inf)
+            if run["ra"] >= world["success_ra"] and run["ra"] > worst:
+                save_example(out / f"{stem}_worst.npz", result, scenario, run["ra"])
+                cell["worst_example"] = f"{stem}_worst.npz"
+            store.add({"cell": key, **run}, cells=stored)
             bar.set_postfix(ra=f"{run['ra']:.3f}", s=f"{run['seconds']:.0f}")
-            bar.update(1)
-        bar.close()
-        cell["summary"] = summarize_cell(cell["runs"])
-        cell["complete"] = True
-        write_json(path, data)
-        make_figures(out, data)
-    write_json(path, data)
-    make_figures(out, data)
-    print_table(data)
-    print(f"wrote {path}")
-
-
-def result_params(method, n, scenario, args):
-    return filter_setup(method, n, scenario, args)[1]
+    write_summaries(out, store, cells, world["success_ra"])
+    print_table(cells, store.runs, world["success_ra"])
+    print(f"wrote {out / 'results.json'}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

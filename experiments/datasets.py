@@ -11,7 +11,8 @@ also localises every scan in its final map and fuses the matches with the odomet
 (``jaxslam map --refine``, :mod:`jaxslam.refine`); the table shows that trajectory's error on
 a row of its own.
 Finished runs are skipped on restart, so the script can be stopped and resumed, and a later
-call into the same folder (same settings) adds its runs to ``results.json`` beside the earlier ones.
+call into the same folder (same settings) adds its runs to ``results.json`` beside the earlier ones
+(``experiments/_runs.py``; a folder written with other settings is refused).
 
     python experiments/datasets.py --out results/datasets [--seeds 3] [--proposals op smp lp]
 
@@ -29,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the shared resume helper
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -203,6 +205,14 @@ def seed_markdown(records: list[dict], over: float = 0.06) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_tables(store: ResultStore):
+    """The summary in results.json, results.md and seeds.md, from every run in the folder."""
+    summary = aggregate(store.runs)
+    store.write(summary=summary, gmapping_this_machine=GMAPPING_HERE, published=PUBLISHED)
+    (store.path.parent / "results.md").write_text(markdown(summary))
+    (store.path.parent / "seeds.md").write_text(seed_markdown(store.runs))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default="results/datasets")
@@ -215,38 +225,30 @@ def main(argv=None) -> int:
                              "-c0: with lookahead.selection_correction=0 (the evidence alone weighs the particles)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="change one of the table's settings for every run (after them, so it wins), "
-                             "e.g. likelihood_field=occupied; use a new --out (runs are cached there)")
+                             "e.g. num_particles=100; use a new --out (runs are cached there)")
     args = parser.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     if not data.is_dir():
         print(f"datasets not found at {data}", file=sys.stderr)
         return 2
     settings = {**SETTINGS, "set": SETTINGS["set"] + args.set}
-    previous = out / "results.json"
-    if previous.is_file() and json.loads(previous.read_text()).get("settings") != settings:
-        print(f"{previous} was written with other settings; its cached runs would be mixed with "
-              f"these: choose another --out", file=sys.stderr)
+    try:  # results.json describes every run in the folder: an earlier call's runs stay in it
+        store = ResultStore(out / "results.json", settings, key=lambda r: (r["dataset"], r["proposal"], r["seed"]))
+    except SettingsMismatch as err:
+        print(err, file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
     from tqdm import tqdm
 
     jobs = [(d, p, s) for d in args.datasets for p in args.proposals for s in range(args.seeds)]
-    # results.json describes every run in the folder: an earlier call's runs (other logs,
-    # proposals or seeds, same settings) stay in it beside this call's.
-    records = []
-    if previous.is_file():
-        this_call = set(jobs)
-        records = [r for r in json.loads(previous.read_text())["runs"]
-                   if (r["dataset"], r["proposal"], r["seed"]) not in this_call]
-    for dataset, proposal, seed in tqdm(jobs, desc="runs", unit="run"):
-        records.append(run_one(dataset, proposal, seed, out, data, settings))
-        summary = aggregate(records)
-        (out / "results.json").write_text(json.dumps({"settings": settings, "runs": records, "summary": summary,
-                                                     "gmapping_this_machine": GMAPPING_HERE, "published": PUBLISHED},
-                                                    indent=2))
-        (out / "results.md").write_text(markdown(summary))
-        (out / "seeds.md").write_text(seed_markdown(records))
-    print(markdown(aggregate(records)))
+    for job in tqdm(jobs, desc="runs", unit="run"):
+        stored = store.get(job)
+        if stored is not None and "failed" not in stored:  # failed runs are retried
+            continue
+        store.add(run_one(*job, out, data, settings))
+        write_tables(store)
+    write_tables(store)
+    print(markdown(aggregate(store.runs)))
     return 0
 
 

@@ -22,7 +22,7 @@ from jaxslam.proposals import lookahead as la
 from jaxslam.proposals.base import StepInputs
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.likelihood_field import endpoint_log_likelihood
-from jaxslam.segment_map import raycast
+from rooms import ROOM, SENSOR, SPEC, build_room_map, room_path, scan_at  # noqa: F401
 
 # ---------------------------------------------------------------------------------------------
 # 1-D linear-Gaussian toy model: x_s = x_{s-1} + u_s + N(0, q^2), z_s = x_s + N(0, r^2).
@@ -233,31 +233,7 @@ def test_toy_shrinking_horizon_equals_shorter_horizon():
 
 
 # ---------------------------------------------------------------------------------------------
-# The grid LP: a small room, a scan-built map.
-
-ROOM = np.array([
-    [0.0, 0.0, 6.0, 0.0], [6.0, 0.0, 6.0, 4.0], [6.0, 4.0, 0.0, 4.0], [0.0, 4.0, 0.0, 0.0],
-    [2.0, 1.5, 2.6, 1.5], [2.6, 1.5, 2.6, 2.1],  # a box
-    [4.2, 3.0, 4.8, 2.6],  # a slanted panel
-], np.float32)
-SENSOR = make_sensor(uniform_beams(61, math.pi), range_min=0.05, range_max=8.0)
-SPEC = GridSpec.from_bounds(-1.0, -1.0, 7.0, 5.0, 0.05)
-
-
-def scan_at(pose):
-    laser = compose(jnp.asarray(pose, jnp.float32), SENSOR.laser_pose)
-    ranges, _ = raycast(jnp.asarray(ROOM), laser[:2], laser[2] + SENSOR.beam_angles, SENSOR.range_max)
-    return ranges
-
-
-def room_path(num):
-    """A path along the room (poses (num, 3)), turning slowly."""
-    s = np.linspace(0.0, 1.0, num)
-    x = 1.0 + 3.5 * s
-    y = 0.8 + 2.0 * s**2
-    theta = np.arctan2(np.gradient(y), np.gradient(x))
-    return np.stack([x, y, theta], axis=-1).astype(np.float32)
-
+# The grid LP: a small room, a scan-built map (tests/rooms.py).
 
 _jit_explain = jax.jit(la.explain, static_argnames="config")
 _jit_propose = jax.jit(la.propose, static_argnames="config")
@@ -265,12 +241,7 @@ _jit_propose = jax.jit(la.propose, static_argnames="config")
 
 @pytest.fixture(scope="module")
 def room_map():
-    params = default_params()
-    grid_map = empty_map(SPEC)
-    insert = jax.jit(insert_scan, static_argnums=(0, 6, 7))
-    for pose in room_path(6)[:3]:
-        grid_map, _ = insert(SPEC, grid_map, jnp.asarray(pose), scan_at(pose), SENSOR, params.insertion, 10.0, 4)
-    return grid_map
+    return build_room_map(3)
 
 
 def lp_config(num_localizers=40, horizon=3, **kw):

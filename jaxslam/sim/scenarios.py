@@ -349,8 +349,8 @@ def box_world_scenario(
     per-step heading stds add up (GMapping's model sums the terms), so per lap (11 m and
     2 pi turned in 110 steps) odometry accumulates a heading std of about 7.6 degrees and a
     position std of about 0.3 m: the noisy end of a wheeled robot's odometry on flat ground.
-    (Half the proportional terms, ``experiments/box_world.py --world-odometry-scale 0.5``,
-    give 4.4 degrees a lap; the LP's success rate depends on it: docs/tuning.md.) Over the
+    (Half the proportional terms give 4.4 degrees a lap; how the LP's success rate depends on
+    the scale: ``experiments/box_world.py --table noise`` and docs/results.md.) Over the
     whole run (measured on 100 seeds) the heading std reaches about 40 degrees, and at the
     last passage over X odometry is off by 2 m (median; 0.65 m to 4.5 m from the 10th to the
     90th percentile). So the filter must close the loop at X:

@@ -1,0 +1,94 @@
+"""The resume/cache helper shared by the experiments (``box_world.py``, ``datasets.py``).
+
+A :class:`ResultStore` is one folder's ``results.json``: the settings it was written with,
+a list of run records (one per finished run, told apart by ``key(run)``) and any summary
+sections. It refuses a folder written with other settings (:class:`SettingsMismatch`), says
+which runs are done, and rewrites the file atomically after every added run, keeping the
+runs of earlier calls. So an experiment can be stopped and restarted, and a later call into
+the same folder adds its runs beside the earlier ones.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable, Hashable
+
+
+class SettingsMismatch(Exception):
+    """The folder's results.json was written with other settings."""
+
+
+def _plain(value: Any) -> Any:
+    """``value`` as it reads back from JSON (tuples become lists, ...), for comparisons."""
+    return json.loads(json.dumps(value))
+
+
+def write_json(path: Path, data: Any):
+    """Write ``data`` to ``path`` atomically: a temporary file in the same folder, then ``os.replace``
+    (an interrupted write never leaves a broken file)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class ResultStore:
+    """``path`` (a results.json): ``{"settings": ..., "runs": [...], <sections>...}``.
+
+    Args:
+      path: the results.json (its folder is created on the first write).
+      settings: what the runs depend on beyond their own record; a stored file with other
+        settings raises :class:`SettingsMismatch`.
+      key: a run record's identity (e.g. ``lambda r: (r["cell"], r["seed"])``); adding a run
+        with the key of a stored one replaces it.
+    """
+
+    def __init__(self, path, settings: dict, key: Callable[[dict], Hashable]):
+        self.path = Path(path)
+        self.settings = _plain(settings)
+        self.key = key
+        self.sections: dict = {}
+        self.runs: list[dict] = []
+        if self.path.is_file():
+            data = json.loads(self.path.read_text())
+            if data.get("settings") != self.settings:
+                raise SettingsMismatch(
+                    f"{self.path} was written with other settings; its runs would be mixed with these: "
+                    f"choose another folder.\n  stored:    {json.dumps(data.get('settings'), sort_keys=True)}"
+                    f"\n  requested: {json.dumps(self.settings, sort_keys=True)}")
+            self.runs = list(data.get("runs", []))
+            self.sections = {k: v for k, v in data.items() if k not in ("settings", "runs")}
+        self._index = {self.key(r): i for i, r in enumerate(self.runs)}
+
+    def get(self, key: Hashable) -> dict | None:
+        """The stored run with this key, or None."""
+        i = self._index.get(key)
+        return None if i is None else self.runs[i]
+
+    def done(self, key: Hashable) -> bool:
+        return key in self._index
+
+    def add(self, *runs: dict, **sections):
+        """Store ``runs`` (each replacing a stored run with its key), update ``sections``, write the file."""
+        for run in runs:
+            k = self.key(run)
+            if k in self._index:
+                self.runs[self._index[k]] = run
+            else:
+                self._index[k] = len(self.runs)
+                self.runs.append(run)
+        self.write(**sections)
+
+    def write(self, **sections):
+        """Update the summary ``sections`` and rewrite the file atomically."""
+        self.sections.update(sections)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(self.path, {"settings": self.settings, "runs": self.runs, **self.sections})

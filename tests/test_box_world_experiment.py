@@ -1,0 +1,218 @@
+"""experiments/box_world.py (the table in box_world.json), its merge script and the shared resume
+helper experiments/_runs.py (also behind experiments/datasets.py). Fast: no full runs."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+sys.path.insert(0, str(EXPERIMENTS))
+
+import box_world as bw  # noqa: E402
+import box_world_merge as bwm  # noqa: E402
+from _runs import ResultStore, SettingsMismatch  # noqa: E402
+
+from jaxslam.config import ConfigError, build_setup  # noqa: E402
+
+# experiments/datasets.py under a name of its own (not the ``datasets`` package of the same name)
+_spec = importlib.util.spec_from_file_location("experiments_datasets", EXPERIMENTS / "datasets.py")
+datasets = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(datasets)
+
+
+@pytest.fixture(scope="module")
+def exp():
+    return bw.load_experiment()
+
+
+def test_every_method_and_table_builds(exp):
+    for name, flat in exp["methods"].items():
+        config, settings, params = build_setup({**exp["common"], **flat})
+        assert config.proposal == flat["proposal"]
+        assert (settings.linear_update, settings.angular_update) == (0.5, 0.25)
+        assert config.match_lookup == "nearest" and config.beam_stride == 2
+        assert float(params.likelihood.gain) == pytest.approx(0.1)
+    lp0, lp = build_setup(exp["methods"]["LP a=0"])[2], build_setup(exp["methods"]["LP"])[2]
+    assert float(lp0.lookahead.alpha) == 0.0 and float(lp.lookahead.alpha) == 0.5
+    for table in exp["tables"].values():
+        assert bw.table_cells(exp, table, table["methods"], table.get("set", {}))
+    noise = exp["tables"]["noise"]
+    assert noise["methods"] == ["OP", "SMP", "LP a=0", "LP"] and noise["particles"] == [50]
+    assert noise["odometry_scales"] == [0.25, 0.5, 1.0, 1.5]
+
+
+def test_bad_names_are_refused(exp, tmp_path, capsys):
+    with pytest.raises(ConfigError):
+        bw.method_settings(exp, "OP", {"no_such_name": 1})
+    assert bw.main(["--out", str(tmp_path), "--set", "motion.nope=1"]) == 2
+    assert bw.main(["--out", str(tmp_path), "--table", "nope"]) == 2
+    assert bw.main(["--out", str(tmp_path), "--methods", "nope"]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_cell_keys_are_stable_and_distinct(exp):
+    a = bw.cell_record(bw.method_settings(exp, "LP", {"beam_stride": "2"}), 50, 1)
+    b = bw.cell_record(bw.method_settings(exp, "LP"), 50, 1.0)
+    assert bw.cell_key(a) == bw.cell_key(b)  # typed by the builder; the scale as a float
+    shuffled = {**b, "settings": dict(reversed(list(b["settings"].items())))}
+    assert bw.cell_key(shuffled) == bw.cell_key(b)
+    keys = {bw.cell_key(bw.cell_record(bw.method_settings(exp, m), n, s))
+            for m in exp["methods"] for n in (20, 50) for s in (0.5, 1.0)}
+    assert len(keys) == len(exp["methods"]) * 4
+    assert "LP" not in json.loads(bw.cell_key(b))  # keyed by the record, not the name
+    assert bw.cell_key(bw.cell_record(bw.method_settings(exp, "LP", {"lookahead.alpha": "0"}), 50, 1)) == \
+        bw.cell_key(bw.cell_record(bw.method_settings(exp, "LP a=0"), 50, 1))
+
+
+def test_binomial_standard_error():
+    assert bw.binomial_se(19, 30) == pytest.approx(math.sqrt((19 / 30) * (11 / 30) / 30))
+    assert bw.binomial_se(0, 30) == 0.0 and bw.binomial_se(30, 30) == 0.0
+    assert math.isnan(bw.binomial_se(0, 0))
+    s = bw.summarize([{"ra": 0.1}, {"ra": 0.3}, {"ra": 0.19}, {"ra": 0.2}], 0.2)
+    assert (s["successes"], s["success_rate"]) == (2, 0.5)
+    assert s["standard_error"] == pytest.approx(0.25)
+
+
+def test_store_refuses_other_settings_and_keeps_runs(tmp_path):
+    path = tmp_path / "results.json"
+    store = ResultStore(path, {"a": (1, 2)}, key=lambda r: r["seed"])
+    store.add({"seed": 0, "x": 1}, summary={"n": 1})
+    store.add({"seed": 1, "x": 2})
+    again = ResultStore(path, {"a": [1, 2]}, key=lambda r: r["seed"])  # tuples compare as JSON lists
+    assert again.done(0) and again.done(1) and not again.done(2)
+    assert again.sections["summary"] == {"n": 1}
+    again.add({"seed": 0, "x": 3})
+    assert [r["x"] for r in json.loads(path.read_text())["runs"]] == [3, 2]
+    with pytest.raises(SettingsMismatch, match="other settings"):
+        ResultStore(path, {"a": [1, 3]}, key=lambda r: r["seed"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.json"]  # no temporary files left
+
+
+def _fake_runs(monkeypatch, calls):
+    def run_once(record, seed, world, progress=False):
+        calls.append((record["N"], seed))
+        ra = 0.1 if seed % 2 == 0 else 0.5
+        return {f: 0 for f in bw.RUN_FIELDS} | {"seed": seed, "ra": ra}, None, None
+
+    monkeypatch.setattr(bw, "run_once", run_once)
+    monkeypatch.setattr(bw, "save_example", lambda *a: None)
+
+
+def test_box_world_resumes_and_refuses(exp, tmp_path, monkeypatch, capsys):
+    calls = []
+    _fake_runs(monkeypatch, calls)
+    out = tmp_path / "bw"
+    assert bw.main(["--table", "noise", "--methods", "OP", "--runs", "2", "--out", str(out)]) == 0
+    assert len(calls) == 8  # 4 scales x 2 seeds
+    assert bw.main(["--table", "noise", "--methods", "OP", "--runs", "3", "--out", str(out)]) == 0
+    assert len(calls) == 12  # only seed 2 of each scale is new
+    data = json.loads((out / "results.json").read_text())
+    assert len(data["runs"]) == 12 and len(data["cells"]) == 4
+    rows = {r["odometry_scale"]: r for r in data["noise_scale"]}
+    assert rows[1.0]["successes"] == 2 and rows[1.0]["runs"] == 3
+    assert (out / "noise_scale.png").is_file() and "2/3" in (out / "noise_scale.md").read_text()
+    # The noise table's scale-1 cell is the main table's N = 50 cell.
+    assert bw.main(["--table", "table", "--methods", "OP", "--runs", "3", "--out", str(out)]) == 0
+    assert len(calls) == 15  # N = 20 only
+    capsys.readouterr()
+    assert bw.main(["--table", "quick", "--methods", "OP", "--runs", "1", "--out", str(out)]) == 2  # another world
+    err = capsys.readouterr().err
+    assert "other settings" in err and "Traceback" not in err
+
+
+OLD = {
+    "settings": {"runs": 2, "quick": False, "scenario": {}, "alpha": 0.5, "rotation_weight": 1.0, "beam_stride": 2,
+                 "linear_update": 0.5, "angular_update": 0.25, "motion_scale": 0.45, "world_odometry_scale": 0.5,
+                 "likelihood_field": "endpoints", "match_lookup": "nearest", "lookahead_weight": "filter", "set": [],
+                 "success_ra": 0.2},
+    "cells": {
+        f"{label} | N=50": {"method": label, "N": 50, "runs": [
+            {"seed": s, "ra": 0.1 * (s + 1), "best_particle_error": 0.0, "seconds": 1.0, "num_steps": 5,
+             "num_fallbacks": 0, "num_degenerate": 0, "num_resamplings": 1, "min_ess": 1.0,
+             "lineages_from_lap1": {"end": 1}} for s in range(2)]}
+        for label in ["OP", "SMP", "LP a=0 L=100 k=5", "LP a=0.5 L=100 k=5", "LP a=0.5 L=50 k=3",
+                      "LP-SM a=0.5 L=100 k=5", "LP a=0.5 c=0 L=100 k=5", "LP-SM a=0.5 c=0 L=100 k=5",
+                      "LP a=0.5 L=200 k=5"]},
+}
+
+
+def test_old_format_is_converted(exp, capsys):
+    cells, runs = bwm.convert_old(OLD, exp)
+    assert "L=200" in capsys.readouterr().err  # a label without a method is skipped, loudly
+    names = {c["method"] for c in cells.values()}
+    assert names == {"OP", "SMP", "LP a=0", "LP", "LP L=50 k=3", "LP-SM", "LP c=0", "LP-SM c=0"}
+    for name in names:
+        key = bw.cell_key(bw.cell_record(bw.method_settings(exp, name), 50, 0.5))
+        assert cells[key]["method"] == name
+        assert [r["ra"] for r in runs if r["cell"] == key] == [0.1, 0.2]
+    assert all("lineages_from_lap1" not in r for r in runs)
+    no_scale = {**OLD, "settings": {k: v for k, v in OLD["settings"].items() if k != "world_odometry_scale"}}
+    assert {c["odometry_scale"] for c in bwm.convert_old(no_scale, exp)[0].values()} == {1.0}
+    with pytest.raises(bwm.MergeError, match="beam_stride"):
+        bwm.convert_old({**OLD, "settings": {**OLD["settings"], "beam_stride": 1}}, exp)
+
+
+def test_merge_then_the_table_only_draws(exp, tmp_path, monkeypatch):
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(OLD))
+    one = {**OLD, "settings": {**OLD["settings"], "world_odometry_scale": 1.0}}
+    (tmp_path / "one.json").write_text(json.dumps(one))
+    out = tmp_path / "merged"
+    assert bwm.main([str(out), str(old), str(tmp_path / "one.json")]) == 0
+    assert "1/2: 0.50 ± 0.35" in (out / "noise_scale.md").read_text()
+    assert (out / "noise_scale.png").is_file()
+    merged = bwm.merge_results([out], exp)  # the new format reads back
+    assert len(merged["runs"]) == 2 * 2 * 8
+    config = json.loads(bw.DEFAULT_CONFIG.read_text())
+    config["tables"]["noise"]["odometry_scales"] = [0.5, 1.0]
+    (tmp_path / "bw.json").write_text(json.dumps(config))
+    monkeypatch.setattr(bw, "run_once", lambda *a, **k: pytest.fail("a merged cell was run again"))
+    assert bw.main(["--config", str(tmp_path / "bw.json"), "--table", "noise", "--runs", "2", "--out", str(out)]) == 0
+
+
+def test_datasets_uses_the_store(tmp_path, monkeypatch, capsys):
+    calls = []
+
+    def run_one(dataset, proposal, seed, out, data, settings):
+        calls.append((dataset, proposal, seed))
+        if seed == 1 and len(calls) < 3:
+            return {"dataset": dataset, "proposal": proposal, "seed": seed, "failed": "boom"}
+        return {"dataset": dataset, "proposal": proposal, "seed": seed, "trans_mean": 0.1, "trans_std": 0.0,
+                "rot_mean_deg": 1.0, "rot_std_deg": 0.0, "wall_s": 1.0, "real_time_factor": 1.0, "peak_memory_mb": 1}
+
+    monkeypatch.setattr(datasets, "run_one", run_one)
+    out = tmp_path / "ds"
+    base = ["--data", str(tmp_path), "--out", str(out), "--datasets", "intel", "--proposals", "op"]
+    assert datasets.main(base + ["--seeds", "2"]) == 0
+    assert datasets.main(base + ["--seeds", "2"]) == 0  # only the failed seed 1 again
+    assert calls == [("intel", "op", 0), ("intel", "op", 1), ("intel", "op", 1)]
+    assert datasets.main(base[:-1] + ["smp", "--seeds", "1"]) == 0  # an earlier call's runs stay
+    data = json.loads((out / "results.json").read_text())
+    assert {(r["proposal"], r["seed"]) for r in data["runs"]} == {("op", 0), ("op", 1), ("smp", 0)}
+    assert set(data) == {"settings", "runs", "summary", "gmapping_this_machine", "published"}
+    capsys.readouterr()
+    assert datasets.main(base + ["--seeds", "1", "--set", "beam_stride=1"]) == 2
+    assert "other settings" in capsys.readouterr().err
+
+
+def test_quick_table_end_to_end(tmp_path):
+    """One real run: OP, N = 4, the 3-lap quick world."""
+    config = json.loads(bw.DEFAULT_CONFIG.read_text())
+    config["tables"]["quick"].update(methods=["OP"], particles=[4])
+    (tmp_path / "bw.json").write_text(json.dumps(config))
+    out = tmp_path / "quick"
+    t0 = time.perf_counter()
+    assert bw.main(["--config", str(tmp_path / "bw.json"), "--table", "quick", "--runs", "1", "--out", str(out)]) == 0
+    assert time.perf_counter() - t0 < 120
+    data = json.loads((out / "results.json").read_text())
+    (run,) = data["runs"]
+    assert set(run) == {"cell", *bw.RUN_FIELDS} and run["ra"] >= 0 and run["num_steps"] > 0
+    assert data["settings"]["scenario"] == {"laps": 3, "laps_per_visit": 3}
+    assert (out / "ra_distribution.png").is_file() and (out / "examples.png").is_file()

@@ -1,0 +1,154 @@
+"""One RBPF step piece by piece: the SMP's weight and fallback, the weight recursion, the reset
+when every weight is zero, the resampling trigger, and the step inputs at the end of a log."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from rooms import SENSOR, SPEC, build_room_map, room_path, scan_at
+
+from jaxslam import rbpf
+from jaxslam.config import SlamConfig, default_params
+from jaxslam.geometry import between
+from jaxslam.laserlog import LaserLog, select_updates
+from jaxslam.proposals import odometry, scan_match
+from jaxslam.proposals.base import ProposalOutput, StepInputs
+from jaxslam.scan_matching import matched_gaussian
+
+N = 6
+CONFIG = SlamConfig(num_particles=N, proposal="smp", grid=SPEC, max_insert_range=10.0, beam_stride=1)
+
+
+@pytest.fixture(scope="module")
+def room_map():
+    return build_room_map(3)
+
+
+def _inputs():
+    path = room_path(6)
+    return StepInputs(motion=jnp.asarray(between(path[1], path[2])), ranges=scan_at(path[2]),
+                      future_motions=jnp.zeros((0, 3)), future_ranges=jnp.zeros((0, 61)),
+                      future_valid=jnp.zeros((0,), bool)), jnp.asarray(path[1])
+
+
+def _state(room_map, pose, log_weights):
+    maps = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,) + a.shape), room_map)
+    return rbpf.SlamState(jnp.broadcast_to(pose, (N, 3)), jnp.asarray(log_weights, jnp.float32), maps, jnp.int32(0))
+
+
+def test_smp_weight_is_the_matched_gaussians_and_its_draw_comes_from_it(room_map):
+    inputs, pose = _inputs()
+    params = default_params()
+    key = jax.random.key(4)
+    out = scan_match.propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
+    gaussian = matched_gaussian(pose, room_map, inputs, SENSOR, params, CONFIG, fit_gain=1.0,
+                                start_key=jax.random.fold_in(key, 1))
+    assert not bool(out.fallback) and bool(gaussian.matched)
+    np.testing.assert_allclose(float(out.log_weight_increment), float(gaussian.log_eta), rtol=1e-6)
+    # The draw lies within a few standard deviations of the fitted mean.
+    residual = np.linalg.solve(np.asarray(gaussian.chol), np.asarray(out.pose - gaussian.mean))
+    assert np.all(np.abs(residual) < 5.0)
+
+
+def test_smp_falls_back_to_the_odometry_proposal_when_the_match_fails(room_map):
+    """A match score under scan_match.min_score (here impossible: 1.01) uses the OP's draw and
+    weight, with the OP's own key (the second half of the SMP's split)."""
+    inputs, pose = _inputs()
+    params = default_params(**{"scan_match.min_score": 1.01})
+    key = jax.random.key(4)
+    out = scan_match.propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
+    _, key_fallback = jax.random.split(key)
+    op = odometry.propose(key_fallback, pose, room_map, inputs, SENSOR, params, CONFIG)
+    assert bool(out.fallback)
+    np.testing.assert_array_equal(np.asarray(out.pose), np.asarray(op.pose))
+    assert float(out.log_weight_increment) == float(op.log_weight_increment)
+
+
+def test_step_weight_recursion_matches_the_proposals_increments(room_map):
+    """w_t ∝ w_{t-1} exp(increment): the step's normalised log-weights (no resampling at threshold
+    0) and its log-evidence log sum_i w_{t-1,i} exp(increment_i), against NumPy in float64 on the
+    increments the proposal returns for the step's own keys."""
+    inputs, pose = _inputs()
+    params = default_params(**{"resample_threshold": 0.0})
+    rng = np.random.default_rng(0)
+    prior = np.log(rng.dirichlet(np.ones(N)))
+    state = _state(room_map, pose, prior)
+    key = jax.random.key(7)
+    new_state, info = jax.jit(rbpf.step, static_argnames="config")(key, state, inputs, SENSOR, params, CONFIG)
+    key_prop, _ = jax.random.split(key)
+    out = jax.vmap(scan_match.propose, in_axes=(0, 0, 0, None, None, None, None))(
+        jax.random.split(key_prop, N), state.poses, state.maps, inputs, SENSOR, params, CONFIG)
+    unnormalised = np.asarray(state.log_weights, np.float64) + np.asarray(out.log_weight_increment, np.float64)
+    log_evidence = np.logaddexp.reduce(unnormalised)
+    np.testing.assert_allclose(np.asarray(new_state.log_weights), unnormalised - log_evidence, atol=1e-5)
+    np.testing.assert_allclose(float(info.log_evidence), log_evidence, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(new_state.poses), np.asarray(out.pose), atol=1e-6)
+    assert not bool(info.resampled) and not bool(info.degenerate)
+    np.testing.assert_array_equal(np.asarray(info.ancestors), np.arange(N))
+    assert int(info.best_particle) == int(np.argmax(unnormalised))
+
+
+def test_every_weight_zero_resets_to_uniform_and_reports_it(room_map, monkeypatch):
+    """A proposal that gives every particle weight zero (or NaN) leaves finite poses and uniform
+    weights; the step says ``degenerate`` and its log-evidence is -inf."""
+    inputs, pose = _inputs()
+
+    def hopeless(key, pose, grid_map, inputs, sensor, params, config):
+        inc = jnp.where(jax.random.uniform(key) < 0.5, -jnp.inf, jnp.nan)
+        return ProposalOutput(pose, inc, jnp.bool_(True))
+
+    monkeypatch.setattr(rbpf, "_proposal_fn", lambda kind: hopeless)
+    state = _state(room_map, pose, np.full(N, -math.log(N)))
+    new_state, info = rbpf.step(jax.random.key(0), state, inputs, SENSOR, default_params(), CONFIG)
+    assert bool(info.degenerate) and np.isneginf(float(info.log_evidence))
+    np.testing.assert_allclose(np.asarray(new_state.log_weights), np.full(N, -math.log(N)), rtol=1e-6)
+    assert np.all(np.isfinite(np.asarray(new_state.poses)))
+    assert int(info.num_fallbacks) == N
+
+
+@pytest.mark.parametrize("threshold, resampled", [(0.0, False), (1.01, True)])
+def test_resampling_is_triggered_by_the_ess_threshold(room_map, threshold, resampled):
+    """ESS < threshold * N resamples: 0 never does, above 1 always does (then weights are uniform
+    and every particle's map is its ancestor's)."""
+    inputs, pose = _inputs()
+    params = default_params(**{"resample_threshold": threshold})
+    state = _state(room_map, pose, np.full(N, -math.log(N)))
+    new_state, info = rbpf.step(jax.random.key(3), state, inputs, SENSOR, params, CONFIG)
+    assert bool(info.resampled) == resampled
+    if resampled:
+        np.testing.assert_allclose(np.asarray(new_state.log_weights), np.full(N, -math.log(N)), rtol=1e-6)
+        anc = np.asarray(info.ancestors)
+        np.testing.assert_array_equal(np.asarray(new_state.poses), np.asarray(info.proposed_poses)[anc])
+    assert float(info.ess) <= N + 1e-3
+
+
+def test_build_inputs_at_the_end_of_the_log():
+    """Step s carries scans s+1..s+K; past the last processed scan they are marked invalid, their
+    motions are zero and their ranges repeat the last scan (never read: the horizon shrinks)."""
+    num_scans, num_beams, horizon = 7, 5, 3
+    odometry = np.stack([np.arange(num_scans) * 1.0, np.zeros(num_scans), np.zeros(num_scans)], axis=1)
+    ranges = np.arange(num_scans * num_beams, dtype=np.float32).reshape(num_scans, num_beams) / 10.0 + 0.5
+    sensor = SENSOR._replace(beam_angles=SENSOR.beam_angles[:num_beams])
+    log = LaserLog(np.arange(num_scans, dtype=np.float64), odometry, ranges, sensor, None, "line")
+    selection = select_updates(log, 0.0, 0.0)  # every scan
+    inputs = rbpf.build_inputs(log, selection, horizon)
+    steps = num_scans - 1
+    assert inputs.ranges.shape == (steps, num_beams)
+    assert inputs.future_ranges.shape == (steps, horizon, num_beams)
+    np.testing.assert_array_equal(inputs.ranges, ranges[1:])
+    for s in range(steps):  # step s processes scan s + 1
+        for k in range(horizon):
+            scan = s + 2 + k
+            assert bool(inputs.future_valid[s, k]) == (scan < num_scans)
+            if scan < num_scans:
+                np.testing.assert_array_equal(inputs.future_ranges[s, k], ranges[scan])
+                np.testing.assert_allclose(inputs.future_motions[s, k], [1.0, 0.0, 0.0], atol=1e-6)
+            else:
+                np.testing.assert_array_equal(inputs.future_motions[s, k], 0.0)
+                np.testing.assert_array_equal(inputs.future_ranges[s, k], ranges[-1])
+    assert not inputs.future_valid[-1].any()
+    assert rbpf.build_inputs(log, selection, 0).future_ranges.shape == (steps, 0, num_beams)
