@@ -202,6 +202,7 @@ def test_datasets_uses_the_store(tmp_path, monkeypatch, capsys):
     assert "other settings" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_quick_table_end_to_end(tmp_path):
     """One real run: OP, N = 4, the 3-lap quick world."""
     config = json.loads(bw.DEFAULT_CONFIG.read_text())

@@ -125,6 +125,7 @@ def test_missing_file_is_a_clear_error(tmp_path, capsys):
     assert "nope.bag" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_demo_runs(tmp_path):
     out = tmp_path / "demo"
     assert main(["demo", "--scans", "60", "--particles", "4", "--no-progress", "--out", str(out)]) == 0
@@ -147,3 +148,14 @@ def test_eval_prints_and_writes_the_error_table(tmp_path, capsys):
     assert table["count"] == 4
     assert table["trans_mean"] == pytest.approx(0.1, abs=1e-5)
     assert "trans_mean" in capsys.readouterr().out
+
+
+def test_doors_command_writes_a_summary(tmp_path, capsys):
+    out = tmp_path / "doors"
+    assert main(["doors", "--particles", "200", "--filter", "static", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["filter"] == "static" and summary["particles"] == 200
+    assert (out / "static.png").is_file()
+    assert "final position error" in capsys.readouterr().out
+    assert main(["doors", "--particles", "0", "--out", str(out)]) == 2
+    assert "--particles must be >= 1" in capsys.readouterr().err

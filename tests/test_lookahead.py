@@ -108,6 +108,7 @@ def _toy_weights(alpha, seed=0, selection_correction=1.0):
     return w.mean(), w.std(ddof=1) / math.sqrt(w.size)
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 @pytest.mark.parametrize("alpha", [0.1, 0.5])
 def test_defensive_lp_weight_is_unbiased(alpha):
     """q = 0.3, r = 0.2, L = 50, k = 3, resampling before every horizon step (threshold 2 > 1)."""
@@ -115,6 +116,7 @@ def test_defensive_lp_weight_is_unbiased(alpha):
     assert abs(mean - TOY_EXACT) < 3 * se, (mean, se, TOY_EXACT)
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_paper_lp_weight_alpha0_is_biased_low():
     """The paper's Eq. 10 (alpha = 0): lines that die in the horizon's resampling are never
     drawn, so E[exp(increment)] < p(z_t | x_{t-1}). Measured: 0.390 +- 0.005 vs 0.561."""
@@ -373,6 +375,7 @@ def test_lp_step_compiles_once_per_config(room_map):
         lp_step(jax.random.key(0), state, inputs, params, dataclasses.replace(config, num_localizers=8))
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_lp_run_end_to_end_on_a_simulated_log():
     rng = np.random.default_rng(0)
     truth = room_path(14).astype(np.float64)
@@ -433,6 +436,7 @@ def test_revisiting_accuracy_weights_particle_errors():
     np.testing.assert_array_equal(paths[0, 2], proposed[1, 0])
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
     """scan_match.start_noise: 0 starts the hill climber at the prediction (bit for bit the same
     as no start key); 1 starts each particle from its own odometry draw, as GMapping does: the
@@ -454,6 +458,7 @@ def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
     np.testing.assert_allclose(means[:, 2], np.full(12, float(reference.mean[2])), atol=0.03)
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_scan_matched_localizers_estimate_the_same_evidence(room_map):
     """LP-SM: localizers drawn from the matched Gaussian q and weighted g_i = log p(z_t | x_i)
     + log p(x_i | x_{t-1}, u_t) - log q(x_i). With k = 0 the increment is exactly log mean

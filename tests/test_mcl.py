@@ -75,6 +75,7 @@ def _outbound(scenario, steps):
     return mcl.ScanInputs(inputs.motion[:steps], inputs.ranges[:steps])
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_mcl_tracks_a_simulated_run(office):
     steps = 60
     segments = jnp.asarray(office.world.segments)  # doors present: they are closed on the way out
@@ -90,6 +91,7 @@ def test_mcl_tracks_a_simulated_run(office):
     assert final.poses.shape == (300, 3)
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_mcl_global_in_region_converges():
     """Uniform over the first 3.5 m of corridor A of the door scenario, on its true map (D2, D3 closed):
     the open door D1 pins the position down."""

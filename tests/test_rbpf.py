@@ -84,6 +84,7 @@ def test_smp_tracks_the_truth_and_beats_odometry(office_log):
     assert not np.any(result.info.degenerate)
 
 
+@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 @pytest.mark.parametrize("lookups", [{"likelihood_lookup": "bilinear"}, {"match_lookup": "nearest"}])
 def test_smp_with_other_lookups_tracks_the_truth(office_log, lookups):
     """The whole filter with the bilinear lookup in the weights as well, or with the nearest-cell
@@ -189,3 +190,18 @@ def test_config_and_params_validation():
     flat = params_to_dict(params_from_dict({"motion.srr": 0.25}))
     assert flat["motion.srr"] == pytest.approx(0.25)
     assert params_to_dict(params_from_dict(flat)) == flat
+
+
+def test_run_settings_do_not_recompile_the_step(office_log):
+    """The update rule is host-side: two runs that process different scans with the same config
+    (grid given) share one compiled chunk."""
+    log = office_log.subset(np.arange(40))
+    grid = GridSpec.from_bounds(float(log.odometry[:, 0].min()) - 4.0, float(log.odometry[:, 1].min()) - 4.0,
+                                float(log.odometry[:, 0].max()) + 4.0, float(log.odometry[:, 1].max()) + 4.0, 0.05)
+    config = small_config(proposal="op", num_particles=3, grid=grid)
+    rbpf.run(jax.random.key(0), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+    compiled = rbpf._run_chunk._cache_size()
+    other = RunSettings(linear_update=0.6, angular_update=0.5, map_padding=9.0)
+    result = rbpf.run(jax.random.key(0), log, config, default_params(), other, chunk_size=8, progress=False)
+    assert rbpf._run_chunk._cache_size() == compiled
+    assert result.settings == other

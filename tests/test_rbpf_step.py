@@ -3,6 +3,7 @@ when every weight is zero, the resampling trigger, and the step inputs at the en
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -21,6 +22,11 @@ from jaxslam.scan_matching import matched_gaussian
 
 N = 6
 CONFIG = SlamConfig(num_particles=N, proposal="smp", grid=SPEC, max_insert_range=10.0, beam_stride=1)
+# Jitted once here (op by op, a scan-matching step takes tens of seconds).
+smp_propose = jax.jit(scan_match.propose, static_argnames="config")
+op_propose = jax.jit(odometry.propose, static_argnames="config")
+fitted_gaussian = jax.jit(matched_gaussian, static_argnames=("config", "fit_gain"))
+step = jax.jit(rbpf.step, static_argnames="config")
 
 
 @pytest.fixture(scope="module")
@@ -44,9 +50,9 @@ def test_smp_weight_is_the_matched_gaussians_and_its_draw_comes_from_it(room_map
     inputs, pose = _inputs()
     params = default_params()
     key = jax.random.key(4)
-    out = scan_match.propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
-    gaussian = matched_gaussian(pose, room_map, inputs, SENSOR, params, CONFIG, fit_gain=1.0,
-                                start_key=jax.random.fold_in(key, 1))
+    out = smp_propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
+    gaussian = fitted_gaussian(pose, room_map, inputs, SENSOR, params, CONFIG, fit_gain=1.0,
+                               start_key=jax.random.fold_in(key, 1))
     assert not bool(out.fallback) and bool(gaussian.matched)
     np.testing.assert_allclose(float(out.log_weight_increment), float(gaussian.log_eta), rtol=1e-6)
     # The draw lies within a few standard deviations of the fitted mean.
@@ -60,9 +66,9 @@ def test_smp_falls_back_to_the_odometry_proposal_when_the_match_fails(room_map):
     inputs, pose = _inputs()
     params = default_params(**{"scan_match.min_score": 1.01})
     key = jax.random.key(4)
-    out = scan_match.propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
+    out = smp_propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
     _, key_fallback = jax.random.split(key)
-    op = odometry.propose(key_fallback, pose, room_map, inputs, SENSOR, params, CONFIG)
+    op = op_propose(key_fallback, pose, room_map, inputs, SENSOR, params, CONFIG)
     assert bool(out.fallback)
     np.testing.assert_array_equal(np.asarray(out.pose), np.asarray(op.pose))
     assert float(out.log_weight_increment) == float(op.log_weight_increment)
@@ -78,9 +84,9 @@ def test_step_weight_recursion_matches_the_proposals_increments(room_map):
     prior = np.log(rng.dirichlet(np.ones(N)))
     state = _state(room_map, pose, prior)
     key = jax.random.key(7)
-    new_state, info = jax.jit(rbpf.step, static_argnames="config")(key, state, inputs, SENSOR, params, CONFIG)
+    new_state, info = step(key, state, inputs, SENSOR, params, CONFIG)
     key_prop, _ = jax.random.split(key)
-    out = jax.vmap(scan_match.propose, in_axes=(0, 0, 0, None, None, None, None))(
+    out = jax.vmap(smp_propose, in_axes=(0, 0, 0, None, None, None, None))(
         jax.random.split(key_prop, N), state.poses, state.maps, inputs, SENSOR, params, CONFIG)
     unnormalised = np.asarray(state.log_weights, np.float64) + np.asarray(out.log_weight_increment, np.float64)
     log_evidence = np.logaddexp.reduce(unnormalised)
@@ -103,7 +109,9 @@ def test_every_weight_zero_resets_to_uniform_and_reports_it(room_map, monkeypatc
 
     monkeypatch.setattr(rbpf, "_proposal_fn", lambda kind: hopeless)
     state = _state(room_map, pose, np.full(N, -math.log(N)))
-    new_state, info = rbpf.step(jax.random.key(0), state, inputs, SENSOR, default_params(), CONFIG)
+    # A config no other test traces (jit caches traces per function and static config).
+    config = dataclasses.replace(CONFIG, proposal="op", match_iterations=1)
+    new_state, info = step(jax.random.key(0), state, inputs, SENSOR, default_params(), config)
     assert bool(info.degenerate) and np.isneginf(float(info.log_evidence))
     np.testing.assert_allclose(np.asarray(new_state.log_weights), np.full(N, -math.log(N)), rtol=1e-6)
     assert np.all(np.isfinite(np.asarray(new_state.poses)))
@@ -117,7 +125,7 @@ def test_resampling_is_triggered_by_the_ess_threshold(room_map, threshold, resam
     inputs, pose = _inputs()
     params = default_params(**{"resample_threshold": threshold})
     state = _state(room_map, pose, np.full(N, -math.log(N)))
-    new_state, info = rbpf.step(jax.random.key(3), state, inputs, SENSOR, params, CONFIG)
+    new_state, info = step(jax.random.key(3), state, inputs, SENSOR, params, CONFIG)
     assert bool(info.resampled) == resampled
     if resampled:
         np.testing.assert_allclose(np.asarray(new_state.log_weights), np.full(N, -math.log(N)), rtol=1e-6)
