@@ -81,6 +81,7 @@ def insert_scan(
     params: InsertionParams,
     max_insert_range: float,
     field_radius: int,
+    window_offset: Int[Array, "2"] | None = None,
 ) -> tuple[GridMap, Int[Array, ""]]:
     """Insert one scan taken at robot ``pose`` into one map.
 
@@ -95,8 +96,13 @@ def insert_scan(
     The likelihood field registers every endpoint ever inserted (a scatter-min of the
     squared cell distances within ``field_radius`` cells of each endpoint).
 
+    ``window_offset`` (row, col), traced: ``grid_map`` is a window of ``spec``'s grid whose cell
+    (0, 0) is the grid's cell ``window_offset`` (its shape is the arrays'); cells are still
+    computed in ``spec``'s frame, so a window gets exactly the updates the whole grid would
+    (:mod:`jaxslam.paged_map` inserts into windows of its tiles). None: the map is the grid.
+
     Returns the new map and the number of beam samples (free or endpoint) that fell
-    outside the map and were dropped.
+    outside the map (or the window) and were dropped.
     """
     res = spec.resolution
     num_samples = int(math.ceil(max_insert_range / res)) + 1
@@ -123,14 +129,20 @@ def insert_scan(
     is_end = jnp.all(sample_cells == end_cells_f[:, None, :], axis=-1) & returned[:, None]
     free = (dist[None, :] < free_len[:, None]) & ~same_as_prev & ~is_end  # (B, S)
 
-    free_cell_idx = flat_index_of_floored(spec, sample_cells)
-    end_cell_idx = flat_index_of_floored(spec, end_cells_f)
-    outside = (jnp.sum(free & (free_cell_idx == spec.num_cells))
-               + jnp.sum(returned & (end_cell_idx == spec.num_cells)))
+    target = spec  # the array's grid: the whole grid, or a window of it
+    if window_offset is not None:
+        target = GridSpec(grid_map.logodds.shape, res, spec.origin)
+        offset_xy = jnp.stack([window_offset[1], window_offset[0]]).astype(jnp.float32)  # (col, row)
+        sample_cells = sample_cells - offset_xy  # exact: integer-valued floats below 2^24
+        end_cells_f = end_cells_f - offset_xy
+    free_cell_idx = flat_index_of_floored(target, sample_cells)
+    end_cell_idx = flat_index_of_floored(target, end_cells_f)
+    outside = (jnp.sum(free & (free_cell_idx == target.num_cells))
+               + jnp.sum(returned & (end_cell_idx == target.num_cells)))
     # Samples that update nothing get the out-of-map index, so the scatters skip them
     # without touching memory (most of a short beam's samples lie past its end).
-    free_idx = jnp.where(free, free_cell_idx, spec.num_cells).reshape(-1)
-    end_idx = jnp.where(returned, end_cell_idx, spec.num_cells)
+    free_idx = jnp.where(free, free_cell_idx, target.num_cells).reshape(-1)
+    end_idx = jnp.where(returned, end_cell_idx, target.num_cells)
 
     # The static-state binary Bayes update in log-odds (an addition, see binary_bayes), then
     # the clamp as scatter-max / scatter-min on the touched cells: free cells only decrease
@@ -141,13 +153,16 @@ def insert_scan(
     flat = flat.at[free_idx].max(params.logodds_min.astype(dtype), mode="drop")
     flat = flat.at[end_idx].add(params.logodds_occupied.astype(dtype), mode="drop")
     flat = flat.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
-    logodds = flat.reshape(spec.shape)
+    logodds = flat.reshape(target.shape)
 
     offsets, d2 = _field_kernel(field_radius)
-    splat_cells = world_to_cell(spec, end_points)[:, None, :] + jnp.asarray(offsets)[None]  # (B, K, 2)
-    splat_idx = jnp.where(returned[:, None], flat_index(spec, splat_cells), spec.num_cells)
+    end_cells = world_to_cell(spec, end_points)
+    if window_offset is not None:
+        end_cells = end_cells - window_offset.astype(jnp.int32)
+    splat_cells = end_cells[:, None, :] + jnp.asarray(offsets)[None]  # (B, K, 2)
+    splat_idx = jnp.where(returned[:, None], flat_index(target, splat_cells), target.num_cells)
     hit_dist2 = grid_map.hit_dist2.reshape(-1).at[splat_idx.reshape(-1)].min(
         jnp.broadcast_to(jnp.asarray(d2), splat_idx.shape).reshape(-1), mode="drop"
     )
-    return GridMap(logodds, hit_dist2.reshape(spec.shape)), outside
+    return GridMap(logodds, hit_dist2.reshape(target.shape)), outside
 
