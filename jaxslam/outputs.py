@@ -53,6 +53,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         "fallbacks": int(np.sum(info.num_fallbacks)),
         "log_evidence": float(np.sum(info.log_evidence)),
         "warnings": run_warnings(result),
+        "log_notes": list(getattr(log, "notes", ())),
     }
 
 
@@ -60,7 +61,10 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
                        refine_seconds: float | None = None) -> dict:
     """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json`` and ``slam.png`` into ``out_dir``.
 
-    The map is the final best particle's. The trajectory has one pose per scan of the log.
+    The map is the final best particle's, cropped to its known cells plus a margin of
+    :data:`jaxslam.io.maps.DEFAULT_MARGIN_CELLS` cells (see :func:`jaxslam.io.maps.crop_to_known`;
+    ``map.yaml``'s origin is the crop's lower-left corner), and ``slam.png`` shows the same area
+    (widened to the best particle's path if that leaves it). The trajectory has one pose per scan of the log.
     With ``refined`` (a :class:`jaxslam.refine.RefinedTrajectory`) also ``trajectory_refined.txt``,
     and the summary's ``refinement`` gives the fraction of scans whose match held (and, when
     given, ``refine_seconds``: the refinement's wall time).
@@ -71,7 +75,7 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxslam.io.maps import write_map
+    from jaxslam.io.maps import crop_to_known, write_map
     from jaxslam.io.trajectory import write_trajectory
     from jaxslam.plotting import plot_slam_result
 
@@ -79,9 +83,11 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     out.mkdir(parents=True, exist_ok=True)
     best = result.best_particle
     logodds = np.asarray(result.state.maps.logodds[best])
-    write_map(out / "map", logodds, result.config.grid)
+    cropped, spec = crop_to_known(logodds, result.config.grid)
+    write_map(out / "map", cropped, spec)
     write_trajectory(out / "trajectory.txt", log.timestamps, result.trajectory)
     fig = plot_slam_result(result, log, world=world)
+    _limit_to_map(fig.axes[0], spec, result.best_path)
     fig.savefig(out / "slam.png", dpi=150)
     plt.close(fig)
     summary = summarize(log, result, params, seed, source)
@@ -93,6 +99,19 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
             summary["refinement"]["seconds"] = float(refine_seconds)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     return summary
+
+
+def _limit_to_map(ax, spec, path) -> None:
+    """Show the (cropped) map's extent, widened to hold ``path`` (T, 3) if it leaves it."""
+    xmin, xmax, ymin, ymax = spec.extent
+    xy = np.asarray(path)[:, :2]
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    if xy.size:
+        margin = 2 * spec.resolution
+        xmin, ymin = np.minimum([xmin, ymin], xy.min(axis=0) - margin)
+        xmax, ymax = np.maximum([xmax, ymax], xy.max(axis=0) + margin)
+    ax.set_xlim(float(xmin), float(xmax))
+    ax.set_ylim(float(ymin), float(ymax))
 
 
 def _json_default(value):

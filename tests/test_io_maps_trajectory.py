@@ -19,6 +19,7 @@ from jaxslam.io import (
     write_trajectory,
 )
 from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.io.maps import DEFAULT_MARGIN_CELLS, crop_to_known
 from jaxslam.laser import make_sensor, uniform_beams
 
 # --------------------------------------------------------------------------- maps
@@ -177,6 +178,118 @@ def test_read_map_bad_image(tmp_path):
     yaml_path.write_text("image: g.png\nresolution: 0.05\norigin: [0, 0, 0]\n")
     with pytest.raises(LogError, match=r"g\.png: cannot read the map image"):
         read_map(yaml_path)
+
+
+# --------------------------------------------------------------------------- cropping
+
+
+def _sparse_grid():
+    """A 60 x 80 grid, known cells in rows 2..40 and columns 30..71 (row 2 near the bottom
+    edge, so a margin of 5 is clipped there), a weakly known cell that maps to unknown."""
+    logodds = np.zeros((60, 80), np.float32)
+    logodds[2, 40] = 3.0  # occupied, 2 rows from the bottom edge
+    logodds[20:26, 30:50] = -2.0  # free
+    logodds[40, 71] = 2.5  # occupied: top-right of the known box
+    logodds[30, 35] = 0.1  # known (not 0) though its pixel is unknown
+    spec = GridSpec((60, 80), 0.05, (-3.2, 1.7))
+    return logodds, spec
+
+
+def test_crop_to_known_shape_and_origin():
+    logodds, spec = _sparse_grid()
+    cropped, crop_spec = crop_to_known(logodds, spec, margin_cells=5)
+    # Rows 2..40 known: 0 (2 - 5 clipped) .. 45; columns 30..71: 25 .. 76 inclusive.
+    assert cropped.shape == crop_spec.shape == (46, 52)
+    assert crop_spec.resolution == spec.resolution
+    assert crop_spec.origin == pytest.approx((-3.2 + 25 * 0.05, 1.7 + 0 * 0.05), abs=1e-12)
+    np.testing.assert_array_equal(cropped, logodds[0:46, 25:77])
+    # No margin: exactly the known bounding box.
+    tight, tight_spec = crop_to_known(logodds, spec, margin_cells=0)
+    assert tight.shape == tight_spec.shape == (39, 42)
+    assert tight_spec.origin == pytest.approx((-3.2 + 30 * 0.05, 1.7 + 2 * 0.05), abs=1e-12)
+    # A margin larger than the grid keeps the whole grid and its origin.
+    whole, whole_spec = crop_to_known(logodds, spec, margin_cells=1000)
+    assert whole_spec == spec and np.array_equal(whole, logodds)
+    # The default margin is DEFAULT_MARGIN_CELLS, clipped to the grid: rows 0..60, cols 10..80.
+    default, default_spec = crop_to_known(logodds, spec)
+    assert DEFAULT_MARGIN_CELLS == 20
+    assert default.shape == default_spec.shape == (60, 70)
+    assert default_spec.origin == pytest.approx((-3.2 + 10 * 0.05, 1.7), abs=1e-12)
+
+
+def test_crop_keeps_every_known_cell_at_its_world_position(tmp_path):
+    logodds, spec = _sparse_grid()
+    cropped, crop_spec = crop_to_known(logodds, spec, margin_cells=3)
+    assert cropped.size < logodds.size
+    full_prob, full_spec = read_map(write_map(tmp_path / "full", logodds, spec)["yaml"])
+    crop_prob, read_spec = read_map(write_map(tmp_path / "crop", cropped, crop_spec)["yaml"])
+    assert read_spec.shape == cropped.shape and read_spec.origin == pytest.approx(crop_spec.origin, abs=1e-12)
+    res = spec.resolution
+    rows, cols = np.nonzero(logodds)
+    assert rows.size == 6 * 20 + 3
+    # World centres of the known cells of the uncropped map ...
+    x = full_spec.origin[0] + (cols + 0.5) * res
+    y = full_spec.origin[1] + (rows + 0.5) * res
+    # ... fall into cells of the cropped map that hold the same value.
+    crop_cols = np.floor((x - read_spec.origin[0]) / res).astype(int)
+    crop_rows = np.floor((y - read_spec.origin[1]) / res).astype(int)
+    assert np.all((crop_rows >= 0) & (crop_rows < read_spec.shape[0]))
+    assert np.all((crop_cols >= 0) & (crop_cols < read_spec.shape[1]))
+    np.testing.assert_array_equal(crop_prob[crop_rows, crop_cols], full_prob[rows, cols])
+    assert set(np.unique(crop_prob[crop_rows, crop_cols])) == {0.0, 0.5, 1.0}
+    # Every cell of the cropped map, known or not, is the uncropped one at the same place.
+    r, c = np.indices(crop_prob.shape)
+    full_r = np.floor((read_spec.origin[1] + (r + 0.5) * res - full_spec.origin[1]) / res).astype(int)
+    full_c = np.floor((read_spec.origin[0] + (c + 0.5) * res - full_spec.origin[0]) / res).astype(int)
+    np.testing.assert_array_equal(crop_prob, full_prob[full_r, full_c])
+
+
+def test_crop_of_an_all_unknown_map_still_writes(tmp_path):
+    spec = GridSpec((30, 40), 0.1, (5.0, -2.0))
+    cropped, crop_spec = crop_to_known(np.zeros(spec.shape, np.float32), spec)
+    assert cropped.shape == crop_spec.shape == (1, 1) and crop_spec.origin == spec.origin
+    paths = write_map(tmp_path / "empty", cropped, crop_spec)
+    probability, read_spec = read_map(paths["yaml"])
+    assert read_spec == crop_spec
+    np.testing.assert_array_equal(probability, np.full((1, 1), 0.5, np.float32))
+
+
+def test_crop_rejects_bad_input():
+    logodds, spec = _sparse_grid()
+    with pytest.raises(ValueError, match="shape"):
+        crop_to_known(logodds[:10], spec)
+    for margin in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="margin_cells"):
+            crop_to_known(logodds, spec, margin_cells=margin)
+
+
+def test_map_command_writes_the_cropped_map(tmp_path):
+    """A robot driving 2 m in a 2 m-range ring, on a grid padded by 10 m: the map files hold
+    only the known area plus the margin, and map.yaml's origin is that crop's corner."""
+    from jaxslam.cli import main
+
+    lines = []
+    for i in range(6):
+        x, t = 0.4 * i, 1000.0 + 0.5 * i
+        ranges = " ".join(["2.000"] * 181)
+        lines.append(f"FLASER 181 {ranges} {x:.6f} 0.0 0.0 {x:.6f} 0.0 0.0 {t:.6f} host {t:.6f}")
+    log_path = tmp_path / "ring.clf"
+    log_path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    assert main(["map", str(log_path), "--particles", "2", "--proposal", "op", "--no-progress",
+                 "--set", "linear_update=0.3", "--set", "max_insert_range=3", "--set", "map_padding=10",
+                 "--out", str(out)]) == 0
+    probability, spec = read_map(out / "map.yaml")
+    grid = GridSpec.from_bounds(-10.0, -10.0, 12.0, 10.0, 0.05)  # the odometry's extent padded by 10 m
+    assert spec.shape[0] < grid.shape[0] and spec.shape[1] < grid.shape[1]
+    assert spec.origin[0] > grid.origin[0] + 5.0 and spec.origin[1] > grid.origin[1] + 5.0
+    # The known area (the ring's front halves: x in [0, 4], y in [-2, 2], give or take a cell
+    # and the particles' noise) plus the 1 m margin.
+    xmin, xmax, ymin, ymax = spec.extent
+    assert -1.5 < xmin < -0.5 and 4.5 < xmax < 5.5 and -3.5 < ymin < -2.5 and 2.5 < ymax < 3.5
+    col, row = int((1.0 - spec.origin[0]) / spec.resolution), int((0.0 - spec.origin[1]) / spec.resolution)
+    assert probability[row, col] == 0.0  # 1 m ahead of the start: seen free by the first scans
+    assert probability[0, 0] == 0.5 and probability[-1, -1] == 0.5  # the margin is unknown
 
 
 # --------------------------------------------------------------------------- trajectories

@@ -4,6 +4,7 @@ The image's rows run top-down, the grid's rows bottom-up (row 0 at the ``origin`
 y, see :mod:`jaxslam.grid`), so the image is the grid flipped vertically. With
 ``negate: 0`` a pixel value v means occupancy ``(255 - v) / 255``: 0 (black) is
 occupied, 254 free and 205 unknown, the values ``map_saver`` writes.
+:func:`crop_to_known` cuts a grid down to its observed cells plus a margin before writing.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from jaxslam.binary_bayes import probability
 from jaxslam.grid import GridSpec
 from jaxslam.laserlog import LogError
 
-__all__ = ["read_map", "write_map"]
+__all__ = ["DEFAULT_MARGIN_CELLS", "crop_to_known", "read_map", "write_map"]
 
 OCCUPIED_PIXEL = 0
 FREE_PIXEL = 254
@@ -27,6 +28,46 @@ UNKNOWN_PIXEL = 205
 _REQUIRED_KEYS = ("image", "resolution", "origin")
 _OPTIONAL_KEYS = {"negate": 0, "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
 _MODES = ("trinary", "scale", "raw")
+
+DEFAULT_MARGIN_CELLS = 20
+"""Unknown cells kept around the known area by :func:`crop_to_known` (1 m at 5 cm cells)."""
+
+
+def crop_to_known(logodds, spec: GridSpec, margin_cells: int = DEFAULT_MARGIN_CELLS) -> tuple[np.ndarray, GridSpec]:
+    """The smallest sub-grid holding every known cell, plus ``margin_cells`` on each side.
+
+    A cell is known where its log-odds is not 0 (a cell never observed is exactly 0). The
+    margin is clipped to the grid. The returned spec's origin is the world position of the
+    crop's lower-left corner, so every cell keeps its world position: cropped cell (i, j) is
+    cell (i + r0, j + c0) of the input, with origin ``(ox + c0 * res, oy + r0 * res)``.
+    A grid with no known cell gives its 1 x 1 corner cell (0, 0), origin unchanged, so that
+    a map file can still be written.
+
+    Args:
+        logodds: (H, W) log-odds, H, W = ``spec.shape``, row 0 at the origin's y.
+        spec: the grid's shape, resolution and origin.
+        margin_cells: cells (>= 0) kept beyond the known bounding box on every side.
+
+    Returns:
+        The cropped (h, w) log-odds (a copy, the input's dtype) and its :class:`GridSpec`.
+    """
+    grid = np.asarray(logodds)
+    if grid.shape != spec.shape:
+        raise ValueError(f"logodds has shape {grid.shape}, the spec says {spec.shape}")
+    if isinstance(margin_cells, bool) or int(margin_cells) != margin_cells or margin_cells < 0:
+        raise ValueError(f"margin_cells must be a non-negative integer, got {margin_cells!r}")
+    margin = int(margin_cells)
+    known = grid != 0
+    rows = np.flatnonzero(known.any(axis=1))
+    cols = np.flatnonzero(known.any(axis=0))
+    if rows.size == 0:
+        return grid[:1, :1].copy(), GridSpec((1, 1), spec.resolution, spec.origin)
+    height, width = grid.shape
+    r0, r1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, height)
+    c0, c1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, width)
+    ox, oy = spec.origin
+    cropped = GridSpec((r1 - r0, c1 - c0), spec.resolution, (ox + c0 * spec.resolution, oy + r0 * spec.resolution))
+    return grid[r0:r1, c0:c1].copy(), cropped
 
 
 def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65, free_thresh: float = 0.196) -> dict:
