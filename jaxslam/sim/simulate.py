@@ -41,11 +41,6 @@ def _max_range(sensor: SensorSpec, max_range) -> Float[Array, ""]:
     return jnp.minimum(jnp.asarray(max_range, jnp.float32), sensor.range_max)
 
 
-@jax.jit
-def _scan_jit(key, segments, pose, sensor, range_noise_std, max_range, active):
-    return _scan(key, segments, pose, sensor, range_noise_std, max_range, active)
-
-
 def simulate_scan(
     key: PRNGKeyArray,
     world: SegmentWorld,
@@ -75,16 +70,14 @@ def simulate_scan(
       reads exactly ``sensor.range_max``.
     """
     segments = jnp.asarray(world.segments)
-    if active is None:
-        active = jnp.ones(segments.shape[0], dtype=bool)
-    return _scan_jit(key, segments, jnp.asarray(pose, jnp.float32), sensor,
-                     jnp.float32(range_noise_std), _max_range(sensor, max_range), jnp.asarray(active))
+    active = jnp.ones(segments.shape[0], dtype=bool) if active is None else jnp.asarray(active)
+    return _batch_jit(key[None], jnp.asarray(segments), jnp.asarray(pose, jnp.float32)[None], sensor,
+                      jnp.float32(range_noise_std), _max_range(sensor, max_range), active[None])[0]
 
 
 @jax.jit
-def _batch_jit(key, indices, segments, poses, sensor, range_noise_std, max_range, active):
-    """A fixed-size batch of scans: (S,) scan indices, (S, 3) poses, (S, M) masks -> (S, B)."""
-    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, indices)
+def _batch_jit(keys, segments, poses, sensor, range_noise_std, max_range, active):
+    """A batch of scans: (S,) keys, (S, 3) poses, (S, M) masks -> (S, B) ranges."""
     scan = jax.vmap(_scan, in_axes=(0, None, 0, None, None, None, 0))
     return scan(keys, segments, poses, sensor, range_noise_std, max_range, active)
 
@@ -124,7 +117,8 @@ def simulate_scans(
 
     def chunk_fn(_, xs, valid):
         batch_indices, batch_poses, batch_active = xs
-        return None, _batch_jit(key, batch_indices, segments, batch_poses, sensor, noise, reach, batch_active)
+        keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(key, batch_indices)
+        return None, _batch_jit(keys, segments, batch_poses, sensor, noise, reach, batch_active)
 
     return run_in_chunks(chunk_fn, (indices, poses, active), num_scans, _SCAN_BATCH).outputs
 
