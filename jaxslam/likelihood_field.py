@@ -29,6 +29,7 @@ from jaxtyping import Array, Bool, Float, UInt8
 from jaxslam.grid import GridSpec, cell_clip_bound, flat_index, world_to_cell
 from jaxslam.laser import SensorSpec, beam_endpoints
 from jaxslam.occupancy import FAR
+from jaxslam.paged_map import PagedField, PagedGridSpec, cell_values
 
 FIELD_LOOKUPS = ("nearest", "bilinear")
 """How an endpoint reads the likelihood field (see the module docstring)."""
@@ -87,6 +88,7 @@ def endpoint_log_likelihoods(
     if lookup not in FIELD_LOOKUPS:
         raise ValueError(f"lookup must be one of {FIELD_LOOKUPS}, got {lookup!r}")
     table = per_beam_log_likelihood_table(spec, params)
+    grid = _cells_of(spec)
     if lookup == "nearest":
         d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
         per_beam = table[d2.astype(jnp.int32)]
@@ -95,8 +97,8 @@ def endpoint_log_likelihoods(
         # Cell coordinates of the endpoint relative to the cell centres (cell (r, c) has its
         # centre at (c + 0.5, r + 0.5) cells from the origin): the four cells round it are
         # ``base`` and its neighbours up and right.
-        xy = (ends - jnp.asarray(spec.origin, ends.dtype)) / spec.resolution - 0.5
-        big = cell_clip_bound(spec)
+        xy = (ends - jnp.asarray(grid.origin, ends.dtype)) / grid.resolution - 0.5
+        big = cell_clip_bound(grid)
         lower = jnp.clip(jnp.floor(xy), -big, big)
         # Position inside that square, (x, y) in [0, 1]; clipped so that the weights stay a
         # convex combination where a far-away point was clipped (all four cells are FAR there).
@@ -111,8 +113,18 @@ def endpoint_log_likelihoods(
     return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
 
 
-def field_at_cells(spec: GridSpec, hit_dist2: UInt8[Array, "H W"], cells) -> UInt8[Array, "..."]:
-    """The field at (row, col) cells; ``FAR`` outside the map."""
+def _cells_of(spec: GridSpec | PagedGridSpec) -> GridSpec:
+    """The grid whose cell coordinates the field is indexed by (a paged map's virtual grid)."""
+    return spec.grid if isinstance(spec, PagedGridSpec) else spec
+
+
+def field_at_cells(spec: GridSpec | PagedGridSpec, hit_dist2: UInt8[Array, "H W"] | PagedField,
+                   cells) -> UInt8[Array, "..."]:
+    """The field at (row, col) cells; ``FAR`` outside the map. ``hit_dist2`` is a dense (H, W)
+    field on a :class:`~jaxslam.grid.GridSpec`, or one particle's :class:`~jaxslam.paged_map.PagedField`
+    on a :class:`~jaxslam.paged_map.PagedGridSpec` (unwritten tiles read ``FAR``)."""
+    if isinstance(hit_dist2, PagedField):
+        return cell_values(spec, hit_dist2.pages, hit_dist2.pool, cells, FAR)
     return hit_dist2.reshape(-1).at[flat_index(spec, cells)].get(mode="fill", fill_value=FAR)
 
 
@@ -126,7 +138,7 @@ def endpoint_cell_distances(
     """The stored squared cell distance at every beam's endpoint for L robot poses (``FAR``
     outside the map or the field radius), and which beams count (a return within range)."""
     ends, valid = beam_endpoints(poses, ranges, sensor)
-    return field_at_cells(spec, hit_dist2, world_to_cell(spec, ends)), valid
+    return field_at_cells(spec, hit_dist2, world_to_cell(_cells_of(spec), ends)), valid
 
 
 def per_beam_log_likelihood_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:

@@ -111,6 +111,16 @@ def empty(spec: PagedGridSpec, num_particles: int, capacity: int) -> PagedMaps:
     )
 
 
+class PagedField(NamedTuple):
+    """One particle's likelihood field (or log-odds) as the likelihood model reads it: its page
+    table and the shared pool (vmap over particles with ``in_axes=PagedField(0, None)``)."""
+
+    pages: Int[Array, "TY TX"]
+    """The particle's page table."""
+    pool: Array
+    """(C, T, T) the pool's tiles of that quantity."""
+
+
 def _tile_values(pool: Array, slots: Int[Array, "..."], fill) -> Array:
     """``pool[slots]`` with ``fill`` where a slot is unwritten: (..., T, T)."""
     values = pool[jnp.maximum(slots, 0)]

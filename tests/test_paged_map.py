@@ -140,3 +140,24 @@ def test_spec_validation_and_window():
     x0, x1, y0, y1 = spec.grid.extent
     assert (x0 + x1) / 2 == pytest.approx(10.0) and (y0 + y1) / 2 == pytest.approx(-3.0)
     assert spec.window_tiles(15.0, 4) == 11
+
+
+@pytest.mark.parametrize("lookup", ["nearest", "bilinear"])
+def test_the_likelihood_reads_a_paged_field_as_the_dense_one(lookup):
+    """endpoint_log_likelihoods on one particle's PagedField equals the dense map's, at poses
+    inside the written area, across tile edges and outside the virtual grid."""
+    from jaxslam.likelihood_field import endpoint_log_likelihoods
+
+    rng = np.random.default_rng(11)
+    poses, ranges = random_scan(rng, 2)
+    maps, _ = insert_paged(SPEC, P.empty(SPEC, 2, 300), poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+    dense, _ = insert_dense(SPEC.grid, jax.tree.map(lambda a: jnp.broadcast_to(a, (2,) + a.shape),
+                                                    empty_map(SPEC.grid)), poses, ranges, SENSOR, INSERTION,
+                            MAX_RANGE, RADIUS)
+    query = jnp.concatenate([poses[:1] + jnp.asarray(rng.normal(0, 0.3, (40, 3)), jnp.float32),
+                             jnp.array([[4.7, 4.7, 0.3], [-6.0, 0.0, 0.0]], jnp.float32)])
+    params = default_params().likelihood
+    paged = endpoint_log_likelihoods(SPEC, P.PagedField(maps.pages[0], maps.hit_dist2), query, ranges, SENSOR,
+                                     params, lookup)
+    reference = endpoint_log_likelihoods(SPEC.grid, dense.hit_dist2[0], query, ranges, SENSOR, params, lookup)
+    np.testing.assert_array_equal(np.asarray(paged), np.asarray(reference))
