@@ -121,10 +121,19 @@ def test_link_anchors_exist():
     assert not bad, f"links to headings that do not exist: {bad}"
 
 
+def _code_files():
+    """The repository's code and notebooks (this test file, which names the forbidden strings, aside)."""
+    for folder in ("jaxslam", "tests", "experiments", "benchmarks", "notebooks"):
+        for path in sorted((REPO / folder).rglob("*")):
+            if path.suffix in (".py", ".ipynb", ".json") and path.resolve() != Path(__file__).resolve():
+                yield path
+
+
 @pytest.mark.parametrize("forbidden", ["DESIGN.md", "../shared/DESIGN", "/work/shared"])
 def test_nothing_points_at_the_design_notes_outside_the_repository(forbidden):
-    """The design lives in docs/design.md; no document names a design file outside the repository."""
-    offenders = [_rel(d) for d in documents() if forbidden in d.read_text(encoding="utf-8")]
+    """The design lives in docs/design.md; no document, module, test, script or notebook names a
+    design file outside the repository."""
+    offenders = [_rel(d) for d in [*documents(), *_code_files()] if forbidden in d.read_text(encoding="utf-8")]
     assert not offenders, f"{forbidden!r} appears in {offenders}"
 
 
