@@ -159,7 +159,8 @@ def run_once(record: dict, seed: int, world: dict, progress: bool = False):
     # The processed scans nearest to the first and last passage; RA compares the relative
     # pose between them with the true one at the same scans.
     first, last = (int(np.argmin(np.abs(idx - p))) for p in (passages[0], passages[-1]))
-    paths = particle_paths(result.info.proposed_poses, result.info.ancestors, scenario.log.odometry[0])
+    start = np.asarray(scenario.log.odometry[0], np.float64) - np.r_[result.frame_offset, 0.0]  # the local frame's
+    paths = result.to_world(particle_paths(result.info.proposed_poses, result.info.ancestors, start))
     log_w = np.asarray(result.state.log_weights)
     ends = (first, last, truth[idx[first]], truth[idx[last]])
     ra = revisiting_accuracy(paths, log_w, *ends, lam)

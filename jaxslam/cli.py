@@ -7,6 +7,11 @@ linear_update=0.5``) or from a JSON config file (``--config FILE`` holding ``{"c
 {...}, "params": {...}}``); the common ones also have their own flags. Precedence, lowest
 first: the command's defaults, the config file, the dedicated flags (only when given),
 ``--set``.
+
+Every refusal is one line on stderr, ``jaxslam <command>: error: ...``, naming the input, the
+value and what would be accepted, with exit code 2 and no traceback; inputs (flags, config
+values, parameters, the output folder) are checked before any work, and output folders are
+written atomically (:func:`jaxslam.outputs.publish_folder`).
 """
 
 from __future__ import annotations
@@ -17,6 +22,46 @@ import sys
 from pathlib import Path
 
 from jaxslam.config import ConfigError
+
+SEED_LIMIT = 2**32
+"""Seeds are in [0, 2**32): ``jax.random.key`` would wrap larger ones (2**32 runs as 0)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its refusals on one line (``jaxslam map: error: ...``), exit code 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def check_seed(seed: int) -> int:
+    """``seed`` if it lies in [0, 2**32), else ``ConfigError`` (jax.random.key would wrap it)."""
+    if not 0 <= seed < SEED_LIMIT:
+        raise ConfigError(f"--seed must be an integer in [0, 2**32 - 1 = {SEED_LIMIT - 1}], got {seed}")
+    return seed
+
+
+def _check_at_least(flag: str, value, low: int, what: str) -> None:
+    if value is not None and value < low:
+        raise ConfigError(f"{flag} must be an integer >= {low} ({what}), got {value}")
+
+
+def _check_filter_args(args: argparse.Namespace) -> None:
+    """The flags every filter command shares, before any work."""
+    check_seed(args.seed)
+    _check_at_least("--chunk-size", args.chunk_size, 1, "steps per compiled chunk")
+    _check_at_least("--particles", args.particles, 1, "SLAM particles")
+    _check_at_least("--localizers", args.localizers, 1, "localizer particles per SLAM particle")
+    _check_at_least("--horizon", args.horizon, 0, "look-ahead scans")
+
+
+def _check_out_folder(out) -> None:
+    from jaxslam.outputs import OutputError, check_output_folder
+
+    try:
+        check_output_folder(out)
+    except OutputError as err:
+        raise ConfigError(f"--out {err}") from None
 
 
 def parse_assignments(items: list[str]) -> dict[str, str]:
@@ -39,11 +84,12 @@ def read_config_file(path) -> dict:
     except (OSError, json.JSONDecodeError) as err:
         raise ConfigError(f"{path}: cannot read config file: {err}") from None
     if not isinstance(data, dict) or set(data) - {"config", "params"}:
-        raise ConfigError(f"{path}: expected a JSON object with keys 'config' and/or 'params'")
+        got = sorted(data) if isinstance(data, dict) else type(data).__name__
+        raise ConfigError(f"{path}: expected a JSON object with keys 'config' and/or 'params', got {got}")
     values = {}
     for part in ("config", "params"):
         if not isinstance(data.get(part, {}), dict):
-            raise ConfigError(f"{path}: '{part}' must be a JSON object of names and values")
+            raise ConfigError(f"{path}: '{part}' must be a JSON object of names and values, got {data[part]!r}")
         values.update(data.get(part, {}))
     return values
 
@@ -75,13 +121,13 @@ def _add_filter_options(p: argparse.ArgumentParser, default_proposal: str, defau
     p.add_argument("--localizers", type=int, default=None, help="LP: localizer particles L per SLAM particle")
     p.add_argument("--horizon", type=int, default=None, help="LP: look-ahead horizon k (processed scans)")
     p.add_argument("--alpha", type=float, default=None, help="LP: defensive share (0 = the paper's Eq. 10)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (runs reproduce bit for bit)")
+    p.add_argument("--seed", type=int, default=0, help="random seed in [0, 2**32) (runs reproduce bit for bit)")
     p.add_argument("--config", help="JSON file {\"config\": {...}, \"params\": {...}}")
     p.add_argument("--set", action="append", metavar="NAME=VALUE",
                    help="set any config field or parameter (dotted), e.g. motion.srr=0.05; repeatable")
-    p.add_argument("--chunk-size", type=int, default=32, help="steps per compiled chunk (progress granularity)")
+    p.add_argument("--chunk-size", type=int, default=32, help="steps per compiled chunk (progress granularity), >= 1")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    p.add_argument("--out", default="out", help="output folder")
+    p.add_argument("--out", default="out", help="output folder (replaced atomically; stale outputs removed)")
     p.add_argument("--refine", action="store_true",
                    help="also localise every scan in the final map: trajectory_refined.txt (jaxslam.refine)")
 
@@ -94,7 +140,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
         kwargs["scan_topic"] = args.scan_topic
     if args.odom_topic:
         kwargs["odom_topic"] = args.odom_topic
+    _check_filter_args(args)
+    _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
     setup = build_setup_from_args(args, MAP_DEFAULTS)
+    _check_out_folder(args.out)
     log = read_log(args.log, **kwargs)
     if args.max_scans is not None:
         import numpy as np
@@ -122,20 +171,36 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
 
         from jaxslam.refine import refine_trajectory
 
+        # In the filter's local frame (result.frame_offset subtracted), as the map was built.
+        local = result.local_config
         t0 = time.perf_counter()
-        refined = refine_trajectory(result.config.grid, result.state.maps.hit_dist2[result.best_particle],
-                                    result.trajectory, log.ranges, log.sensor, params, result.config,
-                                    odometry=log.odometry)
+        refined = refine_trajectory(local.grid, result.state.maps.hit_dist2[result.best_particle],
+                                    _shifted(result.trajectory, -result.frame_offset), log.ranges, log.sensor,
+                                    params, local, odometry=_shifted(log.odometry, -result.frame_offset))
+        refined = refined._replace(poses=result.to_world(refined.poses),
+                                   matched_poses=result.to_world(refined.matched_poses))
         refine_seconds = time.perf_counter() - t0
     summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
                                  refined=refined, refine_seconds=refine_seconds)
     t = summary["timings"]
-    print(f"processed {summary['scans_processed']} of {summary['scans_in_log']} scans in {t['total']:.1f} s "
-          f"(compile {t['compile']:.1f} s, real-time factor {t['real_time_factor']:.1f}); "
+    print(f"processed {summary['scans_processed']} of {summary['scans_in_log']} scans in {_fmt(t['total'])} s "
+          f"(compile {_fmt(t['compile'])} s, real-time factor {_fmt(t['real_time_factor'])}); "
           f"outputs in {args.out}/")
     for warning in summary["warnings"]:
         print(f"warning: {warning}", file=sys.stderr)
     return 0
+
+
+def _shifted(poses, offset):
+    import numpy as np
+
+    out = np.array(poses, dtype=np.float64)
+    out[:, :2] += offset
+    return out
+
+
+def _fmt(value) -> str:
+    return "n/a" if value is None else f"{value:.1f}"
 
 
 DEMO_DEFAULTS = {"proposal": "smp", "num_particles": 20, "linear_update": 0.25, "angular_update": 0.25,
@@ -150,8 +215,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     from jaxslam.sim import office_scenario
 
-    scenario = office_scenario(jax.random.key(args.seed), num_scans=args.scans)
+    _check_filter_args(args)
+    _check_at_least("--scans", args.scans, 2, "scans along the simulated path")
     setup = build_setup_from_args(args, DEMO_DEFAULTS)
+    _check_out_folder(args.out)
+    scenario = office_scenario(jax.random.key(args.seed), num_scans=args.scans)
     return _map_and_write(scenario.log, setup, args, source="simulated office (jaxslam.sim.office_scenario)",
                           world=scenario.world)
 
@@ -159,7 +227,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_eval(args: argparse.Namespace) -> int:
     from jaxslam.io import read_relations, read_trajectory
     from jaxslam.metrics import relation_error
+    from jaxslam.outputs import OutputError, check_output_file, strict_json_values, write_file_atomic
 
+    if args.out:
+        try:
+            check_output_file(args.out)
+        except OutputError as err:
+            raise ConfigError(f"--out {err}") from None
     timestamps, poses = read_trajectory(args.trajectory)
     relations = read_relations(args.relations)
     err = relation_error(timestamps, poses, relations)
@@ -169,8 +243,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         if key != "count" and not isinstance(value, (list, dict)):
             print(f"{key:>22}: {value:.6g}")
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({k: v for k, v in table.items() if not isinstance(v, list)}, indent=2))
+        values, nulled = strict_json_values({k: v for k, v in table.items() if not isinstance(v, list)})
+        if nulled:
+            values["null_reasons"] = nulled
+        write_file_atomic(args.out, json.dumps(values, indent=2, allow_nan=False))
         print(f"written to {args.out}")
     return 0
 
@@ -189,10 +265,12 @@ def _cmd_doors(args: argparse.Namespace) -> int:
 
     if args.particles < 1:
         raise ConfigError(f"--particles must be >= 1, got {args.particles}")
+    check_seed(args.seed)
+    _check_out_folder(args.out)
     t0 = time.time()
     scenario = SCENARIOS[args.scenario](jax.random.key(args.seed))
     config, params = filter_settings(scenario, args.particles)
-    key = jax.random.key(10_000 + args.seed)
+    key = jax.random.key((10_000 + args.seed) % SEED_LIMIT)
     run = jax.jit(doors.run_filter, static_argnames=("config", "filter_kind", "heading_range"))(
         key, mcl.log_inputs(scenario.log), jnp.asarray(scenario.true_poses, jnp.float32),
         jnp.asarray(scenario.start_regions), scenario.door_map, scenario.log.sensor, params, config,
@@ -232,7 +310,7 @@ def _cmd_doors(args: argparse.Namespace) -> int:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jaxslam", description=__doc__.split("\n")[0])
+    parser = _Parser(prog="jaxslam", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     p_map = sub.add_parser("map", help="build a map from a log (ROS 1/2 bag or CARMEN log)")
@@ -251,7 +329,7 @@ def make_parser() -> argparse.ArgumentParser:
     p_eval = sub.add_parser("eval", help="relation error (Kuemmerle et al. 2009) of a trajectory")
     p_eval.add_argument("trajectory", help="trajectory text file: 'timestamp x y theta' per line")
     p_eval.add_argument("relations", help="relations file: 't1 t2 x y z roll pitch yaw' per line")
-    p_eval.add_argument("--out", help="write the table as JSON here")
+    p_eval.add_argument("--out", help="write the table as JSON to this file (not a folder)")
     p_eval.set_defaults(func=_cmd_eval)
 
     p_doors = sub.add_parser("doors", help="localization with door-state estimation (Avots et al. 2002)")
@@ -274,8 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ConfigError, LogError, FileNotFoundError, ValueError) as err:
-        print(f"jaxslam {args.command}: error: {err}", file=sys.stderr)
+    except (ConfigError, LogError, ValueError, OSError) as err:  # OSError: FileNotFoundError, PermissionError, ...
+        message = " ".join(str(err).split()) or type(err).__name__
+        print(f"jaxslam {args.command}: error: {message}", file=sys.stderr)
         return 2
 
 

@@ -13,14 +13,23 @@ All three are built from one flat dictionary of names (:func:`build_setup`): con
 settings fields by name (``num_particles``, ``linear_update``), parameters by dotted name
 (``motion.srr``, ``likelihood.sigma``), as the command line's ``--set`` and config files
 give them.
+
+Everything is checked when it is built, before any work: exact types (an int field refuses 2.9
+and True instead of truncating them; a string from ``--set`` that parses, "3", is fine), finite
+numbers, and physical ranges (noise >= 0, sigma > 0, log-odds signs, steps > 0, ...); a bad
+value raises :class:`ConfigError` naming it, its value and what is accepted.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
+import numbers
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from jaxslam.grid import GridSpec
@@ -77,20 +86,27 @@ class SlamConfig:
     or "scan_match" (a Gaussian fitted around the scan-matched pose, importance-corrected)."""
 
     def __post_init__(self):
+        _normalize_fields(self, "SlamConfig")
+        grid = self.grid
+        if grid is not None and not isinstance(grid, GridSpec):
+            raise ConfigError(f"SlamConfig: grid must be a GridSpec or None, got {grid!r}")
+        if grid is not None and not (all(math.isfinite(v) for v in grid.origin) and math.isfinite(grid.resolution)):
+            raise ConfigError(f"SlamConfig: grid origin and resolution must be finite, got {grid}")
         checks = [
-            (self.num_particles >= 1, "num_particles must be >= 1"),
+            (self.num_particles >= 1, f"num_particles must be >= 1, got {self.num_particles}"),
             (self.proposal in PROPOSALS, f"proposal must be one of {PROPOSALS}, got {self.proposal!r}"),
-            (self.max_insert_range > 0, "max_insert_range must be > 0"),
-            (1 <= self.field_radius <= 11, "field_radius must be in 1..11 (its squared distances fit uint8)"),
+            (self.max_insert_range > 0, f"max_insert_range must be > 0 (m), got {self.max_insert_range}"),
+            (1 <= self.field_radius <= 11,
+             f"field_radius must be in 1..11 (its squared distances fit uint8), got {self.field_radius}"),
             (self.likelihood_lookup in FIELD_LOOKUPS,
              f"likelihood_lookup must be one of {FIELD_LOOKUPS}, got {self.likelihood_lookup!r}"),
             (self.match_lookup in FIELD_LOOKUPS,
              f"match_lookup must be one of {FIELD_LOOKUPS}, got {self.match_lookup!r}"),
-            (self.beam_stride >= 1, "beam_stride must be >= 1"),
-            (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}"),
-            (self.match_iterations >= 0, "match_iterations must be >= 0"),
-            (self.num_localizers >= 1, "num_localizers must be >= 1"),
-            (self.horizon >= 0, "horizon must be >= 0"),
+            (self.beam_stride >= 1, f"beam_stride must be >= 1, got {self.beam_stride}"),
+            (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}, got {self.resampler!r}"),
+            (self.match_iterations >= 0, f"match_iterations must be >= 0, got {self.match_iterations}"),
+            (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
+            (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),
             (self.lookahead_initial in ("odometry", "scan_match"),
              f"lookahead_initial must be 'odometry' or 'scan_match', got {self.lookahead_initial!r}"),
         ]
@@ -119,15 +135,67 @@ class RunSettings:
     """Metres added around the odometry's extent when the grid is sized from the log."""
 
     def __post_init__(self):
+        _normalize_fields(self, "RunSettings")  # numbers, finite
         checks = [
-            (self.linear_update >= 0, "linear_update must be >= 0"),
-            (self.angular_update >= 0, "angular_update must be >= 0"),
-            (self.resolution > 0, "resolution must be > 0"),
-            (self.map_padding >= 0, "map_padding must be >= 0"),
+            (self.linear_update >= 0, f"linear_update must be >= 0 (m), got {self.linear_update}"),
+            (self.angular_update >= 0, f"angular_update must be >= 0 (rad), got {self.angular_update}"),
+            (self.resolution > 0, f"resolution must be > 0 (m), got {self.resolution}"),
+            (self.map_padding >= 0, f"map_padding must be >= 0 (m), got {self.map_padding}"),
         ]
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"RunSettings: {message}")
+
+
+def _is_bool(value) -> bool:
+    return isinstance(value, (bool, np.bool_)) or (getattr(value, "dtype", None) is not None
+                                                   and np.dtype(value.dtype) == np.bool_)
+
+
+def _scalar(value):
+    """A 0-d NumPy or JAX array as its Python scalar; anything else unchanged."""
+    if hasattr(value, "shape") and hasattr(value, "dtype") and not isinstance(value, (str, bytes)):
+        if tuple(value.shape) == ():
+            return np.asarray(value).item()
+    return value
+
+
+def check_int(name: str, value) -> int:
+    """``value`` as an int: a Python or NumPy integer (not a bool, not a float, not even 3.0)."""
+    value = _scalar(value)
+    if _is_bool(value) or not isinstance(value, numbers.Integral):
+        raise ConfigError(f"{name} must be an integer, got {value!r}")
+    return int(value)
+
+
+def check_float(name: str, value) -> float:
+    """``value`` as a finite float: a Python or NumPy number (not a bool), finite in float32."""
+    value = _scalar(value)
+    if _is_bool(value) or not isinstance(value, numbers.Real):
+        raise ConfigError(f"{name} must be a number, got {value!r}")
+    out = float(value)
+    if not math.isfinite(out) or abs(out) > float(np.finfo(np.float32).max):
+        raise ConfigError(f"{name} must be a finite number, got {value!r}")
+    return out
+
+
+def _normalize_fields(obj, where: str) -> None:
+    """Check that every int, float and str field of a frozen dataclass holds exactly that type
+    (an int field refuses 2.9 and True rather than truncating them; a float field refuses NaN and
+    inf) and store it as the plain Python type (NumPy scalars become int / float)."""
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        kind = type(field.default)
+        try:
+            if kind is int:
+                value = check_int(field.name, value)
+            elif kind is float:
+                value = check_float(field.name, value)
+            elif kind is str and not isinstance(value, str):
+                raise ConfigError(f"{field.name} must be a string, got {value!r}")
+        except ConfigError as err:
+            raise ConfigError(f"{where}: {err}") from None
+        object.__setattr__(obj, field.name, value)
 
 
 class ScanMatchParams(NamedTuple):
@@ -208,26 +276,68 @@ def default_params(**overrides: float) -> SlamParams:
     return params_from_dict({k.replace("__", "."): v for k, v in overrides.items()})
 
 
+def _at_least(lo):
+    return lambda v: v >= lo
+
+
+def _above(lo):
+    return lambda v: v > lo
+
+
+_PARAM_RANGES: dict[str, tuple[Any, str]] = {
+    # name: (predicate on the value, what is accepted). Every value must also be a finite number.
+    **{f"motion.{f}": (_at_least(0.0), ">= 0") for f in ("srr", "srt", "str", "stt", "min_translation_std",
+                                                          "min_rotation_std")},
+    "likelihood.sigma": (_above(0.0), "> 0 (m)"),
+    "likelihood.z_hit": (_at_least(0.0), ">= 0"),
+    "likelihood.z_rand": (_above(0.0), "> 0 (it keeps log-likelihoods finite)"),
+    "likelihood.gain": (_above(0.0), "> 0"),
+    "insertion.logodds_occupied": (_above(0.0), "> 0 (a hit makes a cell more likely occupied)"),
+    "insertion.logodds_free": (lambda v: v < 0, "< 0 (a beam passing through makes a cell more likely free)"),
+    "insertion.logodds_min": (lambda v: v < 0, "< 0 (the lower clamp must let a cell turn free)"),
+    "insertion.logodds_max": (_above(0.0), "> 0 (the upper clamp must let a cell turn occupied)"),
+    "insertion.no_return_free_range": (_at_least(0.0), ">= 0 (m)"),
+    "scan_match.linear_step": (_above(0.0), "> 0 (m)"),
+    "scan_match.angular_step": (_above(0.0), "> 0 (rad)"),
+    # Above 1 is allowed and used (tests): no match reaches it, so the SMP always falls back to the OP.
+    "scan_match.min_score": (_at_least(0.0), ">= 0 (a mean per-beam fit in [0, 1]; above 1 every match fails)"),
+    "scan_match.min_std_fraction": (_at_least(0.0), ">= 0"),
+    "scan_match.start_noise": (_at_least(0.0), ">= 0"),
+    "lookahead.alpha": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
+    # Above 1 is allowed (ESS <= L): the localizers are then resampled at every step of the horizon.
+    "lookahead.resample_threshold": (_at_least(0.0), ">= 0 (a fraction of L: 0 never resamples, above 1 always)"),
+    "lookahead.localizer_gain": (_above(0.0), "> 0"),
+    "lookahead.selection_correction": (lambda v: 0.0 <= v <= 1.0, "in [0, 1]"),
+    # Above 1 is allowed and used (tests, "above 1 always does"): ESS <= N, so every step resamples.
+    "resample_threshold": (_at_least(0.0), ">= 0 (a fraction of N: 0 never resamples, above 1 always)"),
+}
+"""The physical range of every parameter, checked by :func:`params_from_dict`."""
+
+
 def params_from_dict(values: dict[str, Any]) -> SlamParams:
-    """Build ``SlamParams`` from dotted names; unknown names raise ``ConfigError``."""
-    unknown = sorted(set(values) - set(_DEFAULTS))
+    """Build ``SlamParams`` from dotted names; anything missing keeps its default.
+
+    Every value must be a finite number (a string that parses as one, as ``--set`` gives, is
+    fine; a bool is not) in its physical range (:data:`_PARAM_RANGES`: noise >= 0, sigma > 0,
+    log-odds signs, steps > 0, ...). Unknown names and bad values raise ``ConfigError`` naming
+    the parameter, the value and what is accepted.
+    """
+    if not isinstance(values, dict):
+        raise ConfigError(f"parameters must be a dict of dotted names and numbers, got {values!r}")
+    unknown = sorted(set(values) - set(_DEFAULTS), key=str)
     if unknown:
         raise ConfigError(f"unknown parameter(s) {unknown}; known: {sorted(_DEFAULTS)}")
     merged = {**_DEFAULTS, **values}
     for name, value in merged.items():
-        try:
-            merged[name] = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"parameter {name} must be a number, got {value!r}") from None
-    if not 0.0 <= merged["lookahead.alpha"] < 1.0:
-        raise ConfigError(f"parameter lookahead.alpha must be in [0, 1), got {merged['lookahead.alpha']}")
-    if not 0.0 <= merged["lookahead.selection_correction"] <= 1.0:
-        raise ConfigError("parameter lookahead.selection_correction must be in [0, 1], "
-                          f"got {merged['lookahead.selection_correction']}")
-    if merged["lookahead.localizer_gain"] <= 0:
-        raise ConfigError(f"parameter lookahead.localizer_gain must be > 0, got {merged['lookahead.localizer_gain']}")
-    if merged["likelihood.z_rand"] <= 0:
-        raise ConfigError("parameter likelihood.z_rand must be > 0 (it keeps log-likelihoods finite)")
+        if isinstance(value, str):
+            try:
+                value = float(value.strip())
+            except ValueError:
+                raise ConfigError(f"parameter {name} must be a number, got {value!r}") from None
+        merged[name] = check_float(f"parameter {name}", value)
+    for name, (ok, accepted) in _PARAM_RANGES.items():
+        if not ok(merged[name]):
+            raise ConfigError(f"parameter {name} must be {accepted}, got {merged[name]!r}")
 
     def group(cls, prefix):
         return cls(**{f: jnp.float32(merged[f"{prefix}.{f}"]) for f in cls._fields})
@@ -259,19 +369,66 @@ def config_to_dict(config) -> dict[str, Any]:
     return dataclasses.asdict(config)
 
 
+_GRID_FORMAT = '{"shape": [rows, cols], "resolution": metres, "origin": [x, y]} or null'
+
+
+def grid_from_value(value, name: str = "grid") -> GridSpec | None:
+    """A :class:`GridSpec` from a config value: None, a GridSpec, a dict ``{"shape": [rows, cols],
+    "resolution": r, "origin": [x, y]}`` (as ``summary.json`` writes it) or that dict as a JSON
+    string (``--set grid={...}``; ``--set grid=null`` for None). Anything else raises ``ConfigError``."""
+    if value is None or isinstance(value, GridSpec):
+        return value
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except json.JSONDecodeError:
+            raise ConfigError(f"config field {name} must be {_GRID_FORMAT}, got {value!r}") from None
+        if value is None:
+            return None
+    if not isinstance(value, dict):
+        raise ConfigError(f"config field {name} must be {_GRID_FORMAT}, got {value!r}")
+    missing = [k for k in ("shape", "resolution", "origin") if k not in value]
+    extra = sorted(set(value) - {"shape", "resolution", "origin"}, key=str)
+    if missing or extra:
+        raise ConfigError(f"config field {name} must be {_GRID_FORMAT}; "
+                          + (f"missing {missing}" if missing else f"unknown key(s) {extra}") + f", got {value!r}")
+    shape, origin = value["shape"], value["origin"]
+    if not isinstance(shape, (list, tuple)) or len(shape) != 2:
+        raise ConfigError(f"config field {name}.shape must be [rows, cols], got {shape!r}")
+    if not isinstance(origin, (list, tuple)) or len(origin) != 2:
+        raise ConfigError(f"config field {name}.origin must be [x, y] (m), got {origin!r}")
+    rows, cols = (check_int(f"config field {name}.shape", v) for v in shape)
+    if rows < 1 or cols < 1:
+        raise ConfigError(f"config field {name}.shape must be positive [rows, cols], got {list(shape)!r}")
+    resolution = check_float(f"config field {name}.resolution", value["resolution"])
+    if resolution <= 0:
+        raise ConfigError(f"config field {name}.resolution must be > 0 (m), got {resolution!r}")
+    ox, oy = (check_float(f"config field {name}.origin", v) for v in origin)
+    return GridSpec((rows, cols), resolution, (ox, oy))
+
+
 def _dataclass_from_dict(cls, values: dict[str, Any]):
-    """``cls(**values)`` with every value converted to its field's type; bad types raise ``ConfigError``."""
+    """``cls(**values)`` with strings (from ``--set``) parsed to their field's type: "3" is
+    fine for an int field, "2.9" is not; numbers must already have the field's type (an int
+    field refuses 2.9 and True, see ``SlamConfig.__post_init__``). ``grid`` goes through
+    :func:`grid_from_value`. Bad values raise ``ConfigError`` naming the field."""
+    if not isinstance(values, dict):
+        raise ConfigError(f"{cls.__name__} fields must be a dict of names and values, got {values!r}")
     kwargs = {}
     for name, value in values.items():
         if name == "grid":
-            kwargs[name] = None if value is None else GridSpec(tuple(value["shape"]), value["resolution"],
-                                                               tuple(value["origin"]))
+            kwargs[name] = grid_from_value(value)
             continue
-        default = getattr(cls, name)
-        try:
-            kwargs[name] = type(default)(value) if not isinstance(default, str) else str(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"config field {name} must be a {type(default).__name__}, got {value!r}") from None
+        kind = type(getattr(cls, name))
+        if isinstance(value, str) and kind is not str:
+            text = value.strip()
+            try:
+                value = int(text) if kind is int else float(text)
+            except ValueError:
+                if kind is int:
+                    raise ConfigError(f"config field {name} must be an integer, got {value!r}") from None
+                raise ConfigError(f"config field {name} must be a number, got {value!r}") from None
+        kwargs[name] = value
     return cls(**kwargs)
 
 

@@ -37,6 +37,9 @@ class LaserLog:
     """Optional (T, 3) float64 true poses, for simulated logs."""
     source: str = "<memory>"
     """Where the log came from (a path), used in error messages."""
+    notes: tuple[str, ...] = ()
+    """What the reader changed or assumed while reading (e.g. scans padded to a common beam
+    layout), one sentence each; ``jaxslam map`` records them in ``summary.json``."""
 
     def __post_init__(self):
         ts = np.asarray(self.timestamps, dtype=np.float64)
@@ -45,6 +48,7 @@ class LaserLog:
         object.__setattr__(self, "timestamps", ts)
         object.__setattr__(self, "odometry", odom)
         object.__setattr__(self, "ranges", ranges)
+        object.__setattr__(self, "notes", tuple(str(n) for n in self.notes))
         src = self.source
         if ts.ndim != 1:
             raise LogError(f"{src}: timestamps have shape {ts.shape}, expected (T,) (one per scan)")
@@ -98,7 +102,8 @@ class LaserLog:
         """The scans at ``indices`` (sorted), as a new log."""
         idx = np.asarray(indices)
         gt = None if self.ground_truth is None else self.ground_truth[idx]
-        return LaserLog(self.timestamps[idx], self.odometry[idx], self.ranges[idx], self.sensor, gt, self.source)
+        return LaserLog(self.timestamps[idx], self.odometry[idx], self.ranges[idx], self.sensor, gt, self.source,
+                        self.notes)
 
 
 def _check_finite(src: str, what: str, values: np.ndarray) -> None:

@@ -1,9 +1,20 @@
-"""Writing the results of a SLAM run: map (PGM + YAML + PNG), trajectory, summary, figure."""
+"""Writing the results of a SLAM run: map (PGM + YAML + PNG), trajectory, summary, figure.
+
+Output folders are written atomically (:func:`publish_folder`): every file goes into a
+temporary folder beside the target, which then replaces the target whole, so a run that
+fails or is killed mid-write never leaves a folder that mixes two runs' files.
+:func:`check_output_folder` tells before any work whether a folder can be written.
+"""
 
 from __future__ import annotations
 
 import json
+import math
+import os
 import resource
+import shutil
+import tempfile
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -57,18 +68,40 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
     }
 
 
+SLAM_OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.txt", "trajectory_refined.txt",
+                     "summary.json", "slam.png")
+"""Every file :func:`write_slam_outputs` can write. Those of an earlier run that a new run does
+not write (e.g. ``trajectory_refined.txt`` without ``--refine``) are removed, never kept stale."""
+
+
+class OutputError(ValueError):
+    """An output path cannot be written; the message names it and says why."""
+
+
 def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, world=None, refined=None,
                        refine_seconds: float | None = None) -> dict:
     """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json`` and ``slam.png`` into ``out_dir``.
 
     The map is the final best particle's, cropped to its known cells plus a margin of
     :data:`jaxslam.io.maps.DEFAULT_MARGIN_CELLS` cells (see :func:`jaxslam.io.maps.crop_to_known`;
-    ``map.yaml``'s origin is the crop's lower-left corner), and ``slam.png`` shows the same area
-    (widened to the best particle's path if that leaves it). The trajectory has one pose per scan of the log.
+    ``map.yaml``'s origin is the crop's lower-left corner, in the log's frame), and ``slam.png``
+    shows the same area (widened to the best particle's path if that leaves it). The trajectory
+    has one pose per scan of the log.
     With ``refined`` (a :class:`jaxslam.refine.RefinedTrajectory`) also ``trajectory_refined.txt``,
     and the summary's ``refinement`` gives the fraction of scans whose match held (and, when
     given, ``refine_seconds``: the refinement's wall time).
-    Returns the summary.
+
+    The folder is replaced atomically (:func:`publish_folder`): all files are written into a
+    temporary folder beside it first. If ``out_dir`` holds an earlier run, this run's files
+    replace its files, and its files that this run does not write (any of
+    :data:`SLAM_OUTPUT_NAMES`, e.g. a stale ``trajectory_refined.txt``) are **removed**; files
+    that no SLAM run writes (your notes, ``errors.json`` of ``jaxslam eval``) are kept.
+
+    ``summary.json`` is strict JSON: a number that is not finite (a log-evidence of -inf when
+    every particle's weight went to zero, ...) is written as null, with the reason under
+    ``null_reasons`` (``{"log_evidence": "every particle's weight was zero at step 12 ..."}``);
+    ``null_reasons`` is ``{}`` when nothing was nulled.
+    Returns the summary as written.
     """
     import matplotlib
 
@@ -79,26 +112,257 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     from jaxslam.io.trajectory import write_trajectory
     from jaxslam.plotting import plot_slam_result
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     best = result.best_particle
     logodds = np.asarray(result.state.maps.logodds[best])
     cropped, spec = crop_to_known(logodds, result.config.grid)
-    write_map(out / "map", cropped, spec)
-    write_trajectory(out / "trajectory.txt", log.timestamps, result.trajectory)
-    fig = plot_slam_result(result, log, world=world)
-    _limit_to_map(fig.axes[0], spec, result.best_path)
-    fig.savefig(out / "slam.png", dpi=150)
-    plt.close(fig)
     summary = summarize(log, result, params, seed, source)
     if refined is not None:
-        write_trajectory(out / "trajectory_refined.txt", log.timestamps, refined.poses)
         summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
                                  "median_score": float(np.median(refined.scores))}
         if refine_seconds is not None:
             summary["refinement"]["seconds"] = float(refine_seconds)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    summary, null_reasons = strict_json_values(summary, _known_null_reasons(summary, result))
+    summary["null_reasons"] = null_reasons
+    text = json.dumps(summary, indent=2, allow_nan=False, default=_json_default)
+
+    def write(out: Path) -> None:
+        write_map(out / "map", cropped, spec)
+        write_trajectory(out / "trajectory.txt", log.timestamps, result.trajectory)
+        fig = plot_slam_result(result, log, world=world)
+        try:
+            _limit_to_map(fig.axes[0], spec, result.best_path)
+            fig.savefig(out / "slam.png", dpi=150)
+        finally:
+            plt.close(fig)
+        if refined is not None:
+            write_trajectory(out / "trajectory_refined.txt", log.timestamps, refined.poses)
+        (out / "summary.json").write_text(text)
+
+    publish_folder(out_dir, write, replaces=SLAM_OUTPUT_NAMES)
     return summary
+
+
+# ---------------------------------------------------------------------------------------------
+# Strict JSON.
+
+
+def _known_null_reasons(summary: dict, result) -> dict[str, str]:
+    """Why the summary's numbers that may be non-finite or missing are so, by dotted field name."""
+    info, idx = result.info, result.selection.indices
+    reasons = {}
+    degenerate = np.nonzero(np.asarray(info.degenerate))[0]
+    if degenerate.size:
+        first = int(degenerate[0])
+        reasons["log_evidence"] = (f"every particle's weight was zero at step {first + 1} (scan {int(idx[first + 1])} "
+                                   f"of the log; {degenerate.size} such step(s)), so the log-evidence is -inf")
+    else:
+        reasons["log_evidence"] = "a step's log-evidence was not finite (NaN or infinite weights)"
+    if summary.get("mean_ess") is None:
+        reasons["mean_ess"] = "no step was taken: only the first scan was processed"
+    else:
+        reasons["mean_ess"] = "the effective sample size was not finite (NaN weights)"
+    reasons["timings.real_time_factor"] = "the run took no measurable time"
+    reasons["scans_per_second"] = "the run took no measurable time"
+    reasons["refinement.median_score"] = "no scan was refined"
+    reasons["refinement.matched_fraction"] = "no scan was refined"
+    return reasons
+
+
+def strict_json_values(value, reasons: dict[str, str] | None = None, _path: str = ""):
+    """``value`` (dicts, lists, NumPy arrays and scalars, floats) with every float that is not
+    finite replaced by None, and ``{dotted path: reason}`` for each None in a dict field (the
+    non-finite ones and those that were None already): the reason from ``reasons`` where it
+    names the field, else a general one. The result serialises with ``allow_nan=False``."""
+    reasons = reasons or {}
+    nulled: dict[str, str] = {}
+
+    def clean(v, path):
+        if isinstance(v, dict):
+            return {k: clean(item, f"{path}.{k}" if path else str(k)) for k, item in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [clean(item, f"{path}[{i}]") for i, item in enumerate(v)]
+        if isinstance(v, np.ndarray):
+            return clean(v.tolist(), path)
+        if isinstance(v, (bool, np.bool_)):
+            return bool(v)
+        if isinstance(v, (np.integer,)):
+            return int(v)
+        if isinstance(v, (float, np.floating)):
+            v = float(v)
+            if math.isfinite(v):
+                return v
+            nulled[path] = reasons.get(path, f"the value was {v!r}, which strict JSON cannot hold")
+            return None
+        if v is None and path and not path.endswith("]") and path in reasons:
+            nulled[path] = reasons[path]
+        return v
+
+    return clean(value, _path), nulled
+
+
+# ---------------------------------------------------------------------------------------------
+# Output folders: checked before any work, written atomically.
+
+
+def _nearest_existing(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def _probe_writable(folder: Path) -> str | None:
+    """None if a file can be created (and removed) in ``folder``, else why not."""
+    try:
+        fd, name = tempfile.mkstemp(prefix=".jaxslam-probe-", dir=folder)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as err:
+        return err.strerror or str(err)
+    return None
+
+
+def check_output_folder(out_dir) -> None:
+    """Raise :class:`OutputError` unless ``out_dir`` can take a run's outputs; call it before any work.
+
+    It must be an existing writable folder or a path that can be made one (its nearest existing
+    ancestor is a writable folder), and, for the atomic swap of :func:`publish_folder`, the
+    folder beside which it is written must be writable too (else, for an existing folder such as
+    a mount point, the files are replaced one by one in place). Nothing is left behind.
+    """
+    target = Path(os.path.abspath(os.fspath(out_dir)))
+    if target.exists() and not target.is_dir():
+        raise OutputError(f"{out_dir} is an existing file, not a folder; give a new or existing folder")
+    if target.is_dir():
+        why = _probe_writable(target) if os.access(target, os.W_OK | os.X_OK) else "no write permission"
+        if why:
+            raise OutputError(f"{out_dir} is a folder that cannot be written ({why}); give a writable folder")
+        return
+    ancestor = _nearest_existing(target.parent)
+    if not ancestor.is_dir():
+        raise OutputError(f"{out_dir} cannot be created: {ancestor} is a file, not a folder")
+    why = _probe_writable(ancestor) if os.access(ancestor, os.W_OK | os.X_OK) else "no write permission"
+    if why:
+        raise OutputError(f"{out_dir} cannot be created: {ancestor} is not writable ({why})")
+
+
+def check_output_file(path) -> None:
+    """Raise :class:`OutputError` unless a file can be written at ``path`` (not a folder; its
+    folder exists and is writable or can be made); call it before any work."""
+    target = Path(os.path.abspath(os.fspath(path)))
+    if target.is_dir():
+        raise OutputError(f"{path} is an existing folder; give a file path (e.g. {Path(path) / 'errors.json'})")
+    if target.exists() and not os.access(target, os.W_OK):
+        raise OutputError(f"{path} exists and is not writable")
+    ancestor = _nearest_existing(target.parent)
+    if not ancestor.is_dir():
+        raise OutputError(f"{path} cannot be created: {ancestor} is a file, not a folder")
+    why = _probe_writable(ancestor) if os.access(ancestor, os.W_OK | os.X_OK) else "no write permission"
+    if why:
+        raise OutputError(f"{path} cannot be created: {ancestor} is not writable ({why})")
+
+
+def write_file_atomic(path, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file beside it and one rename: readers see
+    the old file or the new one, never a part."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.tmp-{os.getpid()}-", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, target)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _link_or_copy(src, dst) -> None:
+    """Hard-link ``src`` (a symlink itself, not followed) to ``dst``; copy where links fail."""
+    try:
+        os.link(src, dst, follow_symlinks=False)
+    except OSError:
+        if os.path.islink(src):
+            os.symlink(os.readlink(src), dst)
+        else:
+            shutil.copy2(src, dst)
+
+
+def publish_folder(out_dir, write, replaces=SLAM_OUTPUT_NAMES) -> None:
+    """Run ``write(folder)`` on a temporary folder, then make it ``out_dir``, whole.
+
+    The temporary folder is ``.{name}.tmp-<pid>-...`` beside ``out_dir`` (the same parent, so
+    the renames stay on one file system). Once ``write`` has returned, the entries of an
+    existing ``out_dir`` that are not in ``replaces`` (files this kind of run never writes) are
+    hard-linked into it, and the swap is: rename ``out_dir`` to a backup name, rename the
+    temporary folder to ``out_dir``, delete the backup. So entries named in ``replaces`` that
+    this run did not write are removed; if ``write`` fails, or the process dies before the swap,
+    ``out_dir`` is untouched (a process killed between the two renames leaves the old folder
+    intact under ``.{name}.old-<pid>-...``), and the temporary folder is removed on errors.
+
+    Where the folder cannot be swapped (its parent is not writable, or it is a mount point) the
+    files are written into a temporary folder inside it and moved over one by one (each file is
+    replaced atomically, the set is not), then the stale ``replaces`` entries are removed.
+    """
+    target = Path(os.path.realpath(os.fspath(out_dir)))
+    if target.exists() and not target.is_dir():
+        raise OutputError(f"{out_dir} is an existing file, not a folder")
+    parent = target.parent
+    parent.mkdir(parents=True, exist_ok=True)
+    exists = target.is_dir()
+    if exists and (os.path.ismount(target) or not os.access(parent, os.W_OK | os.X_OK)):
+        _publish_in_place(target, write, replaces)
+        return
+    stage = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-{os.getpid()}-", dir=parent))
+    try:
+        write(stage)
+        written = {p.name for p in stage.iterdir()}
+        if exists:
+            for entry in target.iterdir():
+                if entry.name in replaces or entry.name in written:
+                    continue
+                if entry.is_dir() and not entry.is_symlink():
+                    shutil.copytree(entry, stage / entry.name, symlinks=True, copy_function=_link_or_copy)
+                else:
+                    _link_or_copy(entry, stage / entry.name)
+            shutil.copymode(target, stage)
+        else:
+            os.chmod(stage, 0o777 & ~_umask())
+        if not exists:
+            os.rename(stage, target)
+            return
+        backup = parent / f".{target.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        os.rename(target, backup)
+        try:
+            os.rename(stage, target)
+        except BaseException:
+            os.rename(backup, target)
+            raise
+        shutil.rmtree(backup, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+
+
+def _publish_in_place(target: Path, write, replaces) -> None:
+    stage = Path(tempfile.mkdtemp(prefix=f".jaxslam-tmp-{os.getpid()}-", dir=target))
+    try:
+        write(stage)
+        written = sorted(p.name for p in stage.iterdir())
+        for name in written:
+            os.replace(stage / name, target / name)
+        for name in replaces:
+            if name not in written and (target / name).is_file():
+                (target / name).unlink()
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def _limit_to_map(ax, spec, path) -> None:

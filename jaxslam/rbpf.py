@@ -199,27 +199,49 @@ class SlamResult(NamedTuple):
     """What ``run`` returns (host arrays)."""
 
     state: SlamState
-    """The final particle set."""
+    """The final particle set, poses in the local frame (see ``frame_offset``)."""
     info: SlamInfo
-    """Per-step diagnostics, stacked over the S - 1 steps after the first scan (NumPy)."""
+    """Per-step diagnostics, stacked over the S - 1 steps after the first scan (NumPy); poses
+    (``proposed_poses``, ``mean_pose``) in the local frame (see ``frame_offset``)."""
     selection: UpdateSelection
     """The processed scans and the motion between them."""
     config: SlamConfig
-    """The config used, with the grid resolved."""
+    """The config used, with the grid resolved, in the world frame (``local_config``: as the step saw it)."""
     settings: RunSettings
     """The host-side settings used (update rule, grid sizing)."""
     best_path: np.ndarray
-    """(S, 3) poses at the processed scans along the ancestry of the final best particle."""
+    """(S, 3) float64 poses at the processed scans along the ancestry of the final best particle
+    (world frame)."""
     trajectory: np.ndarray
     """(T, 3) a pose for every scan of the log (see ``io.trajectory.trajectory_per_scan``)."""
     timings: dict
     """Seconds: ``compile`` (first chunk, compile included), ``total`` wall time, and
     ``real_time_factor`` = log duration / total."""
+    frame_offset: np.ndarray
+    """(2,) float64 (x0, y0) in metres: the translation of the log's first odometry pose rounded to a
+    multiple of 64 m, which ``run`` subtracted from the log before the filter ran (the filter's
+    *local frame*; zero for a log that starts within 32 m of the origin). ``state``
+    and ``info`` are in that frame; ``best_path``, ``trajectory`` and ``config.grid`` are in the
+    log's (world) frame. ``to_world`` converts."""
 
     @property
     def best_particle(self) -> int:
         """Index of the final particle with the largest weight (whose map and path are the result's)."""
         return particle_filter.best_particle(self.state.log_weights)
+
+    def to_world(self, poses) -> np.ndarray:
+        """Poses (..., 3) or points (..., 2) of the local frame (``state.poses``,
+        ``info.proposed_poses``, ``info.mean_pose``) in the world frame: float64, ``frame_offset`` added."""
+        out = np.array(poses, dtype=np.float64)
+        out[..., :2] += self.frame_offset
+        return out
+
+    @property
+    def local_config(self) -> SlamConfig:
+        """``config`` with its grid in the local frame, as the jitted step saw it: use it with
+        ``state`` (e.g. to step on or to scan-match against its maps with local poses)."""
+        (x0, y0), (ox, oy) = self.frame_offset, self.config.grid.origin
+        return dataclasses.replace(self.config, grid=dataclasses.replace(self.config.grid, origin=(ox - x0, oy - y0)))
 
 
 def auto_grid(log: LaserLog, settings: RunSettings, indices: np.ndarray | None = None) -> GridSpec:
@@ -317,6 +339,17 @@ def run(
 ) -> SlamResult:
     """Map a whole log: select the scans, then ``lax.scan`` the step over them in chunks.
 
+    The filter runs in a local frame: the translation (x0, y0) of the log's first odometry pose,
+    rounded to a multiple of 64 m, is subtracted from the odometry (and ground truth) on the host
+    in float64 before anything is cast to float32 (float32 resolves 0.5 m at 5,000 km from the
+    origin, e.g. in UTM coordinates), and added back to ``best_path`` and ``trajectory`` in
+    float64. The rounding keeps a log that starts within 32 m of the origin bit for bit as it
+    was, and makes a shift of the whole log by a multiple of 64 m change nothing but the offset.
+    ``result.frame_offset`` holds it; ``result.state`` and ``result.info`` stay in the local
+    frame (``result.to_world`` converts), ``result.config.grid`` is reported in the world frame.
+    A grid given in ``config`` is in world coordinates; the step is compiled with it shifted into
+    the local frame, so logs with different offsets compile the step once each.
+
     Args:
       key: the run's randomness (the same key reproduces the run bit for bit).
       log: the laser log.
@@ -329,10 +362,39 @@ def run(
     """
     from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
 
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     t_start = time.perf_counter()
+
+    def _shift_grid(grid: GridSpec, offset: np.ndarray) -> GridSpec:  # offset added to the origin, float64
+        if not np.any(offset):
+            return grid
+        origin = (float(grid.origin[0] + offset[0]), float(grid.origin[1] + offset[1]))
+        return dataclasses.replace(grid, origin=origin)
+
+    def _local_log(log: LaserLog, offset: np.ndarray) -> LaserLog:  # offset subtracted from x, y, float64
+        if not np.any(offset):
+            return log
+        odometry = log.odometry.copy()
+        odometry[:, :2] -= offset
+        ground_truth = None
+        if log.ground_truth is not None:
+            ground_truth = log.ground_truth.copy()
+            ground_truth[:, :2] -= offset
+        return dataclasses.replace(log, odometry=odometry, ground_truth=ground_truth)
+
+    # The first pose's translation, rounded to a multiple of 64 m: a log that starts within 32 m of
+    # the origin runs exactly as given, and shifting a log by a multiple of 64 m changes no bit of
+    # the filter's arithmetic (the local logs are equal); |local coordinates| <= 32 m + the log's extent.
+    frame_offset = np.round(np.asarray(log.odometry[0, :2], dtype=np.float64) / 64.0) * 64.0 + 0.0
+    log = _local_log(log, frame_offset)  # from here on, the local frame
     selection = select_updates(log, settings.linear_update, settings.angular_update)
     if config.grid is None:
         config = dataclasses.replace(config, grid=auto_grid(log, settings, selection.indices))
+        world_grid = _shift_grid(config.grid, frame_offset)
+    else:
+        world_grid = config.grid
+        config = dataclasses.replace(config, grid=_shift_grid(config.grid, -frame_offset))
     sensor = log.sensor
     initial_pose = jnp.asarray(log.odometry[0], jnp.float32)
     key_init, key_steps = jax.random.split(key)
@@ -353,10 +415,15 @@ def run(
     best = particle_filter.best_particle(state.log_weights)  # SlamResult.best_particle
     best_path = np.concatenate([np.asarray(initial_pose)[None], backtrack_path(info, best)])
     trajectory = trajectory_per_scan(log, selection.indices, best_path)
+    best_path = best_path.astype(np.float64)
+    if np.any(frame_offset):  # back to the world frame, in float64
+        best_path[:, :2] += frame_offset
+        trajectory[:, :2] += frame_offset
     total = time.perf_counter() - t_start
     timings = {
         "compile": chunked.first_chunk_seconds,
         "total": total,
         "real_time_factor": log.duration / total if total > 0 else float("inf"),
     }
-    return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings)
+    return SlamResult(state, info, selection, dataclasses.replace(config, grid=world_grid), settings, best_path,
+                      trajectory, timings, frame_offset)

@@ -220,9 +220,106 @@ def test_non_finite_odometry(tmp_path):
     _error(tmp_path, [flaser_line([1.0, 2.0], odom=(1.0, "nan", 0.0), stamp=1.0)], 0, r"non-finite odometry pose")
 
 
-def test_beam_count_changing(tmp_path):
-    _error(tmp_path, [flaser_line([1.0, 2.0, 3.0], stamp=1.0), flaser_line([1.0, 2.0], stamp=2.0)], 1,
-           r"the beam count changes from 3 to 2")
+def test_flaser_180_and_181_readings_are_an_error(tmp_path):
+    # FLASER lines of n readings span -90..+90 degrees: 180 and 181 readings lie on different grids.
+    _error(tmp_path, [flaser_line([1.0] * 181, stamp=1.0), flaser_line([1.0] * 180, stamp=2.0)], 1,
+           r"the beam layout changes from 181 beams, angle_min -1\.570796\d rad, increment 0\.0174533 rad "
+           r"\(-90\.000\.\.90\.000 deg\) \(the widest scan's, first at .*:5\) to 180 beams, "
+           r".*increment 0\.0175508 rad.*: "
+           r"its beams are not on the widest scan's angular grid")
+
+
+# --------------------------------------------------------------------------- changing beam layouts
+
+
+def _read_counting_warnings(path, **kwargs):
+    import warnings
+
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        log = read_carmen(path, **kwargs)
+    return log, [w for w in record if "beam layout changes" in str(w.message)]
+
+
+def test_robotlaser_180_and_181_beams_are_padded(tmp_path):
+    from jaxslam.laser import valid_returns
+
+    start, res = -math.pi / 2, math.pi / 180
+    counts = [181, 180, 180, 181]
+    lines = [robotlaser_line(list(1.0 + k + np.arange(n) / 100), offset=(0.0, 0.0, 0.0), stamp=10.0 + k,
+                             start=start, res=res) for k, n in enumerate(counts)]
+    path = write_log(tmp_path, lines)
+    log, warned = _read_counting_warnings(path)
+    assert len(warned) == 1 and log.notes == (str(warned[0].message),)
+    assert "2 of 4 scans were padded to the widest scan's 181 beam angles" in log.notes[0]
+    assert "range_min raised from 0 m to 0.001 m" in log.notes[0]
+    assert log.ranges.shape == (4, 181)
+    np.testing.assert_allclose(np.asarray(log.sensor.beam_angles), start + res * np.arange(181), atol=1e-6)
+    for k, n in enumerate(counts):
+        np.testing.assert_allclose(log.ranges[k, :n], 1.0 + k + np.arange(n) / 100, rtol=1e-6)
+    assert np.all(log.ranges[[1, 2], 180] == 0.0)
+    # range_min 0 would make a 0 m reading a return: it is raised to 1 mm so that padding is invalid.
+    assert float(log.sensor.range_min) == pytest.approx(1e-3)
+    valid = np.asarray(valid_returns(log.ranges, log.sensor))
+    assert not valid[[1, 2], 180].any() and valid[[0, 3]].all()
+
+
+def test_flaser_lines_that_interleave_are_merged(tmp_path):
+    # 181 readings (1 degree apart) lie on every other beam of 361 (0.5 degrees apart).
+    path = write_log(tmp_path, [flaser_line([2.0] * 181, stamp=1.0), flaser_line([3.0] * 361, stamp=2.0)])
+    log, warned = _read_counting_warnings(path)
+    assert len(warned) == 1 and log.num_beams == 361
+    np.testing.assert_allclose(np.asarray(log.sensor.beam_angles), np.linspace(-math.pi / 2, math.pi / 2, 361),
+                               atol=1e-6)
+    assert np.all(log.ranges[0, ::2] == 2.0) and np.all(log.ranges[0, 1::2] == 0.0)
+    assert np.all(log.ranges[1] == 3.0)
+    # 3 readings (-90, 0, 90 degrees) and 2 (-90, 90): the 2 are the 3's first and last.
+    path = write_log(tmp_path, [flaser_line([1.0, 2.0, 3.0], stamp=1.0), flaser_line([4.0, 5.0], stamp=2.0)],
+                     name="small.clf")
+    log, warned = _read_counting_warnings(path)
+    assert len(warned) == 1
+    np.testing.assert_array_equal(log.ranges, [[1.0, 2.0, 3.0], [4.0, 0.0, 5.0]])
+
+
+def test_robotlaser_lines_changing_their_angular_range_are_an_error(tmp_path):
+    start, res = -math.pi / 2, math.pi / 180
+    lines = [robotlaser_line([1.0] * 181, stamp=1.0, start=start, res=res),
+             robotlaser_line([1.0] * 180, stamp=2.0, start=start, res=res),
+             robotlaser_line([1.0] * 180, stamp=3.0, start=start + 5 * res, res=res)]
+    _error(tmp_path, lines, 2, r"the beam layout changes from 181 beams, angle_min -1\.570796\d rad, .* to "
+           r"180 beams, angle_min -1\.48352\d+ rad, .*: the angular range changes")
+    lines[2] = robotlaser_line([1.0] * 180, stamp=3.0, start=start + 0.37 * res, res=res)
+    _error(tmp_path, lines, 2, r"the beam layout changes .*: its beams are not on the widest scan's angular grid")
+
+
+def test_a_log_of_180_and_181_beam_lines_maps(tmp_path):
+    """The office simulation as ROBOTLASER1 lines, every other one without its last beam:
+    it reads, maps, and summary.json records the padding."""
+    import json
+
+    import jax
+
+    from jaxslam.cli import main
+    from jaxslam.sim import office_scenario
+
+    sim = office_scenario(jax.random.key(0), num_scans=150, num_beams=181).log.subset(np.arange(40))
+    lines = []
+    for k in range(sim.num_scans):
+        ranges = sim.ranges[k] if k % 2 == 0 else sim.ranges[k, :180]
+        lines.append(robotlaser_line([float(f"{r:.3f}") for r in ranges], robot=tuple(map(float, sim.odometry[k])),
+                                     offset=(0.0, 0.0, 0.0), stamp=1000.0 + float(sim.timestamps[k]),
+                                     start=-math.pi / 2, res=math.pi / 180, max_range=float(sim.sensor.range_max)))
+    path = write_log(tmp_path, lines)
+    log, warned = _read_counting_warnings(path)
+    assert len(warned) == 1 and log.num_beams == 181 and np.all(log.ranges[1::2, 180] == 0.0)
+    out = tmp_path / "out"
+    assert main(["map", str(path), "--particles", "2", "--no-progress", "--set", "linear_update=0.3",
+                 "--set", "max_insert_range=8", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["log_notes"]) == 1 and "20 of 40 scans were padded" in summary["log_notes"][0]
+    traj = np.loadtxt(out / "trajectory.txt")
+    err = np.hypot(*(traj[:, 1:3] - sim.ground_truth[:, :2]).T)
+    assert traj.shape == (40, 4) and err.max() < 0.3, err.max()
 
 
 def test_timestamps_going_backwards(tmp_path):
@@ -248,7 +345,9 @@ def test_robotlaser_errors(tmp_path):
     _error(tmp_path, [" ".join(line[:-5])], 0, r"truncated ROBOTLASER1 \(n=3, n_remissions=3\) line")
     _error(tmp_path, [" ".join(line[:11])], 0, r"truncated line: 11 fields, no field 13 \(number of remissions\)")
     geometry_change = robotlaser_line([1.0, 2.0, 3.0], stamp=2.0, start=-1.0)
-    _error(tmp_path, [" ".join(line), geometry_change], 1, r"start_angle/angular_res change")
+    _error(tmp_path, [" ".join(line), geometry_change], 1,
+           r"the beam layout changes from 3 beams, angle_min -1\.5000000 rad, .* to 3 beams, angle_min -1\.0000000 "
+           r"rad, .*: the angular range changes")
     range_change = robotlaser_line([1.0, 2.0, 3.0], stamp=2.0, max_range=50.0)
     _error(tmp_path, [" ".join(line), range_change], 1, r"max_range changes from 30\.0 to 50\.0")
 

@@ -296,19 +296,179 @@ def _scan_error(tmp_path, kind, index, make, match):
         read_rosbag(path)
 
 
-def test_beam_count_changing(tmp_path, bag_kind):
-    _scan_error(tmp_path, bag_kind, 2, lambda ts, t: scan_msg(ts, t, np.ones(179)),
-                "beam count changes from 180 to 179")
-
-
 def test_angle_min_changing(tmp_path, bag_kind):
     _scan_error(tmp_path, bag_kind, 3, lambda ts, t: scan_msg(ts, t, np.ones(NUM_BEAMS), angle_min=-1.0),
-                "angle_min/angle_increment change")
+                r"the beam layout changes from 180 beams, angle_min -1\.5707964 rad, .*\(the widest scan's, first "
+                r"at .*/scan message 0 .*\) to 180 beams, angle_min -1\.0000000 rad.*: the angular range changes")
 
 
 def test_angle_increment_changing(tmp_path, bag_kind):
     _scan_error(tmp_path, bag_kind, 1, lambda ts, t: scan_msg(ts, t, np.ones(NUM_BEAMS), increment=0.01),
-                "angle_min/angle_increment change")
+                r"the beam layout changes .* to 180 beams, angle_min -1\.5707964 rad, increment 0\.0100000 rad.*: "
+                r"its beams are not on the widest scan's angular grid")
+
+
+# --------------------------------------------------------------------------- changing beam layouts
+
+
+def _layout_warnings(record):
+    return [w for w in record if issubclass(w.category, UserWarning) and "beam layout changes" in str(w.message)]
+
+
+def _read_counting_warnings(path, **kwargs):
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        log = read_rosbag(path, **kwargs)
+    return log, _layout_warnings(record)
+
+
+def _mixed_messages(ts, layouts):
+    """standard_messages whose k-th scan has layouts[k] = (num_beams, angle_min); ranges 1 + k + beam/100."""
+    messages = standard_messages(ts, num_scans=len(layouts))
+    for k, (num_beams, angle_min) in enumerate(layouts):
+        t = T0 + 0.25 + 0.5 * k
+        _replace_scan(messages, k, scan_msg(ts, t, 1.0 + k + np.arange(num_beams) / 100, angle_min=angle_min))
+    return messages
+
+
+def test_180_and_181_beam_scans_are_padded(tmp_path, bag_kind):
+    from jaxslam.laser import valid_returns
+
+    layouts = [(180, ANGLE_MIN), (181, ANGLE_MIN), (180, ANGLE_MIN), (181, ANGLE_MIN), (180, ANGLE_MIN)]
+    path = _write(tmp_path, bag_kind, _mixed_messages(_store(bag_kind), layouts))
+    log, warned = _read_counting_warnings(path)
+    assert len(warned) == 1  # once per log, not once per scan
+    message = str(warned[0].message)
+    assert message.startswith(f"{path}: the beam layout changes within the log (2 scans of 181 beams from -90.000 "
+                              "deg, 1.006 deg apart; 3 scans of 180 beams from -90.000 deg, 1.006 deg apart)")
+    assert "3 of 5 scans were padded to the widest scan's 181 beam angles" in message
+    assert log.notes == (message,)
+    assert log.ranges.shape == (5, 181)
+    # The widest scan's angles; the 180-beam scans are its first 180 beams, the 181st is padding.
+    expected_angles = np.float32(ANGLE_MIN) + np.float32(INCREMENT) * np.arange(181, dtype=np.float64)
+    np.testing.assert_allclose(np.asarray(log.sensor.beam_angles), expected_angles, atol=1e-6)
+    for k, (num_beams, _) in enumerate(layouts):
+        np.testing.assert_allclose(log.ranges[k, :num_beams], 1.0 + k + np.arange(num_beams) / 100, rtol=1e-6)
+    assert np.all(log.ranges[[0, 2, 4], 180] == 0.0)
+    valid = np.asarray(valid_returns(log.ranges, log.sensor))
+    assert not valid[[0, 2, 4], 180].any() and valid[[1, 3], 180].all()
+    # A padded beam is no "no return" either (that would clear free space).
+    assert np.all(log.ranges[[0, 2, 4], 180] < float(log.sensor.range_min))
+    # Reading only scans of one layout pads nothing and says nothing.
+    log2, warned2 = _read_counting_warnings(path, max_scans=1)
+    assert log2.num_beams == 180 and not warned2 and log2.notes == ()
+
+
+def test_padded_beams_neither_clear_nor_mark_cells():
+    """Inserting a padded scan changes exactly what inserting the unpadded one changes."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxslam import grid as G
+    from jaxslam import occupancy as O
+    from jaxslam.io.rosbag import BeamLayout, pad_beam_layouts
+    from jaxslam.laser import make_sensor
+
+    angles = ANGLE_MIN + INCREMENT * np.arange(181)
+    layouts = [BeamLayout(angles[:180], INCREMENT, "a"), BeamLayout(angles, INCREMENT, "b")]
+    rng = np.random.default_rng(0)
+    scans = [rng.uniform(0.5, 3.0, 180).astype(np.float32), rng.uniform(0.5, 3.0, 181).astype(np.float32)]
+    beam_angles, ranges, range_min, note = pad_beam_layouts("x", layouts, [0, 1], scans, 0.0)
+    assert note and range_min == pytest.approx(1e-3)  # range_min 0 is raised so that 0 m is invalid
+    spec = G.GridSpec((40, 40), 0.2, (-4.0, -4.0))
+    params = O.InsertionParams(*(jnp.float32(v) for v in (0.9, -0.4, -2.0, 3.5, 5.0)))
+    insert = jax.jit(O.insert_scan, static_argnums=(0, 6, 7))
+    pose = jnp.asarray([0.1, -0.2, 0.3], jnp.float32)
+    padded = insert(spec, O.empty_map(spec), pose, jnp.asarray(ranges[0]),
+                    make_sensor(beam_angles, range_min, 3.5), params, 3.5, 3)[0]
+    plain = insert(spec, O.empty_map(spec), pose, jnp.asarray(scans[0]),
+                   make_sensor(angles[:180], range_min, 3.5), params, 3.5, 3)[0]
+    np.testing.assert_array_equal(np.asarray(padded.logodds), np.asarray(plain.logodds))
+    np.testing.assert_array_equal(np.asarray(padded.hit_dist2), np.asarray(plain.hit_dist2))
+
+
+def test_interleaved_scans_are_merged(tmp_path, bag_kind):
+    """Scans on the widest scan's grid shifted by a quarter increment (a SICK LMS's interlaced
+    mode, as in FR-clinic) are kept at their own angles, each beam stride sampling all scans."""
+    from jaxslam.laser import subsample_beams, valid_returns
+
+    quarter = ANGLE_MIN + INCREMENT / 4
+    layouts = [(180, quarter), (181, ANGLE_MIN), (180, quarter)]
+    path = _write(tmp_path, bag_kind, _mixed_messages(_store(bag_kind), layouts))
+    log, warned = _read_counting_warnings(path)
+    assert len(warned) == 1 and "interleaved 1/4 of its increment apart" in str(warned[0].message)
+    assert log.num_beams == 361
+    angles = np.asarray(log.sensor.beam_angles, dtype=np.float64)
+    np.testing.assert_allclose(angles[:181], np.float32(ANGLE_MIN) + np.float32(INCREMENT) * np.arange(181),
+                               atol=1e-6)
+    np.testing.assert_allclose(angles[181:], np.float32(quarter) + np.float32(INCREMENT) * np.arange(180),
+                               atol=1e-6)
+    np.testing.assert_allclose(log.ranges[0, 181:], 1.0 + np.arange(180) / 100, rtol=1e-6)
+    assert np.all(log.ranges[0, :181] == 0.0) and np.all(log.ranges[1, 181:] == 0.0)
+    for stride in (2, 3):
+        sensor, ranges = subsample_beams(log.sensor, log.ranges, stride)
+        valid = np.asarray(valid_returns(ranges, sensor)).sum(axis=1)
+        assert np.all(valid >= 180 // stride), (stride, valid)
+
+
+def test_scans_changing_their_angular_range_are_an_error(tmp_path, bag_kind):
+    ts = _store(bag_kind)
+    shifted = ANGLE_MIN + 10 * INCREMENT  # on the grid, but 10 beams beyond the widest scan's range
+    path = _write(tmp_path, bag_kind, _mixed_messages(ts, [(181, ANGLE_MIN), (180, ANGLE_MIN), (180, shifted)]))
+    pattern = (_where(path) + r": /scan message 2 \(bag message \d+, bag time 1001\.250000000 s\), stamp "
+               r"1001\.250000000 s: the beam layout changes from 181 beams, angle_min -1\.5707964 rad, increment "
+               r"0\.0175508 rad \(-90\.000\.\.91\.006 deg\) \(the widest scan's, first at .*/scan message 0 .*\) to "
+               r"180 beams, angle_min -1\.39528\d+ rad, .*: the angular range changes")
+    with pytest.raises(LogError, match=pattern):
+        read_rosbag(path)
+    # Off the grid by 0.37 of an increment: not interleaved either.
+    path = _write(tmp_path, bag_kind, _mixed_messages(ts, [(181, ANGLE_MIN), (180, ANGLE_MIN + 0.37 * INCREMENT)]),
+                  name="offgrid")
+    with pytest.raises(LogError, match=r"/scan message 1 .*its beams are not on the widest scan's angular grid"):
+        read_rosbag(path)
+
+
+def _office_log():
+    import jax
+
+    from jaxslam.sim import office_scenario
+
+    return office_scenario(jax.random.key(0), num_scans=150, num_beams=181).log.subset(np.arange(40))
+
+
+def test_a_bag_of_180_and_181_beam_scans_maps(tmp_path):
+    """The office simulation written as a bag whose odd scans lack their last beam: it reads,
+    maps, and summary.json records the padding."""
+    import json
+
+    from jaxslam.cli import main
+
+    sim = _office_log()
+    ts = _store("ros1")
+    increment = math.pi / 180
+    messages = []
+    for k in range(sim.num_scans):
+        t = T0 + float(sim.timestamps[k])
+        messages.append(("/odom", t, odom_msg(ts, t, *map(float, sim.odometry[k]))))
+        ranges = sim.ranges[k] if k % 2 == 0 else sim.ranges[k, :180]
+        messages.append(("/scan", t, scan_msg(ts, t, ranges, increment=increment,
+                                              range_max=float(sim.sensor.range_max))))
+    path = write_bag(tmp_path / "office.bag", messages)
+    log, warned = _read_counting_warnings(path)
+    assert len(warned) == 1 and log.num_beams == 181
+    np.testing.assert_array_equal(log.ranges[::2], sim.ranges[::2])
+    assert np.all(log.ranges[1::2, 180] == 0.0)
+
+    out = tmp_path / "out"
+    assert main(["map", str(path), "--particles", "2", "--no-progress", "--set", "linear_update=0.3",
+                 "--set", "max_insert_range=8", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scans_in_log"] == 40
+    assert len(summary["log_notes"]) == 1 and "20 of 40 scans were padded" in summary["log_notes"][0]
+    traj = np.loadtxt(out / "trajectory.txt")
+    # The path follows the simulated one (odometry drift over 40 scans is corrected, not added).
+    err = np.hypot(*(traj[:, 1:3] - sim.ground_truth[:, :2]).T)
+    assert traj.shape == (40, 4) and err.max() < 0.3, err.max()
 
 
 def test_range_max_changing(tmp_path, bag_kind):
@@ -406,6 +566,20 @@ def test_aces_bag(shared_data):
     assert float(log.sensor.range_max) == 50.0
     assert log.timestamps[0] == pytest.approx(70.2899, abs=1e-6)
     assert log.duration == pytest.approx(1366, abs=1.0)
+
+
+def test_fr_clinic_bag(shared_data):
+    """FR-clinic's scans: 181 beams from -90 degrees and 180 from -89.75, -89.5 or -89.25
+    degrees, 1 degree apart (a SICK LMS's interlaced 0.25-degree mode)."""
+    log, warned = _read_counting_warnings(shared_data / "fr-clinic.bag")
+    assert len(warned) == 1
+    assert log.num_scans == 6917 and log.num_beams == 721
+    assert "1748 scans of 181 beams from -90.000 deg" in str(warned[0].message)
+    assert float(log.sensor.range_min) == pytest.approx(0.1)
+    padded = np.sum(log.ranges == 0.0, axis=1)
+    assert np.sum(padded == 540) == 1748 and np.sum(padded == 541) == 5169
+    np.testing.assert_allclose(np.degrees(np.sort(np.asarray(log.sensor.beam_angles)))[[0, -1]], [-90.0, 90.0],
+                               atol=0.01)
 
 
 def test_intel_max_scans(shared_data):

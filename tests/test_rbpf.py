@@ -185,7 +185,7 @@ def test_config_and_params_validation():
         params_from_dict({"lookahead.selection_correction": -0.1})
     with pytest.raises(ConfigError, match="unknown config field"):
         config_from_dict({"particles": 3})
-    with pytest.raises(ConfigError, match="num_particles must be a int"):
+    with pytest.raises(ConfigError, match="num_particles must be an integer"):
         config_from_dict({"num_particles": "many"})
     flat = params_to_dict(params_from_dict({"motion.srr": 0.25}))
     assert flat["motion.srr"] == pytest.approx(0.25)

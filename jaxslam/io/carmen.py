@@ -17,6 +17,12 @@ other messages (PARAM, SYNC, RAWLASER*, ...) are ignored. Line formats
 
 Every malformed line raises :class:`~jaxslam.laserlog.LogError` naming the file
 and the (1-based) line number.
+
+Lines whose beam count (or, for ROBOTLASER1, start_angle / angular_res) changes
+within a log are padded to one common beam layout by the rule of
+:func:`jaxslam.io.rosbag.pad_beam_layouts`; FLASER lines of n readings span
+-90..+90 degrees with both ends included, so FLASER lines of 180 and 181 readings
+lie on different grids and are refused, while 181 and 361 readings interleave.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ import warnings
 import numpy as np
 
 from jaxslam.geometry import between
+from jaxslam.io.rosbag import BeamLayout, pad_beam_layouts
 from jaxslam.io.trajectory import poses_at
 from jaxslam.laserlog import LaserLog, LogError
 from jaxslam.laser import make_sensor, uniform_beams
@@ -69,13 +76,18 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
         -90..+90 degrees with both ends included; ROBOTLASER1 beams are
         ``start_angle + i * angular_res`` and the laser's mounting pose is read from the
         first line. Ground truth comes from TRUEPOS lines (interpolated) when they cover
-        every scan, else it is None (with a warning if TRUEPOS lines exist).
+        every scan, else it is None (with a warning if TRUEPOS lines exist). Lines of
+        different beam layouts are padded to a common one
+        (:func:`jaxslam.io.rosbag.pad_beam_layouts`; a line's missing beams read 0 m, an
+        invalid reading, and range_min becomes 1 mm) with one ``UserWarning``, and the
+        log's ``notes`` say so.
 
     Raises:
         LogError: naming file and line, for a truncated or over-long line, a non-numeric
-            field, a NaN or negative range, a non-finite pose, a beam count or beam
-            geometry that changes, timestamps that go backwards, FLASER and ROBOTLASER1
-            mixed in one log, no laser lines (or no ODOM lines with ``"odom"``).
+            field, a NaN or negative range, a non-finite pose, beams that leave the widest
+            line's angular grid or range, a max_range that changes, timestamps that go
+            backwards, FLASER and ROBOTLASER1 mixed in one log, no laser lines (or no ODOM
+            lines with ``"odom"``).
     """
     if odometry_source not in ("laser", "odom"):
         raise ValueError(f"odometry_source must be 'laser' or 'odom', got {odometry_source!r}")
@@ -179,8 +191,10 @@ class _LaserLines:
         self.src = src
         self.kind: str | None = None
         self.first_where = ""
-        self.num_beams = 0
-        self.geometry: tuple[float, float, float] | None = None  # ROBOTLASER1 start, res, max_range
+        self.layouts: list[BeamLayout] = []  # in order of first appearance
+        self.layout_keys: dict[tuple[float, float, int], int] = {}
+        self.layout_of: list[int] = []
+        self.geometry: tuple[float, float, float] | None = None  # first ROBOTLASER1 start, res, max_range
         self.laser_pose: np.ndarray | None = None  # ROBOTLASER1 mounting, robot frame
         self.laser_pose_varies = ""
         self.times: list[float] = []
@@ -198,11 +212,17 @@ class _LaserLines:
             )
         if kind == "FLASER":
             ranges, odometry, stamp = self._flaser(fields, where)
+            start, resolution = -math.pi / 2, math.pi / max(ranges.size - 1, 1)
         else:
-            ranges, odometry, stamp = self._robotlaser(fields, where)
-        if self.times and ranges.size != self.num_beams:
-            raise LogError(f"{where}: the beam count changes from {self.num_beams} to {ranges.size}")
-        self.num_beams = ranges.size
+            ranges, odometry, stamp, (start, resolution) = self._robotlaser(fields, where)
+        key = (start, resolution, int(ranges.size))
+        if key not in self.layout_keys:
+            if kind == "FLASER":
+                angles = np.asarray(uniform_beams(ranges.size, math.pi), dtype=np.float64)
+            else:
+                angles = start + resolution * np.arange(ranges.size, dtype=np.float64)
+            self.layout_keys[key] = len(self.layouts)
+            self.layouts.append(BeamLayout(angles, resolution, where))
         if np.any(np.isnan(ranges)) or np.any(ranges < 0):
             beam = int(np.argmax(np.isnan(ranges) | (ranges < 0)))
             raise LogError(f"{where}: beam {beam} has range {ranges[beam]!r} (NaN or negative)")
@@ -214,6 +234,7 @@ class _LaserLines:
         self.times.append(stamp)
         self.odometry.append(odometry)
         self.ranges.append(ranges)
+        self.layout_of.append(self.layout_keys[key])
         self.wheres.append(where)
 
     def _flaser(self, fields: list[str], where: str):
@@ -251,28 +272,24 @@ class _LaserLines:
             self.geometry = geometry
             self.laser_pose = np.asarray(between(robot_world, laser_world), dtype=np.float64)
         else:
-            if geometry[:2] != self.geometry[:2]:
-                raise LogError(
-                    f"{where}: start_angle/angular_res change from {self.geometry[:2]} to {geometry[:2]}"
-                )
+            # start_angle / angular_res may change (the beam layouts are merged in build).
+            if resolution == 0:
+                raise LogError(f"{where}: bad laser settings angular_res={resolution}")
             if geometry[2] != self.geometry[2]:
                 raise LogError(f"{where}: max_range changes from {self.geometry[2]} to {geometry[2]}")
             mounting = np.asarray(between(robot_world, laser_world), dtype=np.float64)
             if not self.laser_pose_varies and np.max(np.abs(mounting - self.laser_pose)) > _LASER_POSE_TOLERANCE:
                 self.laser_pose_varies = where
-        return ranges, robot_world, float(numbers[11])
+        return ranges, robot_world, float(numbers[11]), geometry[:2]
 
     def build(self, range_max, odometry_source, odom: _PoseStream, truth: _PoseStream) -> LaserLog:
         src = self.src
         times = np.asarray(self.times, dtype=np.float64)
         odometry = np.stack(self.odometry)
-        ranges = np.stack(self.ranges)
         if self.kind == "FLASER":
-            beam_angles = np.asarray(uniform_beams(self.num_beams, math.pi), dtype=np.float64)
             default_max, laser_pose = FLASER_NO_RETURN, (0.0, 0.0, 0.0)
         else:
-            start, resolution, default_max = self.geometry
-            beam_angles = start + resolution * np.arange(self.num_beams, dtype=np.float64)
+            default_max = self.geometry[2]
             laser_pose = tuple(self.laser_pose)
             if self.laser_pose_varies:
                 warnings.warn(
@@ -284,8 +301,9 @@ class _LaserLines:
         if not limit > 0:
             raise ValueError(f"range_max must be positive, got {range_max!r}")
         limit32 = np.float32(limit)
-        # Readings at or beyond the limit are "no return": exactly range_max in the log.
-        ranges = np.where(ranges >= limit32, limit32, ranges.astype(np.float32))
+        # Every layout must fit (the error names its first line); the kept lines' are merged below.
+        layout_of = np.asarray(self.layout_of, dtype=np.int64)
+        pad_beam_layouts(src, self.layouts, layout_of, [], 0.0)
         keep = np.ones(times.size, dtype=bool)
         if odometry_source == "odom":
             if not odom.times:
@@ -317,5 +335,11 @@ class _LaserLines:
                     f"{src}: TRUEPOS lines do not cover every laser timestamp; no ground truth is returned",
                     stacklevel=3,
                 )
-        sensor = make_sensor(beam_angles, range_min=0.0, range_max=limit, laser_pose=laser_pose)
-        return LaserLog(times[keep], odometry[keep], ranges[keep], sensor, ground_truth, src)
+        kept = np.nonzero(keep)[0]
+        # Readings at or beyond the limit are "no return": exactly range_max in the log.
+        scans = [np.where(self.ranges[i] >= limit32, limit32, self.ranges[i].astype(np.float32)) for i in kept]
+        beam_angles, ranges, range_min, note = pad_beam_layouts(src, self.layouts, layout_of[kept], scans, 0.0)
+        if note:
+            warnings.warn(note, stacklevel=3)
+        sensor = make_sensor(beam_angles, range_min=range_min, range_max=limit, laser_pose=laser_pose)
+        return LaserLog(times[keep], odometry[keep], ranges, sensor, ground_truth, src, (note,) if note else ())

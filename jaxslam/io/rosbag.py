@@ -7,6 +7,11 @@ Each scan is paired with the odometry interpolated at its header timestamp
 are dropped with a warning. Every malformed message raises
 :class:`~jaxslam.laserlog.LogError` naming the bag, the topic, the message index
 and its timestamp.
+
+Scans whose beam count or beam angles change within a log are padded to one
+common layout by :func:`pad_beam_layouts` (shared with the CARMEN reader) when
+every scan's beams lie on the widest scan's angular grid within its angular
+range; any other change is a LogError.
 """
 
 from __future__ import annotations
@@ -14,7 +19,9 @@ from __future__ import annotations
 import math
 import os
 import warnings
+from collections import Counter
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -27,10 +34,24 @@ __all__ = ["read_rosbag"]
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 
-# Tolerance (rad) when checking that the beam geometry stays the same from scan to scan:
-# the fields are float32 in the message, so identical settings compare exactly; this only
-# forgives a re-serialisation through float64.
+# Tolerance (rad) when telling whether two scans have the same beam layout: the fields are
+# float32 in the message, so identical settings compare exactly; this only forgives a
+# re-serialisation through float64.
 _ANGLE_TOLERANCE = 1e-7
+
+PAD_RANGE = 0.0
+"""Range (m) of a padded beam (one a scan lacks): below ``range_min``, so invalid: it
+neither clears nor marks a cell and never counts in a likelihood. (A no-return reading,
+``>= range_max``, would not do: insertion clears free space along it.)"""
+PAD_RANGE_MIN = 1e-3
+"""``range_min`` (m) of a padded log whose sensor says 0, so that :data:`PAD_RANGE` lies
+below it; readings under 1 mm are no real return."""
+# Most a beam's angle may miss the common grid (rad): 1e-4 rad is 1 mm at 10 m, far below a
+# laser beam's width; it forgives increments printed with few digits.
+_GRID_TOLERANCE = 1e-4
+# Finest subdivision of the widest scan's increment that interleaved scans may sit on
+# (a SICK LMS interlaces 4 scans 0.25 degrees apart in its 0.25-degree mode).
+_MAX_SUBDIVISION = 4
 
 
 def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_scans: int | None = None) -> LaserLog:
@@ -53,11 +74,18 @@ def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_
         come from the messages. Scans before the first or after the last odometry message
         are dropped, with a ``UserWarning`` saying how many.
 
+        Scans whose beam count, angle_min or angle_increment change within the log are
+        padded to a common beam layout (:func:`pad_beam_layouts`: B is then the widest
+        scan's beam count, or more for interleaved scans; a scan's missing beams read
+        :data:`PAD_RANGE`, an invalid reading) with one ``UserWarning``, and the log's
+        ``notes`` say so.
+
     Raises:
         LogError: the bag cannot be opened; a topic is missing or has the wrong type
             (the message lists the topics there are); there are no scans or no odometry;
-            a message cannot be deserialised; a range is NaN or negative; the beam count,
-            angle_min, angle_increment, range_min or range_max change mid-log; header
+            a message cannot be deserialised; a range is NaN or negative; a scan has no
+            beams; a scan's beams leave the widest scan's angular grid or range (see
+            :func:`pad_beam_layouts`); range_min or range_max change mid-log; header
             timestamps go backwards.
     """
     src = os.fspath(path)
@@ -94,8 +122,10 @@ class _Scans:
 
     def __init__(self):
         self.times: list[float] = []
-        self.ranges: list[np.ndarray] = []
-        self.first = None  # (angle_min, angle_increment, range_min, range_max, num_beams)
+        self.ranges: list[np.ndarray] = []  # one (B_i,) array per scan
+        self.layout_of: list[int] = []  # index into self.layouts, per scan
+        self.layouts: list[BeamLayout] = []  # in order of first appearance
+        self.first = None  # (range_min, range_max) of the first scan
 
 
 def _read_messages(reader, src, scan_topic, odom_topic, max_scans):
@@ -157,49 +187,53 @@ def _read_messages(reader, src, scan_topic, odom_topic, max_scans):
 
 
 def _add_scan(scans: _Scans, msg, stamp: float, where: str) -> None:
-    """Validate one LaserScan message against the first one and append it."""
+    """Validate one LaserScan message and append it (its beam layout is checked at the end)."""
     ranges = np.asarray(msg.ranges, dtype=np.float32)
-    geometry = (
-        float(msg.angle_min),
-        float(msg.angle_increment),
-        float(msg.range_min),
-        float(msg.range_max),
-        int(ranges.shape[0]),
-    )
+    angle_min, increment = float(msg.angle_min), float(msg.angle_increment)
+    range_min, range_max = float(msg.range_min), float(msg.range_max)
+    num_beams = int(ranges.shape[0])
+    if num_beams == 0:
+        raise LogError(f"{where}: the scan has no beams")
     if scans.first is None:
-        angle_min, increment, range_min, range_max, num_beams = geometry
-        if num_beams == 0:
-            raise LogError(f"{where}: the scan has no beams")
-        if not all(math.isfinite(v) for v in geometry[:4]) or increment == 0 or not range_max > 0:
+        if not all(math.isfinite(v) for v in (angle_min, increment, range_min, range_max)) or increment == 0 \
+                or not range_max > 0:
             raise LogError(
                 f"{where}: bad beam geometry angle_min={angle_min} angle_increment={increment} "
                 f"range_min={range_min} range_max={range_max}"
             )
-        scans.first = geometry
-    else:
-        angle_min, increment, range_min, range_max, num_beams = scans.first
-        if geometry[4] != num_beams:
-            raise LogError(f"{where}: the beam count changes from {num_beams} to {geometry[4]}")
-        if abs(geometry[0] - angle_min) > _ANGLE_TOLERANCE or abs(geometry[1] - increment) > _ANGLE_TOLERANCE:
-            raise LogError(
-                f"{where}: angle_min/angle_increment change from {angle_min!r}/{increment!r} "
-                f"to {geometry[0]!r}/{geometry[1]!r}"
-            )
-        if geometry[2] != range_min or geometry[3] != range_max:
-            raise LogError(
-                f"{where}: range_min/range_max change from {range_min!r}/{range_max!r} "
-                f"to {geometry[2]!r}/{geometry[3]!r}"
-            )
+        scans.first = (range_min, range_max)
+    elif (range_min, range_max) != scans.first:
+        raise LogError(
+            f"{where}: range_min/range_max change from {scans.first[0]!r}/{scans.first[1]!r} "
+            f"to {range_min!r}/{range_max!r}"
+        )
+    layout = _layout_index(scans.layouts, angle_min, increment, num_beams)
+    if layout is None:
+        if not (math.isfinite(angle_min) and math.isfinite(increment)) or increment == 0:
+            raise LogError(f"{where}: bad beam geometry angle_min={angle_min} angle_increment={increment}")
+        scans.layouts.append(BeamLayout(angle_min + increment * np.arange(num_beams, dtype=np.float64),
+                                        increment, where))
+        layout = len(scans.layouts) - 1
     bad = np.isnan(ranges) | (ranges < 0)
     if bad.any():
         beam = int(np.argmax(bad))
         raise LogError(f"{where}: beam {beam} has range {ranges[beam]!r} (NaN or negative)")
     if scans.times and stamp < scans.times[-1]:
         raise LogError(f"{where}: the timestamp goes backwards (previous scan at {scans.times[-1]:.9f} s)")
-    range_max = np.float32(scans.first[3])
+    range_max32 = np.float32(range_max)
     # +inf and anything at or beyond range_max mean "no return": store exactly range_max.
-    scans.ranges.append(np.where(ranges >= range_max, range_max, ranges))
+    scans.ranges.append(np.where(ranges >= range_max32, range_max32, ranges))
+    scans.layout_of.append(layout)
     scans.times.append(stamp)
+
+
+def _layout_index(layouts, angle_min: float, increment: float, num_beams: int) -> int | None:
+    """The index of the known layout equal to this one (within _ANGLE_TOLERANCE), or None."""
+    for k, known in enumerate(layouts):
+        if (known.num_beams == num_beams and abs(known.angle_min - angle_min) <= _ANGLE_TOLERANCE
+                and abs(known.increment - increment) <= _ANGLE_TOLERANCE):
+            return k
+    return None
 
 
 def _add_odometry(times: list, poses: list, msg, stamp: float, where: str) -> None:
@@ -223,7 +257,6 @@ def _assemble(src, scan_topic, odom_topic, scans: _Scans, odometry) -> LaserLog:
     """Pair scans with interpolated odometry, drop the uncovered ones (warning), build the log."""
     odom_times, odom_poses = odometry
     times = np.asarray(scans.times, dtype=np.float64)
-    ranges = np.stack(scans.ranges)
     paired = poses_at(times, odom_times, odom_poses)
     early = int(np.sum(times < odom_times[0]))
     late = int(np.sum(times > odom_times[-1]))
@@ -240,7 +273,150 @@ def _assemble(src, scan_topic, odom_topic, scans: _Scans, odometry) -> LaserLog:
             stacklevel=3,
         )
     keep = paired.covered
-    angle_min, increment, range_min, range_max, num_beams = scans.first
-    beam_angles = angle_min + increment * np.arange(num_beams, dtype=np.float64)
-    sensor = make_sensor(beam_angles, range_min=max(range_min, 0.0), range_max=range_max)
-    return LaserLog(times[keep], paired.poses[keep], ranges[keep], sensor, None, src)
+    range_min, range_max = scans.first
+    layout_of = np.asarray(scans.layout_of)
+    # Every layout in the bag must fit (the error names its first scan); the kept scans'
+    # layouts are then merged.
+    pad_beam_layouts(src, scans.layouts, layout_of, [], max(range_min, 0.0))
+    kept = np.nonzero(keep)[0]
+    beam_angles, ranges, range_min, note = pad_beam_layouts(
+        src, scans.layouts, layout_of[kept], [scans.ranges[i] for i in kept], max(range_min, 0.0))
+    if note:
+        warnings.warn(note, stacklevel=3)
+    sensor = make_sensor(beam_angles, range_min=range_min, range_max=range_max)
+    return LaserLog(times[keep], paired.poses[keep], ranges, sensor, None, src, (note,) if note else ())
+
+
+class BeamLayout(NamedTuple):
+    """The beams of the scans that share one layout (angle_min, increment, beam count)."""
+
+    angles: np.ndarray
+    """(B_i,) float64 beam angles (rad), in the scan's order."""
+    increment: float
+    """Angle between consecutive beams (rad), signed."""
+    where: str
+    """The first scan with this layout (file, index, time), for messages."""
+
+    @property
+    def num_beams(self) -> int:
+        return int(self.angles.shape[0])
+
+    @property
+    def angle_min(self) -> float:
+        return float(self.angles[0])
+
+    def brief(self) -> str:
+        return (f"{self.num_beams} beams from {math.degrees(self.angles[0]):.3f} deg, "
+                f"{math.degrees(self.increment):.3f} deg apart")
+
+    def describe(self) -> str:
+        a, b = math.degrees(self.angles[0]), math.degrees(self.angles[-1])
+        return (f"{self.num_beams} beams, angle_min {self.angles[0]:.7f} rad, increment {self.increment:.7f} rad "
+                f"({a:.3f}..{b:.3f} deg)")
+
+
+def pad_beam_layouts(src: str, layouts, layout_of, ranges, range_min: float):
+    """Put scans of different beam layouts into one (T, B) array with one set of beam angles.
+
+    The rule: the widest layout (most beams; the first seen among equals) is the
+    reference. Every other layout's beam angles must lie on the reference's angular grid
+    (``angle_min + j * increment``) or, for interleaved scans, on a grid of 1/2, 1/3 or
+    1/4 of its increment (the smallest subdivision that fits every layout), each angle
+    within 1e-4 rad; and within the reference's angular range, widened by less than one
+    increment at either end. The common beam angles are the reference's, then the other
+    layouts' beams that are not among them (layouts with more beams first, then in order
+    of appearance; each in its own order, so that a beam stride still samples every
+    scan evenly). A scan's beams it does not have read :data:`PAD_RANGE`, below
+    ``range_min``: invalid readings, which neither clear nor mark a cell and never count
+    in a likelihood. Where ``range_min`` is not above :data:`PAD_RANGE`, it becomes
+    :data:`PAD_RANGE_MIN`.
+
+    Args:
+        src: the file, for the note.
+        layouts: the :class:`BeamLayout` of the log, in order of first appearance.
+        layout_of: (T,) int: each scan's layout (index into ``layouts``).
+        ranges: T (B_i,) float32 arrays: each scan's ranges, in its layout's order
+            (an empty list only validates the layouts).
+        range_min: the sensor's range_min (m).
+
+    Returns:
+        ``(beam_angles (B,) float64, ranges (T, B) float32, range_min, note)``: ``note`` is
+        None where every scan has the same layout (nothing is padded), else one sentence
+        saying what was padded (for a ``UserWarning`` and the log's ``notes``).
+
+    Raises:
+        LogError: a layout leaves the reference's grid or range (or its beams run the other
+            way); the message names the first scan with that layout and both layouts.
+    """
+    layout_of = np.asarray(layout_of, dtype=np.int64)
+    used = [int(k) for k in np.unique(layout_of)] if ranges else list(range(len(layouts)))
+    if len(used) <= 1:
+        if not ranges:
+            return None, None, range_min, None
+        return layouts[used[0]].angles, np.stack(ranges).astype(np.float32), range_min, None
+    widest = max(used, key=lambda k: (layouts[k].num_beams, -k))
+    ref = layouts[widest]
+    step = abs(ref.increment)
+    lo, hi = float(ref.angles.min()) - step, float(ref.angles.max()) + step
+    subdivisions = list(range(1, _MAX_SUBDIVISION + 1))
+    for k in used:  # in order of first appearance
+        layout = layouts[k]
+        angles = layout.angles
+        reason = None
+        if layout.num_beams > 1 and ref.num_beams > 1 and (layout.increment > 0) != (ref.increment > 0):
+            reason = "its beams run the other way"
+        elif angles.min() <= lo + _GRID_TOLERANCE or angles.max() >= hi - _GRID_TOLERANCE:
+            reason = "the angular range changes (beams beyond the widest scan's range)"
+        else:
+            offsets = (angles - ref.angles[0]) / step
+            fits = [d for d in subdivisions
+                    if np.max(np.abs(offsets * d - np.round(offsets * d))) * step / d <= _GRID_TOLERANCE]
+            if not fits:
+                reason = (f"its beams are not on the widest scan's angular grid, nor on one of 1/2..1/"
+                          f"{_MAX_SUBDIVISION} of its increment shared with the layouts before it")
+            else:
+                subdivisions = fits
+        if reason:
+            raise LogError(
+                f"{layout.where}: the beam layout changes from {ref.describe()} (the widest scan's, first at "
+                f"{ref.where}) to {layout.describe()}: {reason}; scans may differ in their beam count only "
+                "where every scan's beams lie on the widest scan's angular grid (or interleave with it) "
+                "within its angular range"
+            )
+    if not ranges:
+        return None, None, range_min, None
+    division = subdivisions[0]
+    grid_step = step / division
+    # Common beams: the reference's, then the others' new ones; slot = grid index of an angle.
+    order = [widest] + sorted((k for k in used if k != widest), key=lambda k: (-layouts[k].num_beams, k))
+    position: dict[int, int] = {}
+    beam_angles: list[float] = []
+    columns: dict[int, np.ndarray] = {}
+    for k in order:
+        slots = np.round((layouts[k].angles - ref.angles[0]) / grid_step).astype(np.int64)
+        cols = []
+        for slot, angle in zip(slots.tolist(), layouts[k].angles.tolist()):
+            if slot not in position:
+                position[slot] = len(beam_angles)
+                beam_angles.append(angle)
+            cols.append(position[slot])
+        columns[k] = np.asarray(cols, dtype=np.int64)
+    num_beams = len(beam_angles)
+    out = np.full((len(ranges), num_beams), PAD_RANGE, dtype=np.float32)
+    for k in used:
+        rows = np.nonzero(layout_of == k)[0]
+        if rows.size:
+            out[np.ix_(rows, columns[k])] = np.stack([ranges[i] for i in rows])
+    new_range_min = range_min if np.float32(range_min) > np.float32(PAD_RANGE) else PAD_RANGE_MIN
+    counts = Counter(layout_of.tolist())
+    padded = sum(n for k, n in counts.items() if layouts[k].num_beams < num_beams)
+    seen = "; ".join(f"{counts[k]} scans of {layouts[k].brief()}" for k in order)
+    target = (f"the widest scan's {num_beams} beam angles" if num_beams == ref.num_beams else
+              f"{num_beams} beam angles (the widest scan's {ref.num_beams} and the others' beams interleaved "
+              f"1/{division} of its increment apart: {num_beams / ref.num_beams:.1f} times the beams per scan)")
+    note = (f"{src}: the beam layout changes within the log ({seen}); {padded} of {len(ranges)} scans were "
+            f"padded to {target}. A padded beam reads {PAD_RANGE:g} m, below range_min {new_range_min:g} m: "
+            "invalid, it neither clears nor marks a cell nor counts in a likelihood")
+    if new_range_min != range_min:
+        note += f" (range_min raised from {range_min:g} m to {PAD_RANGE_MIN:g} m for this)"
+    return np.asarray(beam_angles, dtype=np.float64), out, new_range_min, note + "."

@@ -1,0 +1,383 @@
+"""Every bad input is refused before any work, on one line, with exit code 2; outputs are never mixed.
+
+The corpus is generated here (no stored files): each case writes what it needs (a small
+synthetic CARMEN log, a config file, a file or a read-only folder where the output should go)
+and runs the command line in-process, with the log reader and the filter replaced by traps,
+so a refusal that came after the work started fails the test.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from jaxslam.cli import main
+from jaxslam.config import ConfigError, build_setup
+from jaxslam.outputs import SLAM_OUTPUT_NAMES, publish_folder, strict_json_values
+from jaxslam.sim import office_scenario
+
+IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
+
+
+def write_flaser_log(path, log, stop=None):
+    """A CARMEN text log with FLASER lines (as tests/test_cli.py writes them)."""
+    lines = ["# synthetic CARMEN log written by the tests"]
+    for i in range(log.num_scans if stop is None else stop):
+        r = " ".join(f"{v:.3f}" for v in log.ranges[i])
+        x, y, th = log.odometry[i]
+        t = 1000.0 + log.timestamps[i]
+        lines.append(f"FLASER {log.num_beams} {r} {x:.6f} {y:.6f} {th:.6f} {x:.6f} {y:.6f} {th:.6f} {t:.6f} host {t:.6f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def small_log():
+    return office_scenario(jax.random.key(0), num_scans=150, num_beams=181).log.subset(np.arange(12))
+
+
+# ---------------------------------------------------------------------------------------------
+# The corpus: (case id, command and arguments, words the message must hold, setup).
+# Arguments may hold {log}, {cfg}, {out}, {file}, {ro}, {traj}, {rel}: paths made by the setup.
+
+
+def _config(content):
+    """Setup: write ``content`` (an object as JSON, or a string as is) as the config file."""
+    def setup(paths):
+        text = content if isinstance(content, str) else json.dumps(content)
+        paths["cfg"].write_text(text)
+    return setup
+
+
+def _sets(*items):
+    return [a for item in items for a in ("--set", item)]
+
+
+MAP = ["map", "{log}", "--no-progress", "--out", "{out}"]
+WITH_CFG = [*MAP, "--config", "{cfg}"]
+
+CASES = [
+    # Config values from a config file: exact types, finite numbers, physical ranges.
+    ("cfg-int-given-float", WITH_CFG, ["beam_stride must be an integer, got 2.9"], _config({"config": {"beam_stride": 2.9}})),
+    ("cfg-int-given-bool", WITH_CFG, ["beam_stride must be an integer, got True"], _config({"config": {"beam_stride": True}})),
+    ("cfg-int-given-whole-float", WITH_CFG, ["num_localizers must be an integer, got 50.0"],
+     _config({"config": {"num_localizers": 50.0}})),
+    ("cfg-float-given-bool", WITH_CFG, ["linear_update must be a number, got False"],
+     _config({"config": {"linear_update": False}})),
+    ("cfg-nan", WITH_CFG, ["linear_update must be a finite number", "nan"], _config('{"config": {"linear_update": NaN}}')),
+    ("cfg-infinity-param", WITH_CFG, ["motion.srr must be a finite number", "inf"],
+     _config('{"params": {"motion.srr": Infinity}}')),
+    ("cfg-zero-particles", WITH_CFG, ["num_particles must be >= 1, got 0"], _config({"config": {"num_particles": 0}})),
+    ("cfg-negative-resolution", WITH_CFG, ["resolution must be > 0", "-0.05"], _config({"config": {"resolution": -0.05}})),
+    ("cfg-proposal-number", WITH_CFG, ["proposal must be a string, got 5"], _config({"config": {"proposal": 5}})),
+    ("cfg-proposal-unknown", WITH_CFG, ["proposal must be one of", "'ekf'"], _config({"config": {"proposal": "ekf"}})),
+    ("cfg-field-radius", WITH_CFG, ["field_radius must be in 1..11", "got 12"], _config({"config": {"field_radius": 12}})),
+    ("cfg-param-string", WITH_CFG, ["motion.srr must be a number", "'fast'"], _config({"params": {"motion.srr": "fast"}})),
+    # Config-file structures.
+    ("cfg-config-not-object", WITH_CFG, ["'config' must be a JSON object"], _config({"config": 5})),
+    ("cfg-params-list", WITH_CFG, ["'params' must be a JSON object"], _config({"params": [1, 2]})),
+    ("cfg-top-level-list", WITH_CFG, ["expected a JSON object"], _config([1, 2])),
+    ("cfg-unknown-section", WITH_CFG, ["expected a JSON object with keys 'config' and/or 'params'"],
+     _config({"settings": {"linear_update": 1}})),
+    ("cfg-not-json", WITH_CFG, ["cannot read config file"], _config("{config: nope")),
+    ("cfg-missing-file", [*MAP, "--config", "{out}.json"], ["cannot read config file"], None),
+    ("cfg-grid-string", WITH_CFG, ["config field grid must be", "'100x100'"], _config({"config": {"grid": "100x100"}})),
+    ("cfg-grid-no-resolution", WITH_CFG, ["config field grid", "missing ['resolution']"],
+     _config({"config": {"grid": {"shape": [100, 100], "origin": [0, 0]}}})),
+    ("cfg-grid-bad-shape", WITH_CFG, ["grid.shape must be positive"],
+     _config({"config": {"grid": {"shape": [0, 100], "resolution": 0.05, "origin": [0, 0]}}})),
+    ("cfg-grid-fractional-shape", WITH_CFG, ["grid.shape must be an integer, got 2.5"],
+     _config({"config": {"grid": {"shape": [2.5, 100], "resolution": 0.05, "origin": [0, 0]}}})),
+    ("cfg-nested-params", WITH_CFG, ["unknown parameter", "'motion'"], _config({"params": {"motion": {"srr": 0.1}}})),
+    # --set values.
+    ("set-grid-number", [*MAP, *_sets("grid=100")], ["config field grid must be", "got 100"], None),
+    ("set-int-given-float", [*MAP, *_sets("beam_stride=2.9")], ["beam_stride must be a", "integer", "'2.9'"], None),
+    ("set-int-given-word", [*MAP, *_sets("num_particles=lots")], ["num_particles", "integer", "'lots'"], None),
+    ("set-no-equals", [*MAP, *_sets("linear_update")], ["NAME=VALUE"], None),
+    ("set-unknown", [*MAP, *_sets("motion.nope=1")], ["unknown parameter", "motion.nope"], None),
+    ("set-inf-setting", [*MAP, *_sets("linear_update=inf")], ["linear_update must be a finite number"], None),
+    ("set-negative-horizon", [*MAP, *_sets("horizon=-1")], ["horizon must be >= 0, got -1"], None),
+    ("set-zero-insert-range", [*MAP, *_sets("max_insert_range=0")], ["max_insert_range must be > 0"], None),
+    ("set-angular-update-negative", [*MAP, *_sets("angular_update=-0.1")], ["angular_update must be >= 0"], None),
+    # Physically invalid parameters.
+    ("param-negative-noise", [*MAP, *_sets("motion.srr=-0.1")], ["motion.srr must be >= 0", "-0.1"], None),
+    ("param-negative-std-floor", [*MAP, *_sets("motion.min_rotation_std=-1e-3")], ["min_rotation_std must be >= 0"], None),
+    ("param-zero-sigma", [*MAP, *_sets("likelihood.sigma=0")], ["likelihood.sigma must be > 0", "got 0.0"], None),
+    ("param-negative-z-hit", [*MAP, *_sets("likelihood.z_hit=-0.5")], ["likelihood.z_hit must be >= 0"], None),
+    ("param-zero-z-rand", [*MAP, *_sets("likelihood.z_rand=0")], ["likelihood.z_rand must be > 0"], None),
+    ("param-nan-gain", [*MAP, *_sets("likelihood.gain=nan")], ["likelihood.gain must be a finite number", "nan"], None),
+    ("param-zero-gain", [*MAP, *_sets("likelihood.gain=0")], ["likelihood.gain must be > 0"], None),
+    ("param-positive-free", [*MAP, *_sets("insertion.logodds_free=0.4")], ["logodds_free must be < 0", "0.4"], None),
+    ("param-negative-occupied", [*MAP, *_sets("insertion.logodds_occupied=-0.85")], ["logodds_occupied must be > 0"],
+     None),
+    ("param-clamp-above-zero", [*MAP, *_sets("insertion.logodds_min=1")], ["logodds_min must be < 0"], None),
+    ("param-clamp-below-zero", [*MAP, *_sets("insertion.logodds_max=-1")], ["logodds_max must be > 0"], None),
+    ("param-zero-step", [*MAP, *_sets("scan_match.linear_step=0")], ["scan_match.linear_step must be > 0"], None),
+    ("param-negative-angular-step", [*MAP, *_sets("scan_match.angular_step=-0.05")], ["angular_step must be > 0"], None),
+    ("param-negative-min-score", [*MAP, *_sets("scan_match.min_score=-0.1")], ["min_score must be >= 0"], None),
+    ("param-negative-resample", [*MAP, *_sets("resample_threshold=-0.5")], ["resample_threshold must be >= 0"], None),
+    ("param-alpha-one", [*MAP, *_sets("lookahead.alpha=1")], ["lookahead.alpha must be in [0, 1)", "1.0"], None),
+    ("param-correction", [*MAP, *_sets("lookahead.selection_correction=2")], ["selection_correction must be in [0, 1]"],
+     None),
+    ("param-alpha-flag-nan", [*MAP, "--alpha", "nan"], ["lookahead.alpha must be a finite number"], None),
+    # Flags.
+    ("chunk-size-zero", [*MAP, "--chunk-size", "0"], ["--chunk-size must be an integer >= 1", "got 0"], None),
+    ("chunk-size-negative", [*MAP, "--chunk-size", "-4"], ["--chunk-size must be an integer >= 1", "got -4"], None),
+    ("chunk-size-word", [*MAP, "--chunk-size", "big"], ["--chunk-size", "invalid int value", "'big'"], None),
+    ("seed-negative", [*MAP, "--seed", "-1"], ["--seed must be an integer in [0, 2**32 - 1", "got -1"], None),
+    ("seed-too-large", [*MAP, "--seed", str(2**32)], ["--seed must be an integer in [0", "got 4294967296"], None),
+    ("particles-zero", [*MAP, "--particles", "0"], ["--particles must be an integer >= 1", "got 0"], None),
+    ("particles-fraction", [*MAP, "--particles", "2.5"], ["--particles", "invalid int value", "'2.5'"], None),
+    ("localizers-zero", [*MAP, "--localizers", "0"], ["--localizers must be an integer >= 1"], None),
+    ("max-scans-zero", [*MAP, "--max-scans", "0"], ["--max-scans must be an integer >= 1"], None),
+    ("proposal-unknown-flag", [*MAP, "--proposal", "ekf"], ["--proposal", "invalid choice", "'ekf'"], None),
+    ("demo-chunk-size", ["demo", "--no-progress", "--out", "{out}", "--chunk-size", "0"],
+     ["jaxslam demo: error:", "--chunk-size"], None),
+    ("demo-scans", ["demo", "--no-progress", "--out", "{out}", "--scans", "1"], ["--scans must be an integer >= 2"], None),
+    ("doors-seed", ["doors", "--out", "{out}", "--seed", "-5"], ["jaxslam doors: error:", "--seed", "got -5"], None),
+    # Output folders.
+    ("out-is-a-file", ["map", "{log}", "--no-progress", "--out", "{file}"], ["--out", "is an existing file"], None),
+    ("out-under-a-file", ["map", "{log}", "--no-progress", "--out", "{file}/sub"], ["--out", "is a file, not a folder"],
+     None),
+    ("doors-out-is-a-file", ["doors", "--out", "{file}"], ["jaxslam doors: error: --out", "is an existing file"], None),
+    ("eval-out-is-a-folder", ["eval", "{traj}", "{rel}", "--out", "{ro}"], ["jaxslam eval: error: --out",
+                                                                            "is an existing folder"], None),
+]
+
+READ_ONLY_CASES = [
+    ("out-read-only-folder", ["map", "{log}", "--no-progress", "--out", "{ro}"], ["--out", "cannot be written"]),
+    ("out-in-read-only-folder", ["map", "{log}", "--no-progress", "--out", "{ro}/new"],
+     ["--out", "cannot be created", "not writable"]),
+    ("eval-out-in-read-only-folder", ["eval", "{traj}", "{rel}", "--out", "{ro}/errors.json"],
+     ["jaxslam eval: error: --out", "not writable"]),
+]
+
+
+def _prepare(tmp_path, small_log):
+    paths = {"log": tmp_path / "office.clf", "cfg": tmp_path / "cfg.json", "out": tmp_path / "out",
+             "file": tmp_path / "a_file.txt", "ro": tmp_path / "ro", "traj": tmp_path / "traj.txt",
+             "rel": tmp_path / "rel.txt"}
+    write_flaser_log(paths["log"], small_log)
+    paths["file"].write_text("not a folder\n")
+    paths["ro"].mkdir()
+    paths["traj"].write_text("0 0 0 0\n1 1 0 0\n")
+    paths["rel"].write_text("0 1 1 0 0 0 0 0\n")
+    return paths
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Traps: reading the log, running a filter or reading a trajectory fails the test."""
+    import jaxslam.io
+    import jaxslam.localization.doors
+    import jaxslam.rbpf
+
+    def trap(*args, **kwargs):
+        raise AssertionError("the work started before the input was refused")
+
+    monkeypatch.setattr(jaxslam.io, "read_log", trap)
+    monkeypatch.setattr(jaxslam.io, "read_trajectory", trap)
+    monkeypatch.setattr(jaxslam.rbpf, "run", trap)
+    monkeypatch.setattr(jaxslam.localization.doors, "run_filter", trap)
+
+
+def _run_refused(argv, words, capsys):
+    try:
+        code = main(argv)
+    except SystemExit as exit_:  # argparse's own refusals
+        code = exit_.code
+    captured = capsys.readouterr()
+    err = captured.err
+    assert code == 2, (argv, err)
+    assert "Traceback" not in err and "Traceback" not in captured.out
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err  # one line ...
+    command = argv[0]
+    assert lines[0].startswith(f"jaxslam {command}: error: "), err  # ... jaxslam <command>: error: ...
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+    return lines[0]
+
+
+def test_the_corpus_is_large_enough():
+    assert len(CASES) + len(READ_ONLY_CASES) >= 25
+    assert len({case[0] for case in CASES + READ_ONLY_CASES}) == len(CASES) + len(READ_ONLY_CASES)
+
+
+@pytest.mark.parametrize("case_id, argv, words, setup", CASES, ids=[case[0] for case in CASES])
+def test_bad_input_is_refused_before_any_work(case_id, argv, words, setup, tmp_path, small_log, capsys, no_work):
+    paths = _prepare(tmp_path, small_log)
+    if setup is not None:
+        setup(paths)
+    argv = [a.format(**paths) for a in argv]
+    _run_refused(argv, words, capsys)
+    assert not paths["out"].exists()  # no output folder appeared
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # nor a temporary one
+
+
+@pytest.mark.skipif(IS_ROOT, reason="root ignores file permissions")
+@pytest.mark.parametrize("case_id, argv, words", READ_ONLY_CASES, ids=[case[0] for case in READ_ONLY_CASES])
+def test_read_only_output_is_refused_before_any_work(case_id, argv, words, tmp_path, small_log, capsys, no_work):
+    paths = _prepare(tmp_path, small_log)
+    os.chmod(paths["ro"], 0o500)
+    try:
+        _run_refused([a.format(**paths) for a in argv], words, capsys)
+        assert list(paths["ro"].iterdir()) == []
+    finally:
+        os.chmod(paths["ro"], 0o700)
+
+
+def test_a_real_process_refuses_on_one_line_without_a_traceback(tmp_path, small_log):
+    """The same through ``python -m jaxslam.cli``: exit status 2, one line on stderr."""
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    for args, word in ((["--set", "motion.srr=-1"], "motion.srr must be >= 0"),
+                       (["--particles", "many"], "invalid int value")):
+        proc = subprocess.run([sys.executable, "-m", "jaxslam.cli", "map", str(tmp_path / "office.clf"),
+                               "--no-progress", "--out", str(tmp_path / "out"), *args],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 2, proc.stderr
+        assert "Traceback" not in proc.stderr
+        assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]
+        assert proc.stderr.startswith("jaxslam map: error: ") and word in proc.stderr
+        assert not (tmp_path / "out").exists()
+
+
+def test_values_that_are_legitimate_are_accepted():
+    """What the bounds must not refuse: strings from --set that parse, NumPy scalars, values
+    above 1 that the tests and docs use as "always" (resample thresholds) or "never" (min_score)."""
+    config, settings, params = build_setup({
+        "beam_stride": "3", "num_particles": np.int64(5), "max_insert_range": 8, "linear_update": "0",
+        "resample_threshold": 1.01, "lookahead.resample_threshold": 2.0, "scan_match.min_score": 1.01,
+        "motion.srr": 0, "motion.srt": np.float32(0.0), "likelihood.z_hit": 0, "scan_match.start_noise": "0",
+        "grid": {"shape": [10, 20], "resolution": 0.05, "origin": [-1, 2.5]}, "horizon": 0,
+    })
+    assert config.beam_stride == 3 and type(config.beam_stride) is int
+    assert config.num_particles == 5 and type(config.num_particles) is int
+    assert config.max_insert_range == 8.0 and type(config.max_insert_range) is float
+    assert config.grid.shape == (10, 20) and config.grid.origin == (-1.0, 2.5)
+    assert settings.linear_update == 0.0
+    assert float(params.resample_threshold) == pytest.approx(1.01)
+    assert build_setup({"grid": "null"})[0].grid is None
+    with pytest.raises(ConfigError, match="beam_stride must be an integer, got 2.9"):
+        build_setup({"beam_stride": 2.9})
+
+
+# ---------------------------------------------------------------------------------------------
+# Outputs: atomic, stale files removed, strict JSON.
+
+
+def test_publish_folder_replaces_the_whole_folder(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "trajectory_refined.txt").write_text("stale\n")  # an earlier run's, not written now
+    (target / "map.pgm").write_text("old map\n")
+    (target / "notes.txt").write_text("mine\n")  # not a SLAM output: kept
+    (target / "extra").mkdir()
+    (target / "extra" / "x.txt").write_text("x\n")
+
+    def write(folder):
+        assert folder.parent == tmp_path and folder.name.startswith(".out.tmp-")
+        (folder / "map.pgm").write_text("new map\n")
+        (folder / "summary.json").write_text("{}")
+
+    publish_folder(target, write)
+    assert sorted(p.name for p in target.iterdir()) == ["extra", "map.pgm", "notes.txt", "summary.json"]
+    assert (target / "map.pgm").read_text() == "new map\n"
+    assert (target / "notes.txt").read_text() == "mine\n" and (target / "extra" / "x.txt").read_text() == "x\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary or backup folder left
+
+
+def test_a_failed_write_leaves_the_old_folder_untouched(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    for name in SLAM_OUTPUT_NAMES:
+        (target / name).write_text(f"old {name}\n")
+    before = {p.name: p.read_text() for p in target.iterdir()}
+
+    def write(folder):
+        (folder / "map.pgm").write_text("half of a new run\n")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        publish_folder(target, write)
+    assert {p.name: p.read_text() for p in target.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_publish_folder_makes_a_new_folder_and_its_parents(tmp_path):
+    target = tmp_path / "a" / "b" / "out"
+    publish_folder(target, lambda folder: (folder / "summary.json").write_text("{}"))
+    assert [p.name for p in target.iterdir()] == ["summary.json"]
+    assert oct(target.stat().st_mode & 0o777) == oct(0o777 & ~_umask())
+
+
+def _umask():
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_a_second_run_removes_the_first_runs_stale_files(tmp_path, small_log):
+    """A run with --refine, then one without into the same folder: trajectory_refined.txt goes."""
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=8)
+    out = tmp_path / "out"
+    common = ["map", str(log_path), "--particles", "2", "--proposal", "op", "--no-progress",
+              "--set", "linear_update=0.3", "--set", "max_insert_range=8", "--out", str(out)]
+    assert main([*common, "--refine"]) == 0
+    assert (out / "trajectory_refined.txt").is_file()
+    (out / "errors.json").write_text("{}")  # e.g. jaxslam eval's table: not a map output, kept
+    assert main(common) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(["map.pgm", "map.yaml", "map.png", "trajectory.txt", "summary.json", "slam.png",
+                            "errors.json"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert "refinement" not in summary and summary["null_reasons"] == {}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["office.clf", "out"]
+
+
+def test_strict_json_nulls_non_finite_numbers_with_reasons():
+    summary = {"log_evidence": float("-inf"), "mean_ess": None, "timings": {"total": 1.0, "real_time_factor": math.inf},
+               "values": [1.0, float("nan")], "params": {"a": np.float32(0.5)}, "count": np.int64(3)}
+    clean, reasons = strict_json_values(summary, {"log_evidence": "every particle's weight was zero at step 12",
+                                                   "mean_ess": "no step was taken"})
+    text = json.dumps(clean, allow_nan=False)  # strict JSON
+    assert "NaN" not in text and "Infinity" not in text
+    assert clean["log_evidence"] is None and clean["timings"]["real_time_factor"] is None
+    assert clean["values"] == [1.0, None] and clean["params"]["a"] == 0.5 and clean["count"] == 3
+    assert reasons["log_evidence"] == "every particle's weight was zero at step 12"
+    assert reasons["mean_ess"] == "no step was taken"
+    assert "inf" in reasons["timings.real_time_factor"] and "nan" in reasons["values[1]"]
+
+
+def test_a_degenerate_run_writes_null_log_evidence_with_its_step(tmp_path, small_log, monkeypatch):
+    """A run whose every particle's weight went to zero at a step: log_evidence is null in
+    summary.json, and null_reasons names the step and the scan."""
+    import jaxslam.rbpf
+    from jaxslam.config import default_params
+    from jaxslam.outputs import write_slam_outputs
+
+    config, settings, params = build_setup({"num_particles": 2, "proposal": "op", "linear_update": 0.3,
+                                            "max_insert_range": 8.0})
+    result = jaxslam.rbpf.run(jax.random.key(0), small_log, config, default_params(), settings, progress=False)
+    steps = result.info.degenerate.shape[0]
+    degenerate = np.zeros(steps, bool)
+    degenerate[2] = True
+    log_evidence = np.asarray(result.info.log_evidence).copy()
+    log_evidence[2] = -np.inf
+    result = result._replace(info=result.info._replace(degenerate=degenerate, log_evidence=log_evidence))
+    summary = write_slam_outputs(tmp_path / "out", small_log, result, params, seed=0, source="test")
+    written = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert written == summary
+    assert written["log_evidence"] is None
+    scan = int(result.selection.indices[3])
+    assert written["null_reasons"]["log_evidence"].startswith(f"every particle's weight was zero at step 3 (scan {scan}")
+    assert "NaN" not in (tmp_path / "out" / "summary.json").read_text()

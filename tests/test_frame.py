@@ -1,0 +1,129 @@
+"""The filter runs in a local frame: a log far from the origin maps as well as the same log near it.
+
+``rbpf.run`` subtracts the first odometry pose's translation (rounded to a multiple of 64 m) on
+the host in float64 before anything reaches float32, and adds it back to the paths and the
+reported grid. So the simulated office shifted by 5,000 km (a multiple of 64 m) runs bit for
+bit as the unshifted one, and only the offset separates the outputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from jaxslam import rbpf
+from jaxslam.config import RunSettings, SlamConfig, default_params
+from jaxslam.io.maps import read_map
+from jaxslam.outputs import write_slam_outputs
+from jaxslam.sim import office_scenario
+
+SHIFT = 5_000_000.0  # 5,000 km: float32 resolves 0.5 m there
+SETTINGS = RunSettings(linear_update=0.3, angular_update=0.25, map_padding=4.0)
+CONFIG = SlamConfig(num_particles=4, proposal="smp", max_insert_range=10.0, beam_stride=1)
+
+
+def _shifted(log, shift):
+    """``log`` with ``shift`` added to the x and y of the odometry and the ground truth."""
+    odometry, truth = log.odometry.copy(), log.ground_truth.copy()
+    odometry[:, :2] += shift
+    truth[:, :2] += shift
+    return dataclasses.replace(log, odometry=odometry, ground_truth=truth)
+
+
+@pytest.fixture(scope="module")
+def office_log():
+    """The simulated office's first 60 scans, odometry on a 1/64 m grid (so that adding 5,000 km
+    and writing it with 6 decimals are exact, and both runs see the same numbers)."""
+    log = office_scenario(jax.random.key(3), num_scans=150, num_beams=181).log.subset(np.arange(60))
+    odometry = log.odometry.copy()
+    odometry[:, :2] = np.round(odometry[:, :2] * 64.0) / 64.0
+    return dataclasses.replace(log, odometry=odometry)
+
+
+@pytest.fixture(scope="module")
+def runs(office_log):
+    far = _shifted(office_log, SHIFT)
+    near_result = rbpf.run(jax.random.key(0), office_log, CONFIG, default_params(), SETTINGS, progress=False)
+    far_result = rbpf.run(jax.random.key(0), far, CONFIG, default_params(), SETTINGS, progress=False)
+    return office_log, far, near_result, far_result
+
+
+def test_a_log_near_the_origin_is_not_shifted(runs):
+    _, _, near, _ = runs
+    np.testing.assert_array_equal(near.frame_offset, [0.0, 0.0])  # the office starts at (1.2, 7.5)
+    assert near.best_path.dtype == np.float64 and near.frame_offset.dtype == np.float64
+
+
+def test_a_log_5000_km_away_maps_as_the_same_log_near_the_origin(runs):
+    _, _, near, far = runs
+    np.testing.assert_array_equal(far.frame_offset, [SHIFT, SHIFT])
+    # The filter saw the same numbers: its state and diagnostics (local frame) are bit for bit equal.
+    np.testing.assert_array_equal(np.asarray(far.state.poses), np.asarray(near.state.poses))
+    np.testing.assert_array_equal(np.asarray(far.state.log_weights), np.asarray(near.state.log_weights))
+    np.testing.assert_array_equal(far.info.proposed_poses, near.info.proposed_poses)
+    np.testing.assert_array_equal(np.asarray(far.state.maps.logodds), np.asarray(near.state.maps.logodds))
+    # Paths in the world frame: the shift added back in float64 (its ulp at 5,000 km is 1e-9 m).
+    back = far.best_path.copy()
+    back[:, :2] -= SHIFT
+    np.testing.assert_allclose(back, near.best_path, rtol=0, atol=1e-6)
+    traj = far.trajectory.copy()
+    traj[:, :2] -= SHIFT
+    np.testing.assert_allclose(traj, near.trajectory, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(far.to_world(np.asarray(far.state.poses))[:, :2] - SHIFT,
+                               np.asarray(near.state.poses)[:, :2], rtol=0, atol=1e-6)
+    # The reported grid is in the world frame; the step's grid in the local one.
+    assert far.config.grid.shape == near.config.grid.shape
+    np.testing.assert_allclose(np.subtract(far.config.grid.origin, near.config.grid.origin), [SHIFT, SHIFT],
+                               rtol=0, atol=1e-8)
+    assert far.local_config.grid == near.local_config.grid == near.config.grid
+
+
+def test_a_world_grid_given_far_away_is_shifted_into_the_local_frame(runs):
+    near_log, far_log, near, far = runs
+    given = dataclasses.replace(near.config.grid, origin=(near.config.grid.origin[0] + SHIFT,
+                                                          near.config.grid.origin[1] + SHIFT))
+    result = rbpf.run(jax.random.key(0), far_log, dataclasses.replace(CONFIG, grid=given), default_params(),
+                      SETTINGS, progress=False)
+    assert result.config.grid == given  # reported as given, in the world frame
+    np.testing.assert_array_equal(np.asarray(result.state.poses), np.asarray(near.state.poses))
+    np.testing.assert_array_equal(result.best_path, far.best_path)
+
+
+def test_the_outputs_differ_by_the_offset_only(runs, tmp_path):
+    near_log, far_log, near, far = runs
+    params = default_params()
+    write_slam_outputs(tmp_path / "near", near_log, near, params, seed=0, source="near")
+    write_slam_outputs(tmp_path / "far", far_log, far, params, seed=0, source="far")
+    _, near_spec = read_map(tmp_path / "near" / "map.yaml")
+    _, far_spec = read_map(tmp_path / "far" / "map.yaml")
+    assert far_spec.shape == near_spec.shape
+    np.testing.assert_allclose(np.subtract(far_spec.origin, near_spec.origin), [SHIFT, SHIFT], rtol=0, atol=1e-8)
+    assert (tmp_path / "near" / "map.pgm").read_bytes() == (tmp_path / "far" / "map.pgm").read_bytes()
+    near_traj = np.loadtxt(tmp_path / "near" / "trajectory.txt")
+    far_traj = np.loadtxt(tmp_path / "far" / "trajectory.txt")
+    far_traj[:, 1:3] -= SHIFT
+    np.testing.assert_allclose(far_traj, near_traj, rtol=0, atol=2e-6)  # 9 decimals written
+    summary = json.loads((tmp_path / "far" / "summary.json").read_text())
+    assert summary["config"]["grid"]["origin"][0] == pytest.approx(far.config.grid.origin[0], abs=1e-9)
+
+
+def test_the_command_line_maps_and_refines_a_far_log_as_a_near_one(office_log, tmp_path):
+    """End to end, with --refine (localisation in the final map, in the local frame too)."""
+    from jaxslam.cli import main
+    from test_cli import write_flaser_log
+
+    near_log = office_log.subset(np.arange(20))
+    far_log = _shifted(near_log, SHIFT)
+    for name, log in (("near", near_log), ("far", far_log)):
+        write_flaser_log(tmp_path / f"{name}.clf", log)
+        assert main(["map", str(tmp_path / f"{name}.clf"), "--particles", "3", "--no-progress", "--refine",
+                     "--set", "linear_update=0.3", "--set", "max_insert_range=8",
+                     "--out", str(tmp_path / name)]) == 0
+    for file in ("trajectory.txt", "trajectory_refined.txt"):
+        near_traj, far_traj = np.loadtxt(tmp_path / "near" / file), np.loadtxt(tmp_path / "far" / file)
+        far_traj[:, 1:3] -= SHIFT
+        np.testing.assert_allclose(far_traj, near_traj, rtol=0, atol=2e-6, err_msg=file)
