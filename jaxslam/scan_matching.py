@@ -83,26 +83,6 @@ def match(
     return MatchResult(pose, best, score)
 
 
-def endpoint_fit(
-    spec: GridSpec,
-    hit_dist2: UInt8[Array, "H W"],
-    pose: Float[Array, "3"],
-    ranges: Float[Array, "B"],
-    sensor: SensorSpec,
-    sigma: Float[Array, ""],
-) -> tuple[Float[Array, "B"], Bool[Array, "B"]]:
-    """Per-beam fit ``exp(-d_b^2 / (2 sigma^2))`` in [0, 1] of a scan at ``pose``, and which beams count.
-
-    d_b is the distance (m) from beam b's endpoint to the nearest registered endpoint in
-    the map; the fit is 0 beyond the field radius and outside the map. Beams without a
-    return or below range_min do not count.
-    """
-    d2, valid = endpoint_cell_distances(spec, hit_dist2, pose[None], ranges, sensor)
-    d2_m = d2[0].astype(jnp.float32) * (spec.resolution**2)
-    fit = jnp.where(d2[0] == FAR, 0.0, jnp.exp(-0.5 * d2_m / sigma**2))
-    return fit, valid
-
-
 def match_score(
     spec: GridSpec,
     hit_dist2: UInt8[Array, "H W"],
@@ -112,7 +92,11 @@ def match_score(
     sigma: Float[Array, ""],
 ) -> Float[Array, ""]:
     """Mean per-beam fit (0..1) of the beams that count; 0 when none counts."""
-    fit, valid = endpoint_fit(spec, hit_dist2, pose, ranges, sensor, sigma)
+    # Per-beam fit exp(-d_b^2 / (2 sigma^2)) in [0, 1], d_b the distance (m) from beam b's
+    # endpoint to the nearest registered endpoint; 0 beyond the field radius and outside the map.
+    d2, valid = endpoint_cell_distances(spec, hit_dist2, pose[None], ranges, sensor)
+    d2_m = d2[0].astype(jnp.float32) * (spec.resolution**2)
+    fit = jnp.where(d2[0] == FAR, 0.0, jnp.exp(-0.5 * d2_m / sigma**2))
     n = jnp.sum(valid)
     return jnp.sum(jnp.where(valid, fit, 0.0)) / jnp.maximum(n, 1)
 

@@ -114,7 +114,7 @@ def test_the_outputs_differ_by_the_offset_only(runs, tmp_path):
 def test_the_command_line_maps_and_refines_a_far_log_as_a_near_one(office_log, tmp_path):
     """End to end, with --refine (localisation in the final map, in the local frame too)."""
     from jaxslam.cli import main
-    from test_cli import write_flaser_log
+    from logs import write_flaser_log
 
     near_log = office_log.subset(np.arange(20))
     far_log = _shifted(near_log, SHIFT)

@@ -265,9 +265,10 @@ def room_inputs(horizon, valid=None):
 
 
 def test_fused_likelihood_equals_direct_formula(room_map):
-    """The table-based many-pose likelihood the LP uses equals the per-beam formula on endpoint_fit."""
-    from jaxslam.likelihood_field import endpoint_log_likelihoods
-    from jaxslam.scan_matching import endpoint_fit
+    """The table-based many-pose likelihood the LP uses equals the per-beam formula on the fit
+    exp(-d^2 / 2 sigma^2) of each endpoint's stored cell distance."""
+    from jaxslam.likelihood_field import endpoint_cell_distances, endpoint_log_likelihoods
+    from jaxslam.occupancy import FAR
 
     params = default_params()
     lik = params.likelihood
@@ -277,7 +278,9 @@ def test_fused_likelihood_equals_direct_formula(room_map):
     fused = endpoint_log_likelihoods(SPEC, room_map.hit_dist2, poses, ranges, SENSOR, lik)
 
     def direct(pose):
-        fit, valid = endpoint_fit(SPEC, room_map.hit_dist2, pose, ranges, SENSOR, lik.sigma)
+        d2, valid = endpoint_cell_distances(SPEC, room_map.hit_dist2, pose[None], ranges, SENSOR)
+        d2 = d2[0].astype(jnp.float32)
+        fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2 * SPEC.resolution**2 / lik.sigma**2))
         return lik.gain * jnp.sum(jnp.where(valid, jnp.log(lik.z_hit * fit + lik.z_rand), 0.0))
 
     np.testing.assert_allclose(fused, jax.vmap(direct)(poses), rtol=1e-5, atol=1e-3)
