@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
 from pathlib import Path
 
@@ -53,6 +55,7 @@ def _check_filter_args(args: argparse.Namespace) -> None:
     _check_at_least("--particles", args.particles, 1, "SLAM particles")
     _check_at_least("--localizers", args.localizers, 1, "localizer particles per SLAM particle")
     _check_at_least("--horizon", args.horizon, 0, "look-ahead scans")
+    _check_at_least("--checkpoint-every", getattr(args, "checkpoint_every", None), 1, "chunks between checkpoints")
 
 
 def _check_out_folder(out) -> None:
@@ -130,6 +133,13 @@ def _add_filter_options(p: argparse.ArgumentParser, default_proposal: str, defau
     p.add_argument("--out", default="out", help="output folder (replaced atomically; stale outputs removed)")
     p.add_argument("--refine", action="store_true",
                    help="also localise every scan in the final map: trajectory_refined.txt (jaxslam.refine)")
+    p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+                   help="write a checkpoint (OUT.checkpoint.npz, beside the output folder) every N chunks "
+                        "(N x --chunk-size processed scans). Without it, Ctrl-C or SIGTERM still writes one "
+                        "at the next chunk boundary and exits (130 or 143); a finished run deletes it")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT.checkpoint.npz; it must be of the same log, seed, config, parameters "
+                        "and --chunk-size (else refused); the outputs are those of an uninterrupted run")
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
@@ -156,32 +166,154 @@ MAP_DEFAULTS = {"proposal": "smp", "num_particles": 30}
 """``jaxslam map``'s defaults beyond the library's."""
 
 
-def _map_and_write(log, setup, args, source: str, world=None) -> int:
-    import jax
+def checkpoint_path(out) -> Path:
+    """Where a run with ``--out OUT`` keeps its checkpoint: ``OUT.checkpoint.npz`` beside the
+    output folder (outside it: the folder is swapped in whole when the run ends)."""
+    target = Path(os.path.abspath(os.fspath(out)))
+    return target.with_name(target.name + ".checkpoint.npz")
 
-    from jaxslam.outputs import write_slam_outputs
-    from jaxslam.rbpf import run
+
+def _format_gb(nbytes: float) -> str:
+    gb = nbytes / 1e9
+    return f"{gb:.0f}" if gb >= 10 else f"{gb:.1f}"
+
+
+def _check_memory(log, config, settings) -> None:
+    """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.rbpf.estimate_run_bytes`)
+    exceeds the machine's available memory; skipped where that cannot be read."""
+    from jaxslam.rbpf import available_memory_bytes, estimate_run_bytes, run_grid
+
+    available = available_memory_bytes()
+    if available is None:
+        return
+    need, how = estimate_run_bytes(config, run_grid(log, config, settings), log.num_beams)
+    if need > available:
+        lp = ", --localizers" if config.proposal == "lp" else ""
+        raise ConfigError(f"the run needs about {_format_gb(need)} GB ({how}) but {_format_gb(available)} GB are "
+                          f"available; lower --particles{lp}, or shrink the map: --set map_padding=... (m), "
+                          f"a coarser --set resolution=... (m), or a --set grid=...")
+
+
+def _run_identity(args, log, setup, source: str) -> dict:
+    """What identifies a run for ``--resume`` (compared after a JSON round trip)."""
+    from jaxslam.config import config_to_dict, params_to_dict
 
     config, settings, params = setup
-    result = run(jax.random.key(args.seed), log, config, params, settings, chunk_size=args.chunk_size,
-                 progress=not args.no_progress)
-    refined, refine_seconds = None, None
-    if getattr(args, "refine", False):
-        import time
+    where = os.path.abspath(source) if os.path.exists(source) else source
+    identity = {"seed": args.seed, "config": config_to_dict(config), "settings": config_to_dict(settings),
+                "params": params_to_dict(params), "log": where, "scans_in_log": log.num_scans,
+                "chunk_size": args.chunk_size}
+    return json.loads(json.dumps(identity, sort_keys=True, default=str))
 
-        from jaxslam.refine import refine_trajectory
 
-        # In the filter's local frame (result.frame_offset subtracted), as the map was built.
-        local = result.local_config
-        t0 = time.perf_counter()
-        refined = refine_trajectory(local.grid, result.state.maps.hit_dist2[result.best_particle],
-                                    _shifted(result.trajectory, -result.frame_offset), log.ranges, log.sensor,
-                                    params, local, odometry=_shifted(log.odometry, -result.frame_offset))
-        refined = refined._replace(poses=result.to_world(refined.poses),
-                                   matched_poses=result.to_world(refined.matched_poses))
-        refine_seconds = time.perf_counter() - t0
-    summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
-                                 refined=refined, refine_seconds=refine_seconds)
+def _load_resume(path: Path, identity: dict):
+    """The checkpoint's :class:`~jaxslam.rbpf.RunProgress` if it is of the run ``identity``, else ``ConfigError``."""
+    from jaxslam.rbpf import load_checkpoint
+
+    if not path.is_file():
+        raise ConfigError(f"--resume: no checkpoint at {path} (one is written when a run is interrupted, "
+                          f"or with --checkpoint-every)")
+    try:
+        progress, saved = load_checkpoint(path)
+    except (ValueError, OSError) as err:
+        raise ConfigError(f"--resume: {err}") from None
+    diffs = []
+    for key in sorted(set(saved) | set(identity)):
+        there, here = saved.get(key), identity.get(key)
+        if isinstance(there, dict) and isinstance(here, dict):
+            diffs += [f"{key}.{k}: {there.get(k)!r} there, {here.get(k)!r} here"
+                      for k in sorted(set(there) | set(here)) if there.get(k) != here.get(k)]
+        elif there != here:
+            diffs.append(f"{key}: {there!r} there, {here!r} here")
+    if diffs:
+        raise ConfigError(f"--resume: {path} is the checkpoint of a different run ({'; '.join(diffs[:4])}"
+                          f"{'; ...' if len(diffs) > 4 else ''}); rerun with the same settings, or without "
+                          f"--resume to start over")
+    return progress
+
+
+class _StopRequest:
+    """SIGINT / SIGTERM handlers that only note the signal (the host loop stops at the next chunk
+    boundary; no KeyboardInterrupt is raised inside JAX). A second signal restores the default
+    handlers, so a third one aborts at once."""
+
+    def __init__(self):
+        self.signum = None
+        self._old = {}
+
+    def _handle(self, signum, frame):
+        if self.signum is not None:
+            self.restore()
+        self.signum = signum
+
+    def __enter__(self):
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._handle)
+        except ValueError:  # not the main thread: leave the signals alone
+            self.restore()
+        return self
+
+    def restore(self):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        self._old = {}
+
+    def __exit__(self, *exc):
+        self.restore()
+        return False
+
+
+def _map_and_write(log, setup, args, source: str, world=None) -> int:
+    from jaxslam.outputs import write_slam_outputs
+    from jaxslam.rbpf import RunInterrupted, save_checkpoint
+
+    config, settings, params = setup
+    _check_memory(log, config, settings)
+    ckpt = checkpoint_path(args.out)
+    identity = _run_identity(args, log, setup, source)
+    resume = _load_resume(ckpt, identity) if getattr(args, "resume", False) else None
+    every = getattr(args, "checkpoint_every", None)
+
+    import jax
+
+    from jaxslam.rbpf import run
+
+    with _StopRequest() as stop:
+        chunks = [0]
+
+        def on_chunk(progress) -> bool:
+            chunks[0] += 1
+            if stop.signum is not None or (every and chunks[0] % every == 0):
+                save_checkpoint(ckpt, progress, identity)
+            return stop.signum is not None
+
+        try:
+            result = run(jax.random.key(args.seed), log, config, params, settings, chunk_size=args.chunk_size,
+                         progress=not args.no_progress, on_chunk=on_chunk, resume=resume)
+        except RunInterrupted as err:
+            print(f"jaxslam {args.command}: interrupted at step {err.steps_done} of {err.num_steps} "
+                  f"(checkpoint {ckpt}); resume with --resume", file=sys.stderr)
+            return 128 + int(stop.signum)
+        refined, refine_seconds = None, None
+        if getattr(args, "refine", False):
+            import time
+
+            from jaxslam.refine import refine_trajectory
+
+            # In the filter's local frame (result.frame_offset subtracted), as the map was built.
+            local = result.local_config
+            t0 = time.perf_counter()
+            refined = refine_trajectory(local.grid, result.state.maps.hit_dist2[result.best_particle],
+                                        _shifted(result.trajectory, -result.frame_offset), log.ranges, log.sensor,
+                                        params, local, odometry=_shifted(log.odometry, -result.frame_offset))
+            refined = refined._replace(poses=result.to_world(refined.poses),
+                                       matched_poses=result.to_world(refined.matched_poses))
+            refine_seconds = time.perf_counter() - t0
+        summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
+                                     refined=refined, refine_seconds=refine_seconds)
+        if ckpt.exists():
+            ckpt.unlink()
     t = summary["timings"]
     print(f"processed {summary['scans_processed']} of {summary['scans_in_log']} scans in {_fmt(t['total'])} s "
           f"(compile {_fmt(t['compile'])} s, real-time factor {_fmt(t['real_time_factor'])}); "
@@ -352,6 +484,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
+    except KeyboardInterrupt:  # Ctrl-C outside a filter run (which stops at a chunk boundary instead)
+        print(f"jaxslam {args.command}: interrupted", file=sys.stderr)
+        return 130
     except (ConfigError, LogError, ValueError, OSError) as err:  # OSError: FileNotFoundError, PermissionError, ...
         message = " ".join(str(err).split()) or type(err).__name__
         print(f"jaxslam {args.command}: error: {message}", file=sys.stderr)

@@ -30,6 +30,16 @@ class ChunkedRun(NamedTuple):
     """Every chunk's outputs concatenated along the leading axis, padding removed (NumPy)."""
     first_chunk_seconds: float
     """Wall time of the first chunk (compilation included)."""
+    num_done: int = -1
+    """Items processed: ``num_items``, or fewer when ``on_chunk`` asked to stop (a multiple of
+    ``chunk_size``); ``outputs`` then holds only those."""
+
+
+ChunkCallback = Callable[[int, Any, Callable[[], Any]], bool]
+"""``on_chunk(chunk_index, carry, outputs_so_far) -> stop``, called after each chunk on the host:
+``chunk_index`` counts from 0, ``carry`` is the carry after it, ``outputs_so_far()`` returns the
+outputs of the chunks done (concatenated, padding removed; computed only when called). A true
+return value stops the run at this chunk boundary."""
 
 
 def pad_items(tree: Any, total: int) -> Any:
@@ -57,6 +67,7 @@ def run_in_chunks(
     progress: bool = False,
     desc: str | None = None,
     unit: str = "item",
+    on_chunk: ChunkCallback | None = None,
 ) -> ChunkedRun:
     """Apply ``chunk_fn`` to ``num_items`` items of ``xs`` (leading axis) in chunks of
     ``chunk_size``.
@@ -70,6 +81,8 @@ def run_in_chunks(
       chunk_size: items per call (static for the chunk function: one compilation).
       carry: the initial carry (None for a map).
       progress: show a tqdm bar; desc, unit: its label.
+      on_chunk: see :data:`ChunkCallback` (e.g. to write a checkpoint or to stop on a signal;
+        the carry may be donated by the next chunk, so copy what must outlive the call).
 
     Returns:
       A :class:`ChunkedRun`.
@@ -83,8 +96,13 @@ def run_in_chunks(
     valid = np.arange(num_chunks * chunk_size) < num_items
     outputs = []
     first_chunk_seconds = 0.0
+
+    def stack(done):
+        return jax.tree.map(lambda *parts: np.concatenate(parts)[:done], *outputs)
+
+    num_done = num_items
     with tqdm(total=num_items, desc=desc, unit=unit, disable=not progress) as bar:
-        for start in range(0, num_chunks * chunk_size, chunk_size):
+        for index, start in enumerate(range(0, num_chunks * chunk_size, chunk_size)):
             sl = slice(start, start + chunk_size)
             t0 = time.perf_counter()
             carry, out = chunk_fn(carry, jax.tree.map(lambda a: a[sl], padded), valid[sl])
@@ -92,5 +110,8 @@ def run_in_chunks(
             if start == 0:
                 first_chunk_seconds = time.perf_counter() - t0
             bar.update(int(valid[sl].sum()))
-    stacked = jax.tree.map(lambda *parts: np.concatenate(parts)[:num_items], *outputs)
-    return ChunkedRun(carry, stacked, first_chunk_seconds)
+            done = min(start + chunk_size, num_items)
+            if on_chunk is not None and on_chunk(index, carry, lambda done=done: stack(done)) and done < num_items:
+                num_done = done
+                break
+    return ChunkedRun(carry, stack(num_done), first_chunk_seconds, num_done)

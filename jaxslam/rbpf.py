@@ -327,6 +327,110 @@ def backtrack_path(info: SlamInfo, final_index: int) -> np.ndarray:
     return particle_paths(info.proposed_poses, info.ancestors, zero)[final_index, 1:]
 
 
+class RunInterrupted(Exception):
+    """``run``'s ``on_chunk`` asked to stop: ``steps_done`` of ``num_steps`` steps were taken."""
+
+    def __init__(self, steps_done: int, num_steps: int):
+        super().__init__(f"interrupted at step {steps_done} of {num_steps}")
+        self.steps_done = steps_done
+        self.num_steps = num_steps
+
+
+class RunProgress(NamedTuple):
+    """Where a run stands after a chunk (what ``on_chunk`` gets, and what ``resume`` takes back)."""
+
+    steps_done: int
+    """Steps taken so far (a multiple of the chunk size, or all of them)."""
+    num_steps: int
+    """Steps of the whole run (processed scans - 1)."""
+    state: SlamState
+    """The particle set after ``steps_done`` steps (local frame). In ``on_chunk`` it is the
+    device state the next chunk will donate: copy it (``np.array``) before returning."""
+    info: SlamInfo
+    """The per-step diagnostics of those steps, stacked (NumPy). In ``on_chunk`` a zero-argument
+    callable returning them (they are concatenated only when asked)."""
+
+
+def _frame_offset(log: LaserLog) -> np.ndarray:
+    # The first pose's translation, rounded to a multiple of 64 m: a log that starts within 32 m of
+    # the origin runs exactly as given, and shifting a log by a multiple of 64 m changes no bit of
+    # the filter's arithmetic (the local logs are equal); |local coordinates| <= 32 m + the log's extent.
+    return np.round(np.asarray(log.odometry[0, :2], dtype=np.float64) / 64.0) * 64.0 + 0.0
+
+
+def _shift_grid(grid: GridSpec, offset: np.ndarray) -> GridSpec:  # offset added to the origin, float64
+    if not np.any(offset):
+        return grid
+    origin = (float(grid.origin[0] + offset[0]), float(grid.origin[1] + offset[1]))
+    return dataclasses.replace(grid, origin=origin)
+
+
+def _local_log(log: LaserLog, offset: np.ndarray) -> LaserLog:  # offset subtracted from x, y, float64
+    if not np.any(offset):
+        return log
+    odometry = log.odometry.copy()
+    odometry[:, :2] -= offset
+    ground_truth = None
+    if log.ground_truth is not None:
+        ground_truth = log.ground_truth.copy()
+        ground_truth[:, :2] -= offset
+    return dataclasses.replace(log, odometry=odometry, ground_truth=ground_truth)
+
+
+def _prepare(log: LaserLog, config: SlamConfig, settings: RunSettings):
+    """``(frame_offset, local log, selection, local config, world grid)`` as ``run`` uses them."""
+    frame_offset = _frame_offset(log)
+    log = _local_log(log, frame_offset)  # from here on, the local frame
+    selection = select_updates(log, settings.linear_update, settings.angular_update)
+    if config.grid is None:
+        config = dataclasses.replace(config, grid=auto_grid(log, settings, selection.indices))
+        world_grid = _shift_grid(config.grid, frame_offset)
+    else:
+        world_grid = config.grid
+        config = dataclasses.replace(config, grid=_shift_grid(config.grid, -frame_offset))
+    return frame_offset, log, selection, config, world_grid
+
+
+def run_grid(log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettings()) -> GridSpec:
+    """The grid (world frame) that ``run(key, log, config, params, settings)`` will use: ``config.grid``,
+    or when it is None the one sized from the log (cheap: no filter work; for memory estimates)."""
+    return _prepare(log, config, settings)[4]
+
+
+def estimate_run_bytes(config: SlamConfig, grid: GridSpec, num_beams: int) -> tuple[int, str]:
+    """A rough estimate of the memory (bytes) a ``run`` with ``config`` on ``grid`` needs, and how
+    it was reckoned (for a refusal message).
+
+    The particles' maps dominate: N x H x W cells x 3 bytes (float16 log-odds + uint8 field),
+    counted 3 times (the state, its copy across a chunk call, the insertion's temporaries). The
+    look-ahead proposal adds its N x L x B float32 beam terms (B the beams used in likelihoods,
+    ``num_beams / beam_stride``), twice; about 1 GB is added for XLA (compiled code, buffers) and the host.
+    """
+    n = config.num_particles
+    h, w = grid.shape
+    maps = n * h * w * 3 * 3
+    how = f"{n} particles x {h} x {w} cells x 3 bytes x 3"
+    total = maps + 2**30
+    if config.proposal == "lp":
+        beams = -(-num_beams // config.beam_stride)
+        lp = n * config.num_localizers * beams * 4 * 2
+        total += lp
+        how += f" + {n} x {config.num_localizers} localizers x {beams} beams x 4 bytes x 2"
+    return total, how + " + 1 GB for XLA"
+
+
+def available_memory_bytes() -> int | None:
+    """The machine's available memory (``MemAvailable`` of /proc/meminfo, bytes); None if unreadable."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
 def run(
     key: PRNGKeyArray,
     log: LaserLog,
@@ -336,6 +440,8 @@ def run(
     *,
     chunk_size: int = 32,
     progress: bool = True,
+    on_chunk=None,
+    resume: RunProgress | None = None,
 ) -> SlamResult:
     """Map a whole log: select the scans, then ``lax.scan`` the step over them in chunks.
 
@@ -359,58 +465,69 @@ def run(
       chunk_size: steps per compiled call (every chunk has this many steps, the last padded
         with no-op steps, so the step compiles once).
       progress: show a tqdm bar.
+      on_chunk: ``on_chunk(RunProgress) -> stop`` called on the host after every chunk (its
+        ``info`` a callable); a true return value stops the run at that chunk boundary and
+        ``run`` raises :class:`RunInterrupted` (e.g. to checkpoint and stop on a signal).
+      resume: a :class:`RunProgress` saved by an ``on_chunk`` of a run with the same key, log,
+        config, params, settings and ``chunk_size``: the run goes on from it, and its result is
+        bit for bit the uninterrupted run's (the per-step keys are derived from ``key`` as before
+        and the steps done are skipped; the chunks fall on the same steps).
     """
     from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
 
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     t_start = time.perf_counter()
-
-    def _shift_grid(grid: GridSpec, offset: np.ndarray) -> GridSpec:  # offset added to the origin, float64
-        if not np.any(offset):
-            return grid
-        origin = (float(grid.origin[0] + offset[0]), float(grid.origin[1] + offset[1]))
-        return dataclasses.replace(grid, origin=origin)
-
-    def _local_log(log: LaserLog, offset: np.ndarray) -> LaserLog:  # offset subtracted from x, y, float64
-        if not np.any(offset):
-            return log
-        odometry = log.odometry.copy()
-        odometry[:, :2] -= offset
-        ground_truth = None
-        if log.ground_truth is not None:
-            ground_truth = log.ground_truth.copy()
-            ground_truth[:, :2] -= offset
-        return dataclasses.replace(log, odometry=odometry, ground_truth=ground_truth)
-
-    # The first pose's translation, rounded to a multiple of 64 m: a log that starts within 32 m of
-    # the origin runs exactly as given, and shifting a log by a multiple of 64 m changes no bit of
-    # the filter's arithmetic (the local logs are equal); |local coordinates| <= 32 m + the log's extent.
-    frame_offset = np.round(np.asarray(log.odometry[0, :2], dtype=np.float64) / 64.0) * 64.0 + 0.0
-    log = _local_log(log, frame_offset)  # from here on, the local frame
-    selection = select_updates(log, settings.linear_update, settings.angular_update)
-    if config.grid is None:
-        config = dataclasses.replace(config, grid=auto_grid(log, settings, selection.indices))
-        world_grid = _shift_grid(config.grid, frame_offset)
-    else:
-        world_grid = config.grid
-        config = dataclasses.replace(config, grid=_shift_grid(config.grid, -frame_offset))
+    frame_offset, log, selection, config, world_grid = _prepare(log, config, settings)
     sensor = log.sensor
     initial_pose = jnp.asarray(log.odometry[0], jnp.float32)
     key_init, key_steps = jax.random.split(key)
-    state = init(key_init, jnp.asarray(log.ranges[0]), sensor, params, config, initial_pose)
 
     inputs = build_inputs(log, selection, config.lookahead_steps)
     num_steps = selection.indices.size - 1
     step_keys = jax.random.split(key_steps, max(num_steps, 1))
+    done = 0
+    prior_info = None
+    if resume is None:
+        state = init(key_init, jnp.asarray(log.ranges[0]), sensor, params, config, initial_pose)
+    else:
+        done = int(resume.steps_done)
+        n, (h, w) = config.num_particles, config.grid.shape
+        if resume.num_steps != num_steps or not 0 <= done <= num_steps or (done % chunk_size and done != num_steps):
+            raise ValueError(f"resume: {done} of {resume.num_steps} steps done does not fit this run "
+                             f"({num_steps} steps, chunks of {chunk_size})")
+        if np.shape(resume.state.maps.logodds) != (n, h, w):
+            raise ValueError(f"resume: the saved maps are {np.shape(resume.state.maps.logodds)}, this run's "
+                             f"are {(n, h, w)}")
+        state = jax.tree.map(jnp.asarray, resume.state)
+        prior_info = resume.info
+        step_keys = step_keys[done:]
+        inputs = jax.tree.map(lambda a: a[done:], inputs)
 
     def chunk_fn(state, xs, valid):
         keys, chunk_inputs = xs
         return _run_chunk(state, keys, chunk_inputs, valid, sensor, params, config)
 
-    chunked = run_in_chunks(chunk_fn, (step_keys, inputs), num_steps, chunk_size, state, progress=progress,
-                            desc=f"RBPF {config.proposal.upper()} N={config.num_particles}", unit="scan")
-    state, info = chunked.carry, chunked.outputs
+    def with_prior(info):
+        if prior_info is None:
+            return info
+        return jax.tree.map(lambda a, b: np.concatenate([np.asarray(a), b]), prior_info, info)
+
+    callback = None
+    if on_chunk is not None:
+        def callback(index, carry, outputs_so_far):
+            steps = min(done + (index + 1) * chunk_size, num_steps)
+            return on_chunk(RunProgress(steps, num_steps, carry, lambda: with_prior(outputs_so_far())))
+
+    if resume is not None and done == num_steps and num_steps > 0:  # saved after the last chunk
+        state, info, first_chunk_seconds = state, jax.tree.map(np.asarray, prior_info), 0.0
+    else:
+        chunked = run_in_chunks(chunk_fn, (step_keys, inputs), num_steps - done, chunk_size, state,
+                                progress=progress, desc=f"RBPF {config.proposal.upper()} N={config.num_particles}",
+                                unit="scan", on_chunk=callback)
+        if done + chunked.num_done < num_steps:
+            raise RunInterrupted(done + chunked.num_done, num_steps)
+        state, info, first_chunk_seconds = chunked.carry, with_prior(chunked.outputs), chunked.first_chunk_seconds
 
     best = particle_filter.best_particle(state.log_weights)  # SlamResult.best_particle
     best_path = np.concatenate([np.asarray(initial_pose)[None], backtrack_path(info, best)])
@@ -421,9 +538,71 @@ def run(
         trajectory[:, :2] += frame_offset
     total = time.perf_counter() - t_start
     timings = {
-        "compile": chunked.first_chunk_seconds,
+        "compile": first_chunk_seconds,
         "total": total,
         "real_time_factor": log.duration / total if total > 0 else float("inf"),
     }
     return SlamResult(state, info, selection, dataclasses.replace(config, grid=world_grid), settings, best_path,
                       trajectory, timings, frame_offset)
+
+
+# ---------------------------------------------------------------------------------------------
+# Checkpoints of a run (written by ``on_chunk``, read back for ``resume``).
+
+CHECKPOINT_VERSION = 1
+
+
+def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:
+    """Write ``progress`` (state, the infos so far, the steps done) and ``identity`` (JSON-able: what
+    identifies the run, checked on resume) to the ``.npz`` file ``path`` atomically: into a temporary
+    file in the same folder, flushed to disk, then renamed over ``path``."""
+    import json
+    import os
+    import tempfile
+
+    info = progress.info() if callable(progress.info) else progress.info
+    arrays = {"version": np.int64(CHECKPOINT_VERSION), "identity": np.array(json.dumps(identity, sort_keys=True)),
+              "steps_done": np.int64(progress.steps_done), "num_steps": np.int64(progress.num_steps)}
+    state = progress.state
+    for name, value in (("poses", state.poses), ("log_weights", state.log_weights),
+                        ("maps.logodds", state.maps.logodds), ("maps.hit_dist2", state.maps.hit_dist2),
+                        ("step", state.step)):
+        arrays[f"state.{name}"] = np.array(value)  # a copy: the device buffer may be donated next
+    for name, value in zip(SlamInfo._fields, info):
+        arrays[f"info.{name}"] = np.asarray(value)
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(os.fspath(path))}.tmp-", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_checkpoint(path) -> tuple[RunProgress, dict]:
+    """``(progress, identity)`` from a file of :func:`save_checkpoint` (NumPy arrays); ``ValueError``
+    naming the file if it is not one."""
+    import json
+    import zipfile
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if int(z["version"]) != CHECKPOINT_VERSION:
+                raise ValueError(f"{path}: checkpoint version {int(z['version'])}, expected {CHECKPOINT_VERSION}")
+            identity = json.loads(str(z["identity"]))
+            state = SlamState(z["state.poses"], z["state.log_weights"],
+                              GridMap(z["state.maps.logodds"], z["state.maps.hit_dist2"]), z["state.step"])
+            info = SlamInfo(*(z[f"info.{name}"] for name in SlamInfo._fields))
+            progress = RunProgress(int(z["steps_done"]), int(z["num_steps"]), state, info)
+    except (KeyError, zipfile.BadZipFile, EOFError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not a jaxslam checkpoint ({type(err).__name__}: {err})") from None
+    return progress, identity

@@ -371,3 +371,81 @@ def test_a_degenerate_run_writes_null_log_evidence_with_its_step(tmp_path, small
     scan = int(result.selection.indices[3])
     assert written["null_reasons"]["log_evidence"].startswith(f"every particle's weight was zero at step 3 (scan {scan}")
     assert "NaN" not in (tmp_path / "out" / "summary.json").read_text()
+
+
+# ---------------------------------------------------------------------------------------------
+# The memory check: a run that cannot fit is refused before the filter runs, naming the estimate.
+
+
+def _trap_filter(monkeypatch):
+    import jaxslam.rbpf
+
+    def trap(*args, **kwargs):
+        raise AssertionError("the filter ran")
+
+    monkeypatch.setattr(jaxslam.rbpf, "run", trap)
+
+
+def test_the_memory_estimate_counts_maps_lp_terms_and_xla():
+    from jaxslam.config import SlamConfig
+    from jaxslam.grid import GridSpec
+    from jaxslam.rbpf import estimate_run_bytes
+
+    grid = GridSpec((100, 200), 0.05, (0.0, 0.0))
+    need, how = estimate_run_bytes(SlamConfig(num_particles=10, grid=grid), grid, 181)
+    assert need == 10 * 100 * 200 * 3 * 3 + 2**30
+    assert how.startswith("10 particles x 100 x 200 cells x 3 bytes x 3")
+    lp, how_lp = estimate_run_bytes(SlamConfig(num_particles=10, proposal="lp", num_localizers=50), grid, 181)
+    assert lp == need + 10 * 50 * 91 * 4 * 2 and "50 localizers x 91 beams" in how_lp
+
+
+def test_available_memory_is_read_from_meminfo():
+    from jaxslam.rbpf import available_memory_bytes
+
+    available = available_memory_bytes()
+    if not Path("/proc/meminfo").is_file():
+        assert available is None
+    else:
+        assert available is not None and available > 2**20
+
+
+def test_a_run_too_large_for_the_machine_is_refused_before_the_filter(tmp_path, small_log, capsys, monkeypatch):
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    _trap_filter(monkeypatch)
+    argv = ["map", str(tmp_path / "office.clf"), "--particles", "100000", "--set", "map_padding=200",
+            "--no-progress", "--out", str(tmp_path / "out")]
+    line = _run_refused(argv, ["the run needs about", "100000 particles x", "GB are available", "--particles",
+                               "map_padding"], capsys)
+    assert int(line.split("needs about ")[1].split()[0]) > 10_000  # GB: 100000 x 8000 x 8000 cells
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monkeypatch):
+    import jaxslam.rbpf
+
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    _trap_filter(monkeypatch)
+    monkeypatch.setattr(jaxslam.rbpf, "available_memory_bytes", lambda: 8 * 10**9)
+    from jaxslam.io import read_log
+
+    config, settings, _ = build_setup({"linear_update": 0.3})
+    grid = jaxslam.rbpf.run_grid(read_log(tmp_path / "office.clf"), config, settings)
+    h, w = grid.shape
+    argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
+            "--no-progress", "--out", str(tmp_path / "out")]
+    need = 30000 * h * w * 9 + 2**30
+    expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
+    _run_refused(argv, [f"needs about {expected} GB (30000 particles x {h} x {w} cells x 3 bytes x 3",
+                        "but 8.0 GB are available"], capsys)
+
+
+def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(tmp_path, small_log, monkeypatch):
+    import jaxslam.rbpf
+
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    _trap_filter(monkeypatch)
+    for available in (jaxslam.rbpf.available_memory_bytes, lambda: None):
+        monkeypatch.setattr(jaxslam.rbpf, "available_memory_bytes", available)
+        with pytest.raises(AssertionError, match="the filter ran"):  # the check let it through to the filter
+            main(["map", str(tmp_path / "office.clf"), "--particles", "100000" if available() is None else "4",
+                  "--no-progress", "--out", str(tmp_path / "out")])
