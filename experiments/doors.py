@@ -5,7 +5,9 @@ For each filter (hybrid, static MCL, memoryless) over S seeds: success rate (fin
 error < 0.5 m and heading error < 10 degrees), mean position error over time, and the hybrid
 filter's door-state accuracy. Writes DIR/results.json and the figures (belief histograms of
 doors D1 and D2 at four times, the map with doors drawn by belief, the decay of D1's belief once
-the robot has passed it, position error over time).
+the robot has passed it, position error over time). Resumable: each finished filter's summary
+is in DIR/results.json and its arrays in DIR/<filter>.npz, so a stopped run goes on with the
+next filter.
 
     python experiments/doors.py --seeds 50 --out results/doors [--quick]
 """
@@ -13,7 +15,6 @@ the robot has passed it, position error over time).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -21,6 +22,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the shared resume helper
 
 from jaxslam.localization import doors, mcl
 from jaxslam.localization.plotting import figure_run, save_figures
@@ -114,24 +116,39 @@ def main(argv=None):
     scenarios = [corridors_scenario(jax.random.key(args.seed_offset + s)) for s in range(seeds)]
     config, params = filter_settings(scenarios[0], particles)
     keys = jax.random.split(jax.random.key(10_000 + args.seed_offset), seeds)
-    evaluations, results = [], {"scenario": "corridors", "seeds": seeds, "particles": particles,
-                                "beams_used": int(scenarios[0].log.num_beams // config.beam_stride + 1),
-                                "scans": scenarios[0].num_scans, "filters": {}}
+    settings = {"scenario": "corridors", "seeds": seeds, "particles": particles, "seed_offset": args.seed_offset,
+                "beams_used": int(scenarios[0].log.num_beams // config.beam_stride + 1),
+                "scans": scenarios[0].num_scans}
+    # Resumable by filter: a finished filter's summary is in results.json and its arrays beside it.
+    try:
+        store = ResultStore(args.out / "results.json", settings, key=lambda r: r["filter"])
+    except SettingsMismatch as err:
+        raise SystemExit(f"experiments/doors.py: error: {err}") from None
+    evaluations = []
     for kind in doors.FILTERS:
-        t = time.time()
-        ev = evaluate(keys, scenarios, kind, config, params)
+        arrays = args.out / f"{kind}.npz"
+        if store.done(kind) and arrays.is_file():
+            with np.load(arrays) as saved:
+                ev = Evaluation(kind, saved["position_error"], saved["heading_error_deg"], saved["success"],
+                                saved["door_belief"], float(saved["door_accuracy"]))
+            print(f"{kind:>10}: done before ({arrays})", flush=True)
+        else:
+            t = time.time()
+            ev = evaluate(keys, scenarios, kind, config, params)
+            args.out.mkdir(parents=True, exist_ok=True)
+            np.savez(arrays, position_error=ev.position_error, heading_error_deg=ev.heading_error_deg,
+                     success=ev.success, door_belief=ev.door_belief, door_accuracy=ev.door_accuracy)
+            store.add(summary(ev) | {"seconds": round(time.time() - t, 1)})
+            acc = store.get(kind)["door_state_accuracy"]
+            print(f"{kind:>10}: success {100 * ev.success.mean():5.1f}%  door accuracy "
+                  f"{'-' if acc is None else f'{100 * acc:.1f}%'}  ({time.time() - t:.0f} s)", flush=True)
         evaluations.append(ev)
-        results["filters"][kind] = summary(ev) | {"seconds": round(time.time() - t, 1)}
-        acc = results["filters"][kind]["door_state_accuracy"]
-        print(f"{kind:>10}: success {100 * ev.success.mean():5.1f}%  door accuracy "
-              f"{'-' if acc is None else f'{100 * acc:.1f}%'}  ({time.time() - t:.0f} s)", flush=True)
     infos, history = figure_run(keys[0], scenarios[0], config, params)
     errors = {f"{ev.filter_kind} ({100 * ev.success.mean():.0f}% ok)": ev.position_error for ev in evaluations}
-    results["figures"] = save_figures(args.out, scenarios[0], infos, history, params, errors)
-    results["seconds"] = round(time.time() - t0, 1)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.out / 'results.json'} ({results['seconds']} s)")
+    figures = save_figures(args.out, scenarios[0], infos, history, params, errors)
+    store.write(figures=figures, seconds=round(time.time() - t0, 1))
+    print(f"wrote {store.path}")
+    results = {**store.settings, "filters": {r["filter"]: r for r in store.runs}, "figures": figures}
     return results
 
 

@@ -150,6 +150,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
         kwargs["scan_topic"] = args.scan_topic
     if args.odom_topic:
         kwargs["odom_topic"] = args.odom_topic
+    if args.odometry:
+        kwargs["odometry_source"] = args.odometry
     _check_filter_args(args)
     _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
     setup = build_setup_from_args(args, MAP_DEFAULTS)
@@ -159,6 +161,9 @@ def _cmd_map(args: argparse.Namespace) -> int:
         import numpy as np
 
         log = log.subset(np.arange(min(args.max_scans, log.num_scans)))
+    from jaxslam.laserlog import check_log
+
+    log = check_log(log)  # repeated timestamps (the last kept), dead scans, gaps: log.warnings
     return _map_and_write(log, setup, args, source=str(args.log))
 
 
@@ -366,10 +371,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
             check_output_file(args.out)
         except OutputError as err:
             raise ConfigError(f"--out {err}") from None
-    timestamps, poses = read_trajectory(args.trajectory)
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        timestamps, poses = read_trajectory(args.trajectory)  # repeated timestamps: the last kept, warned
+    found = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     relations = read_relations(args.relations)
     err = relation_error(timestamps, poses, relations)
     table = err.to_dict()
+    for warning in found:
+        print(f"warning: {warning}", file=sys.stderr)
     print(f"{'relations':>22}: {table.get('count')}")
     for key, value in table.items():
         if key != "count" and not isinstance(value, (list, dict)):
@@ -378,6 +390,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         values, nulled = strict_json_values({k: v for k, v in table.items() if not isinstance(v, list)})
         if nulled:
             values["null_reasons"] = nulled
+        values["warnings"] = found
         write_file_atomic(args.out, json.dumps(values, indent=2, allow_nan=False))
         print(f"written to {args.out}")
     return 0
@@ -449,6 +462,9 @@ def make_parser() -> argparse.ArgumentParser:
     p_map.add_argument("log", help="path of the log; the format is read from the file")
     p_map.add_argument("--scan-topic", help="bag topic of sensor_msgs/LaserScan (default /scan)")
     p_map.add_argument("--odom-topic", help="bag topic of nav_msgs/Odometry (default /odom)")
+    p_map.add_argument("--odometry", choices=("laser", "odom"),
+                       help="CARMEN logs: the odometry inside the laser lines (default) or the ODOM lines "
+                            "(interpolated at the laser timestamps); the two are compared and a disagreement warned of")
     p_map.add_argument("--max-scans", type=int, help="use only the first N scans of the log")
     _add_filter_options(p_map, "smp", 30)
     p_map.set_defaults(func=_cmd_map)

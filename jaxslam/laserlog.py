@@ -40,6 +40,11 @@ class LaserLog:
     notes: tuple[str, ...] = ()
     """What the reader changed or assumed while reading (e.g. scans padded to a common beam
     layout), one sentence each; ``jaxslam map`` records them in ``summary.json``."""
+    warnings: tuple[str, ...] = ()
+    """What looks wrong with the log but does not stop it being used (scans with no valid
+    return, long gaps in time, repeated timestamps dropped, a second odometry source that
+    disagrees), one sentence each; ``jaxslam map`` prints them and records them in
+    ``summary.json``'s ``warnings``. See :func:`check_log`."""
 
     def __post_init__(self):
         ts = np.asarray(self.timestamps, dtype=np.float64)
@@ -49,6 +54,7 @@ class LaserLog:
         object.__setattr__(self, "odometry", odom)
         object.__setattr__(self, "ranges", ranges)
         object.__setattr__(self, "notes", tuple(str(n) for n in self.notes))
+        object.__setattr__(self, "warnings", tuple(str(n) for n in self.warnings))
         src = self.source
         if ts.ndim != 1:
             raise LogError(f"{src}: timestamps have shape {ts.shape}, expected (T,) (one per scan)")
@@ -103,7 +109,75 @@ class LaserLog:
         idx = np.asarray(indices)
         gt = None if self.ground_truth is None else self.ground_truth[idx]
         return LaserLog(self.timestamps[idx], self.odometry[idx], self.ranges[idx], self.sensor, gt, self.source,
-                        self.notes)
+                        self.notes, self.warnings)
+
+
+GAP_FACTOR = 10.0
+"""A time step longer than this many median scan intervals is a gap (:func:`check_log` warns)."""
+DEAD_SENSOR_SHARE = 0.9
+"""A log where more than this share of scans have no valid return is refused (:func:`check_log`)."""
+
+
+def last_of_each_timestamp(timestamps) -> np.ndarray:
+    """(T,) bool: True for the last of each run of equal (non-decreasing) timestamps."""
+    ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    keep = np.ones(ts.size, dtype=bool)
+    keep[:-1] = ts[1:] != ts[:-1]
+    return keep
+
+
+def no_return_scans(log: LaserLog) -> np.ndarray:
+    """(T,) bool: scans of which no beam reads in [range_min, range_max) and above 0 (all 0, all max, ...)."""
+    r = log.ranges
+    valid = (r > 0) & (r >= np.float32(float(log.sensor.range_min))) & (r < np.float32(float(log.sensor.range_max)))
+    return ~np.any(valid, axis=1)
+
+
+def check_log(log: LaserLog) -> LaserLog:
+    """The log as ``jaxslam map`` uses it, with its oddities in ``warnings``.
+
+    * Repeated timestamps: of the scans that share a timestamp only the last is kept (the
+      rule ``jaxslam eval`` applies to trajectory files too), with a warning naming the first.
+    * Scans with no valid return (every beam 0, below ``range_min`` or at/above ``range_max``):
+      a warning with their count and the first; more than :data:`DEAD_SENSOR_SHARE` of the
+      scans is a dead sensor and raises :class:`LogError`.
+    * Gaps: time steps longer than :data:`GAP_FACTOR` median scan intervals, a warning with
+      their count, the first and the longest.
+
+    Raises:
+        LogError: a dead sensor (the message names the count and the first scan).
+    """
+    src = log.source
+    found = list(log.warnings)
+    keep = last_of_each_timestamp(log.timestamps)
+    if not keep.all():
+        drop = np.nonzero(~keep)[0]
+        i = int(drop[0])
+        found.append(f"{src}: {drop.size} scans repeat the timestamp of the scan after them (first: scans {i} and "
+                     f"{i + 1} at t={log.timestamps[i]:.6f}); of each repeated timestamp only the last scan is kept")
+        log = LaserLog(log.timestamps[keep], log.odometry[keep], log.ranges[keep], log.sensor,
+                       None if log.ground_truth is None else log.ground_truth[keep], src, log.notes, ())
+    dead = no_return_scans(log)
+    count = int(dead.sum())
+    if count:
+        i = int(np.argmax(dead))
+        what = (f"{count} of {log.num_scans} scans have no valid return (every beam 0, below range_min="
+                f"{float(log.sensor.range_min):g} m or at/above range_max={float(log.sensor.range_max):g} m; first: scan {i}, "
+                f"t={log.timestamps[i]:.6f})")
+        if count > DEAD_SENSOR_SHARE * log.num_scans:
+            raise LogError(f"{src}: the laser looks dead: {what}; check the log's ranges and range_max")
+        found.append(f"{src}: {what}; they add nothing to the map")
+    steps = np.diff(log.timestamps)
+    positive = steps[steps > 0]
+    if positive.size:
+        median = float(np.median(positive))
+        gaps = np.nonzero(steps > GAP_FACTOR * median)[0]
+        if gaps.size:
+            i, j = int(gaps[0]), int(np.argmax(steps))
+            found.append(f"{src}: {gaps.size} gaps in time longer than {GAP_FACTOR:g} x the median scan interval "
+                         f"({median:.3g} s): first {steps[i]:.3g} s after scan {i} (t={log.timestamps[i]:.6f}), "
+                         f"longest {steps[j]:.3g} s after scan {j} (t={log.timestamps[j]:.6f})")
+    return dataclasses.replace(log, warnings=tuple(found))
 
 
 def _check_finite(src: str, what: str, values: np.ndarray) -> None:

@@ -63,7 +63,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         "mean_ess": float(np.mean(info.ess)) if info.ess.size else None,
         "fallbacks": int(np.sum(info.num_fallbacks)),
         "log_evidence": float(np.sum(info.log_evidence)),
-        "warnings": run_warnings(result),
+        "warnings": list(getattr(log, "warnings", ())) + run_warnings(result),
         "log_notes": list(getattr(log, "notes", ())),
     }
 

@@ -449,3 +449,331 @@ def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(
         with pytest.raises(AssertionError, match="the filter ran"):  # the check let it through to the filter
             main(["map", str(tmp_path / "office.clf"), "--particles", "100000" if available() is None else "4",
                   "--no-progress", "--out", str(tmp_path / "out")])
+
+
+# ---------------------------------------------------------------------------------------------
+# The corpus, part 2: logs, bags, trajectories and relations, read for real (only the filter is
+# trapped for the refusals). Each case: (case id, argv, exit code, words of the message, setup);
+# exit code 0 cases must run and print a "warning: " line holding the words (or none: words []).
+
+
+def _edit_log(edit):
+    """Setup: rewrite the FLASER log's lines (a list, the comment first) with ``edit(lines)``."""
+    def setup(paths):
+        lines = paths["log"].read_text().splitlines()
+        edit(lines)
+        paths["log"].write_text("\n".join(lines) + "\n")
+    return setup
+
+
+def _log_bytes(make):
+    """Setup: replace the log by ``make(text)`` bytes (``text``: the valid log's text)."""
+    def setup(paths):
+        paths["log"].write_bytes(make(paths["log"].read_text()))
+    return setup
+
+
+def _field(line_index, field_index, value):
+    def edit(lines):
+        fields = lines[line_index].split()
+        fields[field_index] = value
+        lines[line_index] = " ".join(fields)
+    return edit
+
+
+def _ranges(value, scans):
+    """Every range of the given scans (0-based, line = scan + 1) set to ``value``."""
+    def edit(lines):
+        for scan in scans:
+            fields = lines[scan + 1].split()
+            n = int(fields[1])
+            fields[2:2 + n] = [value] * n
+            lines[scan + 1] = " ".join(fields)
+    return edit
+
+
+def _swap(i, j):
+    def edit(lines):
+        lines[i], lines[j] = lines[j], lines[i]
+    return edit
+
+
+def _duplicate(i):
+    def edit(lines):
+        lines.insert(i + 1, lines[i])
+    return edit
+
+
+def _shift_times(from_line, seconds):
+    def edit(lines):
+        for k in range(from_line, len(lines)):
+            fields = lines[k].split()
+            for f in (-1, -3):
+                fields[f] = f"{float(fields[f]) + seconds:.6f}"
+            lines[k] = " ".join(fields)
+    return edit
+
+
+def _standing_odom(lines):
+    """ODOM lines of a robot that stands still, interleaved with the (moving) FLASER lines."""
+    out = [lines[0]]
+    for line in lines[1:]:
+        stamp = float(line.split()[-3])
+        out += [f"ODOM 0 0 0 0 0 0 {stamp - 0.001:.6f} host {stamp - 0.001:.6f}", line]
+    out.append(f"ODOM 0 0 0 0 0 0 {stamp + 0.001:.6f} host {stamp + 0.001:.6f}")
+    lines[:] = out
+
+
+def _truncate(lines):
+    lines[3] = " ".join(lines[3].split()[:-3])
+
+
+def _bag(kind, topics=("/scan", "/odom"), corrupt=None):
+    """Setup: a small ROS 1 ('ros1') or ROS 2 ('ros2') bag at {bag}; ``corrupt(path)`` damages it."""
+    def setup(paths):
+        from test_io_rosbag import _store, standard_messages, write_bag
+
+        ts = _store(kind)
+        messages = [m for m in standard_messages(ts) if m[0] in topics]
+        path = paths["bag1"] if kind == "ros1" else paths["bag2"]
+        write_bag(path, messages, ros2=(kind == "ros2"))
+        if corrupt:
+            corrupt(path)
+    return setup
+
+
+def _cut_in_half(path):
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _break_metadata(path):
+    (path / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed\n")
+
+
+def _text(key, content):
+    def setup(paths):
+        paths[key].write_text(content)
+    return setup
+
+
+def _both(*setups):
+    def setup(paths):
+        for s in setups:
+            s(paths)
+    return setup
+
+
+LOG = ["map", "{log}", "--no-progress", "--out", "{out}"]
+BAG1 = ["map", "{bag1}", "--no-progress", "--out", "{out}"]
+BAG2 = ["map", "{bag2}", "--no-progress", "--out", "{out}"]
+EVAL = ["eval", "{traj}", "{rel}"]
+SMALL_RUN = ["--particles", "2", "--proposal", "op", "--set", "linear_update=0.3", "--set", "max_insert_range=8"]
+UTF8_BOM = b"\xef\xbb\xbf"
+
+IO_CASES = [
+    # CARMEN logs.
+    ("log-truncated-line", LOG, 2, ["office.clf:4: truncated FLASER (n=181) line"], _edit_log(_truncate)),
+    ("log-nan-range", LOG, 2, ["office.clf:3: beam 5 has range nan (NaN or negative)"], _edit_log(_field(2, 7, "nan"))),
+    ("log-negative-range", LOG, 2, ["office.clf:3: beam 0 has range -1.0 (NaN or negative)"],
+     _edit_log(_field(2, 2, "-1.0"))),
+    ("log-non-numeric-range", LOG, 2, ["office.clf:2: field 4 (range) is not a number: 'abc'"],
+     _edit_log(_field(1, 3, "abc"))),
+    ("log-non-numeric-timestamp", LOG, 2, ["office.clf:2:", "is not a number: 'noon'"], _edit_log(_field(1, -3, "noon"))),
+    ("log-zero-readings", LOG, 2, ["office.clf:2: FLASER line with 0 readings"],
+     _edit_log(lambda lines: lines.insert(1, "FLASER 0 0 0 0 0 0 0 1000.0 host 1000.0"))),
+    ("log-timestamps-backwards", LOG, 2, ["office.clf:4: timestamp goes backwards"], _edit_log(_swap(2, 3))),
+    ("log-empty", LOG, 2, ["office.clf: is empty"], _text("log", "")),
+    ("log-blank-lines-only", LOG, 2, ["office.clf: is empty"], _text("log", "\n  \n\n")),
+    ("log-comments-only", LOG, 2, ["office.clf: holds only comments: no FLASER, ROBOTLASER1 or ODOM line"],
+     _text("log", "# a CARMEN log\n# written by nobody\n")),
+    ("log-utf16-bom", LOG, 2, ["office.clf: looks like UTF-16 text; save it as UTF-8 (or ASCII)"],
+     _log_bytes(lambda text: text.encode("utf-16"))),
+    ("log-utf16-be-no-bom", LOG, 2, ["office.clf: looks like UTF-16 text"], _log_bytes(lambda t: t.encode("utf-16-be"))),
+    ("log-unrecognised", LOG, 2, ["office.clf: unrecognised log format", "CARMEN text log"],
+     _text("log", "hello world\n")),
+    ("log-missing", ["map", "{out}.clf", "--no-progress", "--out", "{out}"], 2, ["no such file or folder"], None),
+    ("log-no-laser-lines", LOG, 2, ["no laser lines (expected FLASER or ROBOTLASER1)"],
+     _text("log", "ODOM 0 0 0 0 0 0 1000.0 host 1000.0\n")),
+    ("log-all-zero-ranges", LOG, 2, ["the laser looks dead: 12 of 12 scans have no valid return", "first: scan 0"],
+     _edit_log(_ranges("0.0", range(12)))),
+    ("log-all-max-ranges", LOG, 2, ["the laser looks dead: 12 of 12 scans", "range_max=81.91"],
+     _edit_log(_ranges("81.910", range(12)))),
+    ("log-mostly-dead", LOG, 2, ["the laser looks dead: 11 of 12 scans"], _edit_log(_ranges("0.0", range(1, 12)))),
+    ("log-odometry-odom-without-odom", [*LOG, "--odometry", "odom"], 2, ["odometry_source='odom'", "no ODOM lines"],
+     None),
+    ("log-odometry-flag-word", [*LOG, "--odometry", "wheels"], 2, ["--odometry", "invalid choice", "'wheels'"], None),
+    ("log-scan-topic-on-carmen", [*LOG, "--scan-topic", "/laser"], 2, ["--scan-topic does not apply to a CARMEN log"],
+     None),
+    # Bags.
+    ("bag-truncated", BAG1, 2, ["test.bag", "cannot open the bag"], _bag("ros1", corrupt=_cut_in_half)),
+    ("bag-garbage", BAG1, 2, ["test.bag: cannot open the bag"],
+     lambda paths: paths["bag1"].write_bytes(b"#ROSBAG V2.0\nthis is not a bag")),
+    ("bag-no-scan-topic", BAG1, 2, ["no topic '/scan' in the bag", "/odom"], _bag("ros1", topics=("/odom",))),
+    ("bag-no-odom-topic", BAG1, 2, ["no topic '/odom' in the bag"], _bag("ros1", topics=("/scan",))),
+    ("bag-other-scan-topic", [*BAG1, "--scan-topic", "/laser"], 2, ["no topic '/laser' in the bag"], _bag("ros1")),
+    ("bag-odometry-flag", [*BAG1, "--odometry", "odom"], 2, ["--odometry does not apply to a bag"], _bag("ros1")),
+    ("bag2-folder-without-metadata", BAG2, 2, ["a folder without metadata.yaml"],
+     lambda paths: paths["bag2"].mkdir()),
+    ("bag2-no-scan-topic", BAG2, 2, ["no topic '/scan' in the bag"], _bag("ros2", topics=("/odom",))),
+    ("bag2-broken-metadata", BAG2, 2, ["cannot open the bag"], _bag("ros2", corrupt=_break_metadata)),
+    # Trajectories and relations for eval.
+    ("eval-traj-three-fields", EVAL, 2, ["traj.txt:2: expected 4 fields 'timestamp x y theta', got 3"],
+     _text("traj", "0 0 0 0\n1 1 0\n")),
+    ("eval-traj-non-numeric", EVAL, 2, ["traj.txt:1: non-numeric field", "'0 zero 0 0'"], _text("traj", "0 zero 0 0\n")),
+    ("eval-traj-nan", EVAL, 2, ["traj.txt:2: non-finite value"], _text("traj", "0 0 0 0\n1 nan 0 0\n")),
+    ("eval-traj-backwards", EVAL, 2, ["traj.txt:2: timestamp goes backwards"], _text("traj", "1 0 0 0\n0 1 0 0\n")),
+    ("eval-traj-empty", EVAL, 2, ["traj.txt: the trajectory file holds no poses"], _text("traj", "# nothing\n")),
+    ("eval-traj-missing", ["eval", "{out}.txt", "{rel}"], 2, ["no such trajectory file"], None),
+    ("eval-rel-too-few-columns", EVAL, 2, ["rel.txt:1: expected 8 fields 't1 t2 x y z roll pitch yaw', got 5"],
+     _text("rel", "0 1 1 0 0\n")),
+    ("eval-rel-non-numeric", EVAL, 2, ["rel.txt:1: field 3 is not a number: 'one'"], _text("rel", "0 1 one 0 0 0 0 0\n")),
+    ("eval-rel-nan", EVAL, 2, ["rel.txt:1: non-finite value"], _text("rel", "0 1 nan 0 0 0 0 0\n")),
+    ("eval-rel-not-planar", EVAL, 2, ["rel.txt:1: z, roll, pitch must be 0"], _text("rel", "0 1 1 0 0.5 0 0 0\n")),
+    ("eval-rel-empty", EVAL, 2, ["rel.txt: the relations file holds no relations"], _text("rel", "")),
+    ("eval-rel-missing", ["eval", "{traj}", "{out}.txt"], 2, ["no such relations file"], None),
+    ("eval-rel-time-not-in-trajectory", EVAL, 2, ["timestamp 5.000000", "is not in the trajectory"],
+     _text("rel", "0 5 1 0 0 0 0 0\n")),
+    # Odd but usable: exit 0 with a warning (or, for the byte-order mark, none).
+    ("log-utf8-bom", [*LOG, *SMALL_RUN], 0, [], _log_bytes(lambda text: UTF8_BOM + text.encode())),
+    ("log-duplicate-timestamps", [*LOG, *SMALL_RUN], 0,
+     ["1 laser lines repeat the timestamp of the next laser line (first: lines 4 and 5", "only the last line is kept"],
+     _edit_log(_duplicate(3))),
+    ("log-some-zero-scans", [*LOG, *SMALL_RUN], 0, ["2 of 12 scans have no valid return", "first: scan 3"],
+     _edit_log(_ranges("0.0", (3, 7)))),
+    ("log-some-max-scans", [*LOG, *SMALL_RUN], 0, ["1 of 12 scans have no valid return", "range_max=81.91"],
+     _edit_log(_ranges("90.0", (5,)))),
+    ("log-time-gap", [*LOG, *SMALL_RUN], 0, ["1 gaps in time longer than 10 x the median scan interval",
+                                              "after scan 5"], _edit_log(_shift_times(7, 100.0))),
+    ("log-odom-contradicts-flaser", [*LOG, *SMALL_RUN], 0,
+     ["the ODOM lines contradict the FLASER lines' odometry", "the odometry of the FLASER lines is used",
+      "--odometry odom"], _edit_log(_standing_odom)),
+    ("eval-traj-duplicate-timestamp", EVAL, 0,
+     ["traj.txt: 1 poses repeat the timestamp of the next pose (first: lines 2 and 3", "only the last pose is kept"],
+     _both(_text("traj", "0 0 0 0\n1 5 5 0\n1 1 0 0\n"), _text("rel", "0 1 1 0 0 0 0 0\n"))),
+]
+
+
+def _io_paths(tmp_path, small_log):
+    paths = _prepare(tmp_path, small_log)
+    paths["bag1"] = tmp_path / "test.bag"
+    paths["bag2"] = tmp_path / "test_ros2"
+    return paths
+
+
+def _run_case(argv, setup, paths):
+    """Set up and run one case in-process: (exit code, stdout, stderr)."""
+    import contextlib
+    import io
+
+    if setup is not None:
+        setup(paths)
+    argv = [a.format(**paths) for a in argv]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(argv)
+        except SystemExit as exit_:
+            code = exit_.code
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_the_io_corpus_is_large_enough():
+    ids = [case[0] for case in CASES + READ_ONLY_CASES + IO_CASES]
+    assert len(ids) >= 60 and len(set(ids)) == len(ids)
+
+
+@pytest.fixture
+def trap_filter(monkeypatch):
+    _trap_filter(monkeypatch)
+
+
+@pytest.mark.parametrize("case_id, argv, code, words, setup", [c for c in IO_CASES if c[2] == 2],
+                         ids=[c[0] for c in IO_CASES if c[2] == 2])
+def test_bad_file_is_refused(case_id, argv, code, words, setup, tmp_path, small_log, capsys, trap_filter):
+    paths = _io_paths(tmp_path, small_log)
+    if setup is not None:
+        setup(paths)
+    _run_refused([a.format(**paths) for a in argv], words, capsys)
+    assert not paths["out"].exists()
+
+
+@pytest.mark.parametrize("case_id, argv, code, words, setup", [c for c in IO_CASES if c[2] == 0],
+                         ids=[c[0] for c in IO_CASES if c[2] == 0])
+def test_odd_file_runs_with_a_warning(case_id, argv, code, words, setup, tmp_path, small_log, capsys):
+    paths = _io_paths(tmp_path, small_log)
+    if setup is not None:
+        setup(paths)
+    assert main([a.format(**paths) for a in argv]) == 0
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err + captured.out
+    warned = [line for line in captured.err.splitlines() if line.startswith("warning: ")]
+    for word in words:
+        assert any(word in line for line in warned), (word, captured.err)
+    if not words:  # nothing about the log (the run itself may warn, e.g. of beams beyond the map)
+        assert not any("office.clf" in line for line in warned), captured.err
+    if argv[0] == "map":
+        summary = json.loads((paths["out"] / "summary.json").read_text())
+        for word in words:
+            assert any(word in w for w in summary["warnings"]), (word, summary["warnings"])
+        times = np.loadtxt(paths["out"] / "trajectory.txt")[:, 0]
+        assert np.all(np.diff(times) > 0)  # no timestamp written twice
+
+
+def test_duplicate_timestamps_keep_the_last_in_map_and_eval(tmp_path, small_log, capsys):
+    """The one rule: of a repeated timestamp the last scan (map) or pose (eval) is used."""
+    paths = _io_paths(tmp_path, small_log)
+    paths["traj"].write_text("0 0 0 0\n1 20 20 0\n1 1 0 0\n")
+    paths["rel"].write_text("0 1 1 0 0 0 0 0\n")
+    out = tmp_path / "errors.json"
+    assert main(["eval", str(paths["traj"]), str(paths["rel"]), "--out", str(out)]) == 0
+    table = json.loads(out.read_text())
+    assert table["count"] == 1 and table["warnings"] and "only the last pose is kept" in table["warnings"][0]
+    assert max(abs(v) for k, v in table.items() if isinstance(v, float)) < 1e-9  # the last pose: zero error
+    from jaxslam.io import read_log
+    from jaxslam.laserlog import check_log
+
+    _edit_log(_duplicate(3))(paths)
+    lines = paths["log"].read_text().splitlines()
+    lines[4] = lines[4].replace(lines[4].split()[5], "9.999", 1)  # the second of the pair differs
+    paths["log"].write_text("\n".join(lines) + "\n")
+    log = check_log(read_log(paths["log"]))
+    assert log.num_scans == 12 and np.all(np.diff(log.timestamps) > 0)
+    assert log.ranges[2, 3] == np.float32(9.999)  # the later line of the pair was kept
+    assert any("only the last line is kept" in w for w in log.warnings)
+
+
+def corpus_table(path="/tmp/corpus_table.md") -> str:
+    """Run every case of the corpus (both parts) in a temporary folder and write a markdown table
+    ``case | exit code | first line of the message`` with the count at the top:
+    ``python -c "import sys; sys.path.insert(0, 'tests'); import test_bad_inputs as t; t.corpus_table()"``."""
+    import tempfile
+
+    log = office_scenario(jax.random.key(0), num_scans=150, num_beams=181).log.subset(np.arange(12))
+    cases = [(c[0], c[1], c[3]) for c in CASES] + [(c[0], c[1], c[4]) for c in IO_CASES]
+    cases += [(c[0], c[1], "read-only") for c in READ_ONLY_CASES]
+    rows = []
+    for case_id, argv, setup in cases:
+        with tempfile.TemporaryDirectory() as tmp:
+            paths = _io_paths(Path(tmp), log)
+            if setup == "read-only":
+                if IS_ROOT:
+                    rows.append((case_id, "-", "(skipped: root ignores file permissions)"))
+                    continue
+                os.chmod(paths["ro"], 0o500)
+                setup = None
+            try:
+                code, out, err = _run_case(argv, setup, paths)
+            finally:
+                os.chmod(paths["ro"], 0o700)
+        lines = [line for line in err.splitlines() if line.strip()]
+        if code == 0:
+            warned = [line for line in lines if line.startswith("warning: ")]
+            first = warned[0] if warned else (out.splitlines() or [""])[0]
+        else:
+            first = lines[0] if lines else ""
+        rows.append((case_id, code, first.replace("|", "\\|").replace(tmp, "TMP")))
+    text = [f"{len(rows)} cases", "", "| case | exit code | first line of the message |", "|---|---|---|"]
+    text += [f"| {case_id} | {code} | {first} |" for case_id, code, first in rows]
+    Path(path).write_text("\n".join(text) + "\n")
+    return path

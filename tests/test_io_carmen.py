@@ -358,7 +358,7 @@ def test_no_laser_lines(tmp_path):
         read_carmen(path)
     empty = tmp_path / "empty.clf"
     empty.write_text("")
-    with pytest.raises(LogError, match=r"empty\.clf: no laser lines"):
+    with pytest.raises(LogError, match=r"empty\.clf: is empty"):
         read_carmen(empty)
 
 
@@ -374,8 +374,11 @@ def test_missing_or_binary_file(tmp_path):
     with pytest.raises(LogError, match=r"no such CARMEN log"):
         read_carmen(tmp_path / "missing.clf")
     binary = tmp_path / "binary.clf"
-    binary.write_bytes(b"\xff\xfe\x00FLASER")
+    binary.write_bytes(b"\x80\x81\x00FLASER")
     with pytest.raises(LogError, match=r"binary\.clf: not a text file"):
+        read_carmen(binary)
+    binary.write_bytes(b"\xff\xfe\x00FLASER")  # a UTF-16 byte-order mark
+    with pytest.raises(LogError, match=r"binary\.clf: looks like UTF-16 text; save it as UTF-8"):
         read_carmen(binary)
 
 

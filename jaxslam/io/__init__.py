@@ -12,7 +12,7 @@ import os
 import re
 from pathlib import Path
 
-from jaxslam.io.carmen import read_carmen
+from jaxslam.io.carmen import ONLY_COMMENTS, read_carmen, text_problem
 from jaxslam.io.maps import read_map, write_map
 from jaxslam.io.relations import Relations, read_relations
 from jaxslam.io.rosbag import read_rosbag
@@ -67,25 +67,50 @@ def read_log(path, **kwargs) -> LaserLog:
             return read_rosbag(target, **kwargs)
         raise LogError(f"{src}: a folder without metadata.yaml; expected {_EXPECTED}")
     if target.suffix == ".bag":
+        _check_kwargs(src, kwargs, ("scan_topic", "odom_topic", "max_scans"), "a bag")
         return read_rosbag(target, **kwargs)
     if _looks_like_carmen(src):
+        _check_kwargs(src, kwargs, ("range_max", "odometry_source"), "a CARMEN log")
         return read_carmen(target, **kwargs)
     raise LogError(f"{src}: unrecognised log format; expected {_EXPECTED}")
 
 
+_OPTION_NAMES = {"scan_topic": "--scan-topic", "odom_topic": "--odom-topic", "odometry_source": "--odometry"}
+
+
+def _check_kwargs(src: str, kwargs: dict, allowed: tuple[str, ...], kind: str) -> None:
+    """A LogError (not a TypeError) for an option the file's reader does not take."""
+    extra = sorted(set(kwargs) - set(allowed))
+    if extra:
+        names = ", ".join(_OPTION_NAMES.get(k, k) for k in extra)
+        raise LogError(f"{src}: {names} does not apply to {kind}")
+
+
 def _looks_like_carmen(src: str) -> bool:
-    """Whether the file's first non-comment lines are CARMEN messages leading to laser/odometry."""
+    """Whether the file's first non-comment lines are CARMEN messages leading to laser/odometry.
+
+    Raises:
+        LogError: for a text file that cannot be a log: UTF-16, empty, or only comments.
+    """
     with open(src, "rb") as f:
         head = f.read(_SNIFF_BYTES)
+    problem = text_problem(head)
+    if problem:
+        raise LogError(f"{src}: {problem}")
+    head = head.removeprefix(b"\xef\xbb\xbf")  # a UTF-8 byte-order mark
     if b"\0" in head:
         return False  # binary
+    data_lines = False
     for line in head.splitlines():
         fields = line.split()
         if not fields or fields[0].startswith(b"#"):
             continue
+        data_lines = True
         name = fields[0]
         if name.decode("ascii", "replace") in _CARMEN_DATA:
             return True
         if not _CARMEN_NAME.match(name):
             return False
+    if not data_lines and len(head) < _SNIFF_BYTES:
+        raise LogError(f"{src}: {ONLY_COMMENTS}")
     return False

@@ -36,10 +36,10 @@ import numpy as np
 from jaxslam.geometry import between
 from jaxslam.io.rosbag import BeamLayout, pad_beam_layouts
 from jaxslam.io.trajectory import poses_at
-from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp
 from jaxslam.laser import make_sensor, uniform_beams
 
-__all__ = ["FLASER_NO_RETURN", "read_carmen"]
+__all__ = ["FLASER_NO_RETURN", "read_carmen", "text_problem"]
 
 FLASER_NO_RETURN = 81.91
 """Range (m) that old CARMEN logs write for a beam with no return (SICK LMS maximum)."""
@@ -56,6 +56,9 @@ _ODOM_FIELDS = 9
 _TRUEPOS_FIELDS = 9
 # Laser mounting (between robot and laser pose) may vary by print rounding only.
 _LASER_POSE_TOLERANCE = 0.01
+# ODOM and laser-line odometry disagree when a step between laser lines differs by more than this
+# (m or rad) plus 10 % of the step.
+_ODOM_TOLERANCE = 0.05
 
 
 def read_carmen(path, range_max: float | None = None, odometry_source: str = "laser") -> LaserLog:
@@ -93,14 +96,19 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
         raise ValueError(f"odometry_source must be 'laser' or 'odom', got {odometry_source!r}")
     src = os.fspath(path)
     try:
-        with open(src, encoding="utf-8", errors="strict") as f:
-            lines = f.read().splitlines()
+        with open(src, "rb") as f:
+            raw = f.read()
     except FileNotFoundError:
         raise LogError(f"{src}: no such CARMEN log") from None
-    except UnicodeDecodeError as err:
-        raise LogError(f"{src}: not a text file ({err})") from None
     except OSError as err:
         raise LogError(f"{src}: cannot read the log ({err})") from None
+    problem = text_problem(raw)
+    if problem:
+        raise LogError(f"{src}: {problem}")
+    try:
+        lines = raw.decode("utf-8-sig", errors="strict").splitlines()  # a UTF-8 byte-order mark is skipped
+    except UnicodeDecodeError as err:
+        raise LogError(f"{src}: not a text file ({err})") from None
 
     laser = _LaserLines(src)
     odom = _PoseStream("ODOM")
@@ -118,8 +126,31 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
         elif kind == "TRUEPOS":
             truth.add(fields, _TRUEPOS_FIELDS, where)
     if not laser.times:
+        if not any(line.split() and not line.split()[0].startswith("#") for line in lines):
+            raise LogError(f"{src}: {ONLY_COMMENTS}")
         raise LogError(f"{src}: no laser lines (expected {' or '.join(LASER_MESSAGES)})")
     return laser.build(range_max, odometry_source, odom, truth)
+
+
+ONLY_COMMENTS = "holds only comments: no FLASER, ROBOTLASER1 or ODOM line"
+UTF16 = "looks like UTF-16 text; save it as UTF-8 (or ASCII)"
+
+
+def text_problem(head: bytes) -> str | None:
+    """Why the first bytes of a file cannot be a CARMEN log's text, or None: UTF-16 (a byte-order
+    mark FF FE / FE FF, or NUL bytes every other byte) or an empty file. A UTF-8 byte-order
+    mark is fine (it is skipped)."""
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return UTF16
+    sample = head[:4096]
+    if len(sample) >= 4:
+        even, odd = sample[0::2], sample[1::2]
+        for zeros, other in ((even, odd), (odd, even)):  # text of UTF-16 BE / LE: NUL bytes on one side only
+            if zeros.count(0) >= 0.4 * len(zeros) and other.count(0) <= 0.05 * len(other):
+                return UTF16
+    if not head.removeprefix(b"\xef\xbb\xbf").strip():
+        return "is empty"
+    return None
 
 
 def _numbers(fields: list[str], start: int, stop: int, where: str, what: str) -> np.ndarray:
@@ -225,7 +256,7 @@ class _LaserLines:
             self.layouts.append(BeamLayout(angles, resolution, where))
         if np.any(np.isnan(ranges)) or np.any(ranges < 0):
             beam = int(np.argmax(np.isnan(ranges) | (ranges < 0)))
-            raise LogError(f"{where}: beam {beam} has range {ranges[beam]!r} (NaN or negative)")
+            raise LogError(f"{where}: beam {beam} has range {float(ranges[beam])!r} (NaN or negative)")
         _check_finite(odometry, where, "odometry pose")
         if not math.isfinite(stamp):
             raise LogError(f"{where}: non-finite ipc_timestamp {stamp!r}")
@@ -284,6 +315,19 @@ class _LaserLines:
 
     def build(self, range_max, odometry_source, odom: _PoseStream, truth: _PoseStream) -> LaserLog:
         src = self.src
+        found = []
+        last = last_of_each_timestamp(self.times)
+        if not last.all():
+            i = int(np.argmin(last))
+            found.append(
+                f"{src}: {int(np.sum(~last))} laser lines repeat the timestamp of the next laser line (first: lines "
+                f"{_line(self.wheres[i])} and {_line(self.wheres[i + 1])} at t={self.times[i]:.6f}); of each repeated "
+                "timestamp only the last line is kept"
+            )
+            kept_lines = np.nonzero(last)[0]
+            for name in ("times", "odometry", "ranges", "layout_of", "wheres"):
+                values = getattr(self, name)
+                setattr(self, name, [values[k] for k in kept_lines])
         times = np.asarray(self.times, dtype=np.float64)
         odometry = np.stack(self.odometry)
         if self.kind == "FLASER":
@@ -325,6 +369,10 @@ class _LaserLines:
                     stacklevel=3,
                 )
             odometry = paired.poses
+            found.append(f"{src}: the odometry of the ODOM lines is used (odometry_source='odom'), not that of the "
+                         f"{self.kind} lines")
+        elif odom.times:
+            found.extend(self._compare_odometry(times, odometry, odom))
         ground_truth = None
         if truth.times:
             true_at = poses_at(times[keep], *truth.arrays())
@@ -342,4 +390,35 @@ class _LaserLines:
         if note:
             warnings.warn(note, stacklevel=3)
         sensor = make_sensor(beam_angles, range_min=range_min, range_max=limit, laser_pose=laser_pose)
-        return LaserLog(times[keep], odometry[keep], ranges, sensor, ground_truth, src, (note,) if note else ())
+        return LaserLog(times[keep], odometry[keep], ranges, sensor, ground_truth, src, (note,) if note else (),
+                        tuple(found))
+
+    def _compare_odometry(self, times, odometry, odom: _PoseStream) -> list[str]:
+        """A warning if the ODOM lines' motion between laser lines contradicts the laser lines' odometry."""
+        src, kind = self.src, self.kind
+        chosen = (f"the odometry of the {kind} lines is used (jaxslam map --odometry odom, or "
+                  "odometry_source='odom', uses the ODOM lines)")
+        paired = poses_at(times, *odom.arrays())
+        both = paired.covered[:-1] & paired.covered[1:]
+        if not both.any():
+            return [f"{src}: the log's ODOM lines do not overlap its {kind} lines in time; {chosen}"]
+        laser_step = np.asarray(between(odometry[:-1], odometry[1:]), dtype=np.float64)
+        odom_step = np.asarray(between(paired.poses[:-1], paired.poses[1:]), dtype=np.float64)
+        trans = np.hypot(*(laser_step[:, :2] - odom_step[:, :2]).T)
+        rot = np.abs(np.angle(np.exp(1j * (laser_step[:, 2] - odom_step[:, 2]))))
+        size = np.hypot(laser_step[:, 0], laser_step[:, 1])
+        bad = both & ((trans > _ODOM_TOLERANCE + 0.1 * size) | (rot > _ODOM_TOLERANCE + 0.1 * np.abs(laser_step[:, 2])))
+        if not bad.any():
+            return []
+        i = int(np.argmax(bad))
+        return [
+            f"{src}: the ODOM lines contradict the {kind} lines' odometry at {int(bad.sum())} of {int(both.sum())} "
+            f"steps (first: lines {_line(self.wheres[i])} -> {_line(self.wheres[i + 1])}, {kind} moves "
+            f"{size[i]:.3f} m / {laser_step[i, 2]:.3f} rad, ODOM {np.hypot(*odom_step[i, :2]):.3f} m / "
+            f"{odom_step[i, 2]:.3f} rad); {chosen}"
+        ]
+
+
+def _line(where: str) -> str:
+    """The line number of a ``file:line`` location."""
+    return where.rsplit(":", 1)[-1]

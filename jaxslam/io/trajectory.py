@@ -15,12 +15,13 @@ other timestamps; the log readers use it to pair each scan with odometry.
 from __future__ import annotations
 
 import os
+import warnings
 from typing import NamedTuple
 
 import numpy as np
 
 from jaxslam.geometry import between, compose, interpolate, wrap_angle_np
-from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp
 
 __all__ = [
     "PosesAt",
@@ -145,7 +146,9 @@ def read_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
 
     Blank lines and lines starting with ``#`` are skipped. Every other line must hold
     exactly four finite numbers, and timestamps must not decrease; a line that breaks
-    this raises :class:`~jaxslam.laserlog.LogError` naming the file and line.
+    this raises :class:`~jaxslam.laserlog.LogError` naming the file and line. Of poses that
+    share a timestamp only the last is kept, with a ``UserWarning`` naming the lines (the
+    rule ``jaxslam map`` applies to a log's scans).
 
     Returns:
         timestamps (T,) float64 seconds and poses (T, 3) float64 [x, y, theta] (m, m, rad).
@@ -153,12 +156,14 @@ def read_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
     src = os.fspath(path)
     rows: list[list[float]] = []
     try:
-        text = open(src, encoding="utf-8").read()
+        with open(src, encoding="utf-8") as f:
+            text = f.read()
     except FileNotFoundError:
         raise LogError(f"{src}: no such trajectory file") from None
     except (OSError, UnicodeDecodeError) as err:
         raise LogError(f"{src}: cannot read the trajectory file ({err})") from None
     last_time = -np.inf
+    line_of: list[int] = []
     for line_no, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
         if not stripped or stripped.startswith("#"):
@@ -176,7 +181,18 @@ def read_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
             raise LogError(f"{src}:{line_no}: timestamp goes backwards ({last_time:.9f} -> {values[0]:.9f})")
         last_time = values[0]
         rows.append(values)
+        line_of.append(line_no)
     if not rows:
         raise LogError(f"{src}: the trajectory file holds no poses")
     table = np.asarray(rows, dtype=np.float64)
+    last = last_of_each_timestamp(table[:, 0])
+    if not last.all():
+        i = int(np.argmin(last))
+        warnings.warn(
+            f"{src}: {int(np.sum(~last))} poses repeat the timestamp of the next pose (first: lines {line_of[i]} and "
+            f"{line_of[i + 1]} at t={table[i, 0]:.9f}); of each repeated timestamp only the last pose is kept "
+            "(the rule jaxslam map applies to the scans of a log)",
+            stacklevel=2,
+        )
+        table = table[last]
     return table[:, 0].copy(), table[:, 1:].copy()
