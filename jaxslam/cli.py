@@ -199,6 +199,19 @@ def _check_memory(log, config, settings) -> None:
                           f"a coarser --set resolution=... (m), or a --set grid=...")
 
 
+def _check_disk(log, config, settings, out, checkpoints: bool) -> None:
+    """Refuse (``ConfigError``) a run whose outputs (and checkpoints) would not fit on the disk."""
+    from jaxslam.outputs import OutputError, check_free_space, expected_output_bytes
+    from jaxslam.rbpf import run_grid
+
+    need = expected_output_bytes(run_grid(log, config, settings).num_cells, log.num_scans, config.num_particles,
+                                 checkpoints)
+    try:
+        check_free_space(out, need)
+    except OutputError as err:
+        raise ConfigError(f"--out {err}") from None
+
+
 def _run_identity(args, log, setup, source: str) -> dict:
     """What identifies a run for ``--resume`` (compared after a JSON round trip)."""
     from jaxslam.config import config_to_dict, params_to_dict
@@ -275,6 +288,7 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
 
     config, settings, params = setup
     _check_memory(log, config, settings)
+    _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
     ckpt = checkpoint_path(args.out)
     identity = _run_identity(args, log, setup, source)
     resume = _load_resume(ckpt, identity) if getattr(args, "resume", False) else None

@@ -245,6 +245,25 @@ def check_output_folder(out_dir) -> None:
         raise OutputError(f"{out_dir} cannot be created: {ancestor} is not writable ({why})")
 
 
+def expected_output_bytes(grid_cells: int, num_scans: int, num_particles: int, checkpoints: bool) -> int:
+    """A generous estimate of the bytes a ``jaxslam map`` run writes: the map as PGM and PNG (at
+    most 2 bytes a cell of the grid), the trajectories (about 80 bytes a scan, twice with
+    ``--refine``), the figure and summary (a few MB), and with ``checkpoints`` (``--checkpoint-every``)
+    a checkpoint (every particle's maps, 3 bytes a cell each)."""
+    checkpoint = 3 * grid_cells * num_particles if checkpoints else 0
+    return 2 * grid_cells + 2 * 80 * num_scans + 5_000_000 + checkpoint
+
+
+def check_free_space(out_dir, need_bytes: int) -> None:
+    """Raise :class:`OutputError` when the disk that will hold ``out_dir`` has less than
+    ``need_bytes`` free; call it before any work."""
+    target = Path(os.path.abspath(os.fspath(out_dir)))
+    free = shutil.disk_usage(_nearest_existing(target)).free
+    if free < need_bytes:
+        raise OutputError(f"{out_dir} is on a disk with {free / 1e6:.0f} MB free, but the run's outputs and checkpoint "
+                          f"need about {need_bytes / 1e6:.0f} MB; free some space or choose another folder")
+
+
 def check_output_file(path) -> None:
     """Raise :class:`OutputError` unless a file can be written at ``path`` (not a folder; its
     folder exists and is writable or can be made); call it before any work."""

@@ -451,6 +451,19 @@ def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(
                   "--no-progress", "--out", str(tmp_path / "out")])
 
 
+def test_a_full_disk_is_refused_before_the_run(tmp_path, small_log, capsys, monkeypatch):
+    import collections
+
+    import jaxslam.outputs
+
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    _trap_filter(monkeypatch)
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(jaxslam.outputs.shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 10**6, 10**6))
+    argv = ["map", str(tmp_path / "office.clf"), "--particles", "3", "--no-progress", "--out", str(tmp_path / "out")]
+    _run_refused(argv, ["a disk with 1 MB free", "need about", "free some space"], capsys)
+
+
 # ---------------------------------------------------------------------------------------------
 # The corpus, part 2: logs, bags, trajectories and relations, read for real (only the filter is
 # trapped for the refusals). Each case: (case id, argv, exit code, words of the message, setup);
