@@ -402,15 +402,19 @@ def estimate_run_bytes(config: SlamConfig, grid: GridSpec, num_beams: int) -> tu
     it was reckoned (for a refusal message).
 
     The particles' maps dominate: N x H x W cells x 3 bytes (float16 log-odds + uint8 field),
-    counted 3 times (the state, its copy across a chunk call, the insertion's temporaries). The
-    look-ahead proposal adds its N x L x B float32 beam terms (B the beams used in likelihoods,
-    ``num_beams / beam_stride``), twice; about 1 GB is added for XLA (compiled code, buffers) and the host.
+    counted 3 times (the state, its copy across a chunk call, the insertion's temporaries). Scan
+    insertion traces every beam with one sample per cell up to ``max_insert_range``: N x B x S
+    samples of about 40 bytes (points, cells, masks). The look-ahead proposal adds its N x L x B
+    float32 beam terms (B the beams used in likelihoods, ``num_beams / beam_stride``), twice;
+    about 1 GB is added for XLA (compiled code, buffers) and the host.
     """
     n = config.num_particles
     h, w = grid.shape
     maps = n * h * w * 3 * 3
-    how = f"{n} particles x {h} x {w} cells x 3 bytes x 3"
-    total = maps + 2**30
+    samples = int(math.ceil(config.max_insert_range / grid.resolution)) + 1
+    insertion = n * num_beams * samples * 40
+    how = f"{n} particles x {h} x {w} cells x 3 bytes x 3 + {n} x {num_beams} beams x {samples} samples x 40 bytes"
+    total = maps + insertion + 2**30
     if config.proposal == "lp":
         beams = -(-num_beams // config.beam_stride)
         lp = n * config.num_localizers * beams * 4 * 2

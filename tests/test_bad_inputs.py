@@ -386,15 +386,16 @@ def _trap_filter(monkeypatch):
     monkeypatch.setattr(jaxslam.rbpf, "run", trap)
 
 
-def test_the_memory_estimate_counts_maps_lp_terms_and_xla():
+def test_the_memory_estimate_counts_maps_insertion_lp_terms_and_xla():
     from jaxslam.config import SlamConfig
     from jaxslam.grid import GridSpec
     from jaxslam.rbpf import estimate_run_bytes
 
     grid = GridSpec((100, 200), 0.05, (0.0, 0.0))
     need, how = estimate_run_bytes(SlamConfig(num_particles=10, grid=grid), grid, 181)
-    assert need == 10 * 100 * 200 * 3 * 3 + 2**30
-    assert how.startswith("10 particles x 100 x 200 cells x 3 bytes x 3")
+    samples = 15 * 20 + 1  # max_insert_range 15 m at 5 cm, one sample a cell
+    assert need == 10 * 100 * 200 * 3 * 3 + 10 * 181 * samples * 40 + 2**30
+    assert how.startswith("10 particles x 100 x 200 cells x 3 bytes x 3 + 10 x 181 beams x 301 samples")
     lp, how_lp = estimate_run_bytes(SlamConfig(num_particles=10, proposal="lp", num_localizers=50), grid, 181)
     assert lp == need + 10 * 50 * 91 * 4 * 2 and "50 localizers x 91 beams" in how_lp
 
@@ -433,7 +434,8 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
     h, w = grid.shape
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
             "--no-progress", "--out", str(tmp_path / "out")]
-    need = 30000 * h * w * 9 + 2**30
+    samples = int(np.ceil(config.max_insert_range / grid.resolution)) + 1
+    need = 30000 * h * w * 9 + 30000 * small_log.num_beams * samples * 40 + 2**30
     expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
     _run_refused(argv, [f"needs about {expected} GB (30000 particles x {h} x {w} cells x 3 bytes x 3",
                         "but 8.0 GB are available"], capsys)
@@ -449,6 +451,14 @@ def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(
         with pytest.raises(AssertionError, match="the filter ran"):  # the check let it through to the filter
             main(["map", str(tmp_path / "office.clf"), "--particles", "100000" if available() is None else "4",
                   "--no-progress", "--out", str(tmp_path / "out")])
+
+
+def test_a_huge_insertion_reach_is_refused_by_the_memory_check(tmp_path, small_log, capsys, monkeypatch):
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    _trap_filter(monkeypatch)
+    argv = ["map", str(tmp_path / "office.clf"), "--particles", "3", "--set", "max_insert_range=1e6",
+            "--no-progress", "--out", str(tmp_path / "out")]
+    _run_refused(argv, ["the run needs about", "samples x 40 bytes", "GB are available"], capsys)
 
 
 def test_a_full_disk_is_refused_before_the_run(tmp_path, small_log, capsys, monkeypatch):
