@@ -11,10 +11,10 @@ the same folder adds its runs beside the earlier ones.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Callable, Hashable
+
+from jaxslam.outputs import write_file_atomic
 
 
 class SettingsMismatch(Exception):
@@ -29,15 +29,7 @@ def _plain(value: Any) -> Any:
 def write_json(path: Path, data: Any):
     """Write ``data`` to ``path`` atomically: a temporary file in the same folder, then ``os.replace``
     (an interrupted write never leaves a broken file)."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_file_atomic(path, json.dumps(data, indent=2))
 
 
 class ResultStore:

@@ -34,17 +34,6 @@ SUCCESS_HEADING_DEG = 10.0
 """... and final heading error (degrees)."""
 
 
-def corridor_settings(scenario: DoorScenario, num_particles: int = 1000, beam_stride: int = 2
-                      ) -> tuple[doors.DoorConfig, doors.DoorParams]:
-    """The experiment's filter settings: a beam model with sigma_hit = 0.2 m, likelihood gain 0.1
-    (31 of 61 beams, treated as about 3 independent ones: a particle cloud of 0.6 m x 0.3 rad does
-    not collapse on the first scan), ESS threshold 0.5, the map's door transitions."""
-    config = doors.DoorConfig(num_particles=num_particles, beam_stride=beam_stride)
-    params = doors.make_params(scenario.door_map, beam=make_beam_model_params(sigma_hit=0.2), likelihood_gain=0.1,
-                               ess_threshold=0.5)
-    return config, params
-
-
 def stack_inputs(scenarios: list[DoorScenario]) -> tuple[mcl.ScanInputs, jnp.ndarray]:
     """(S, T, ...) inputs and (S, T, 3) true poses of same-length scenario logs."""
     inputs = [mcl.log_inputs(s.log) for s in scenarios]

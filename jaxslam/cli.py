@@ -324,8 +324,8 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
             local = result.local_config
             t0 = time.perf_counter()
             refined = refine_trajectory(local.grid, result.state.maps.hit_dist2[result.best_particle],
-                                        _shifted(result.trajectory, -result.frame_offset), log.ranges, log.sensor,
-                                        params, local, odometry=_shifted(log.odometry, -result.frame_offset))
+                                        result.to_local(result.trajectory), log.ranges, log.sensor,
+                                        params, local, odometry=result.to_local(log.odometry))
             refined = refined._replace(poses=result.to_world(refined.poses),
                                        matched_poses=result.to_world(refined.matched_poses))
             refine_seconds = time.perf_counter() - t0
@@ -340,14 +340,6 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     for warning in summary["warnings"]:
         print(f"warning: {warning}", file=sys.stderr)
     return 0
-
-
-def _shifted(poses, offset):
-    import numpy as np
-
-    out = np.array(poses, dtype=np.float64)
-    out[:, :2] += offset
-    return out
 
 
 def _fmt(value) -> str:

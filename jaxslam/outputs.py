@@ -237,12 +237,7 @@ def check_output_folder(out_dir) -> None:
         if why:
             raise OutputError(f"{out_dir} is a folder that cannot be written ({why}); give a writable folder")
         return
-    ancestor = _nearest_existing(target.parent)
-    if not ancestor.is_dir():
-        raise OutputError(f"{out_dir} cannot be created: {ancestor} is a file, not a folder")
-    why = _probe_writable(ancestor) if os.access(ancestor, os.W_OK | os.X_OK) else "no write permission"
-    if why:
-        raise OutputError(f"{out_dir} cannot be created: {ancestor} is not writable ({why})")
+    _check_creatable(out_dir, target)
 
 
 def expected_output_bytes(grid_cells: int, num_scans: int, num_particles: int, checkpoints: bool) -> int:
@@ -272,23 +267,34 @@ def check_output_file(path) -> None:
         raise OutputError(f"{path} is an existing folder; give a file path (e.g. {Path(path) / 'errors.json'})")
     if target.exists() and not os.access(target, os.W_OK):
         raise OutputError(f"{path} exists and is not writable")
+    _check_creatable(path, target)
+
+
+def _check_creatable(name, target: Path) -> None:
+    """``OutputError`` (naming ``name``) unless ``target``'s nearest existing ancestor is a writable folder."""
     ancestor = _nearest_existing(target.parent)
     if not ancestor.is_dir():
-        raise OutputError(f"{path} cannot be created: {ancestor} is a file, not a folder")
+        raise OutputError(f"{name} cannot be created: {ancestor} is a file, not a folder")
     why = _probe_writable(ancestor) if os.access(ancestor, os.W_OK | os.X_OK) else "no write permission"
     if why:
-        raise OutputError(f"{path} cannot be created: {ancestor} is not writable ({why})")
+        raise OutputError(f"{name} cannot be created: {ancestor} is not writable ({why})")
 
 
-def write_file_atomic(path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file beside it and one rename: readers see
-    the old file or the new one, never a part."""
+def write_file_atomic(path, content) -> None:
+    """Write ``content`` to ``path`` through a temporary file beside it, flushed to disk, and one
+    rename: readers see the old file or the new one, never a part. ``content`` is text, or a
+    callable that writes into the binary file object it is given (e.g. ``np.savez``)."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.tmp-{os.getpid()}-", dir=target.parent)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            if callable(content):
+                content(f)
+            else:
+                f.write(content.encode("utf-8"))
+            f.flush()
+            os.fsync(f.fileno())
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, target)
     except BaseException:

@@ -236,6 +236,13 @@ class SlamResult(NamedTuple):
         out[..., :2] += self.frame_offset
         return out
 
+    def to_local(self, poses) -> np.ndarray:
+        """World-frame poses (..., 3) or points (..., 2) (``trajectory``, the log's odometry) in the
+        filter's local frame, as ``state`` and its maps are: float64, ``frame_offset`` subtracted."""
+        out = np.array(poses, dtype=np.float64)
+        out[..., :2] -= self.frame_offset
+        return out
+
     @property
     def local_config(self) -> SlamConfig:
         """``config`` with its grid in the local frame, as the jitted step saw it: use it with
@@ -517,18 +524,16 @@ def run(
             return info
         return jax.tree.map(lambda a, b: np.concatenate([np.asarray(a), b]), prior_info, info)
 
-    callback = None
-    if on_chunk is not None:
-        def callback(index, carry, outputs_so_far):
-            steps = min(done + (index + 1) * chunk_size, num_steps)
-            return on_chunk(RunProgress(steps, num_steps, carry, lambda: with_prior(outputs_so_far())))
+    def callback(index, carry, outputs_so_far):
+        steps = min(done + (index + 1) * chunk_size, num_steps)
+        return on_chunk(RunProgress(steps, num_steps, carry, lambda: with_prior(outputs_so_far())))
 
     if resume is not None and done == num_steps and num_steps > 0:  # saved after the last chunk
         state, info, first_chunk_seconds = state, jax.tree.map(np.asarray, prior_info), 0.0
     else:
         chunked = run_in_chunks(chunk_fn, (step_keys, inputs), num_steps - done, chunk_size, state,
                                 progress=progress, desc=f"RBPF {config.proposal.upper()} N={config.num_particles}",
-                                unit="scan", on_chunk=callback)
+                                unit="scan", on_chunk=None if on_chunk is None else callback)
         if done + chunked.num_done < num_steps:
             raise RunInterrupted(done + chunked.num_done, num_steps)
         state, info, first_chunk_seconds = chunked.carry, with_prior(chunked.outputs), chunked.first_chunk_seconds
@@ -561,8 +566,8 @@ def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:
     identifies the run, checked on resume) to the ``.npz`` file ``path`` atomically: into a temporary
     file in the same folder, flushed to disk, then renamed over ``path``."""
     import json
-    import os
-    import tempfile
+
+    from jaxslam.outputs import write_file_atomic
 
     info = progress.info() if callable(progress.info) else progress.info
     arrays = {"version": np.int64(CHECKPOINT_VERSION), "identity": np.array(json.dumps(identity, sort_keys=True)),
@@ -574,22 +579,7 @@ def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:
         arrays[f"state.{name}"] = np.array(value)  # a copy: the device buffer may be donated next
     for name, value in zip(SlamInfo._fields, info):
         arrays[f"info.{name}"] = np.asarray(value)
-    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(os.fspath(path))}.tmp-", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_file_atomic(path, lambda f: np.savez(f, **arrays))
 
 
 def load_checkpoint(path) -> tuple[RunProgress, dict]:

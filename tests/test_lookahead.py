@@ -15,14 +15,11 @@ import pytest
 from jaxslam import rbpf
 from jaxslam.config import RunSettings, SlamConfig, default_params
 from jaxslam.geometry import between, compose
-from jaxslam.grid import GridSpec
-from jaxslam.occupancy import empty_map, insert_scan
 from jaxslam.laserlog import LaserLog
+from jaxslam.likelihood_field import endpoint_log_likelihood
 from jaxslam.proposals import lookahead as la
 from jaxslam.proposals.base import StepInputs
-from jaxslam.laser import make_sensor, uniform_beams
-from jaxslam.likelihood_field import endpoint_log_likelihood
-from rooms import ROOM, SENSOR, SPEC, build_room_map, room_path, scan_at  # noqa: F401
+from rooms import SENSOR, SPEC, build_room_map, room_path, scan_at
 
 # ---------------------------------------------------------------------------------------------
 # 1-D linear-Gaussian toy model: x_s = x_{s-1} + u_s + N(0, q^2), z_s = x_s + N(0, r^2).
@@ -444,7 +441,7 @@ def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
     """scan_match.start_noise: 0 starts the hill climber at the prediction (bit for bit the same
     as no start key); 1 starts each particle from its own odometry draw, as GMapping does: the
     matches differ (the particles keep diversity) but stay on the same optimum."""
-    from jaxslam.scan_matching import gaussian_log_density, matched_gaussian
+    from jaxslam.scan_matching import matched_gaussian
 
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0)

@@ -9,12 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxslam.geometry import between, wrap_angle_np
+from jaxslam.geometry import between
 from jaxslam.motion import noise_std
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.sim import (
     box_segments,
-    box_world_path,
     box_world_scenario,
     circle_path,
     concat_paths,

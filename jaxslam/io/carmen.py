@@ -288,7 +288,7 @@ class _LaserLines:
         expected = 10 + num_beams + num_rem + _ROBOTLASER_TAIL
         _check_length(fields, expected, where, f"ROBOTLASER1 (n={num_beams}, n_remissions={num_rem})")
         _check_finite(header, where, "laser settings")
-        start_angle, _fov, resolution, max_range = header[1], header[2], header[3], header[4]
+        start_angle, resolution, max_range = header[1], header[3], header[4]  # header[2]: the fov, implied
         ranges = _numbers(fields, 9, 9 + num_beams, where, "range")
         tail = 10 + num_beams + num_rem
         _numbers(fields, 10 + num_beams, tail, where, "remission")

@@ -19,7 +19,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
-from jaxslam.geometry import wrap_angle_np
 from jaxslam.laserlog import LaserLog
 from jaxslam.motion import MotionParams
 from jaxslam.laser import make_sensor, uniform_beams
