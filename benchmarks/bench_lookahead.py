@@ -28,11 +28,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import rbpf
+from jaxslam import paged_map, rbpf
 from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between, compose
-from jaxslam.grid import GridSpec
-from jaxslam.occupancy import empty_map, insert_scan
+from jaxslam.paged_map import PagedField
 from jaxslam.proposals import lookahead
 from jaxslam.proposals.base import StepInputs
 from jaxslam.laser import make_sensor, uniform_beams
@@ -61,6 +60,10 @@ def office_world() -> np.ndarray:
     return np.asarray(segs, np.float32)
 
 
+MAP_EXTENT = 64.0
+"""Side (m) of the benchmark's virtual grid (the corridor world is 26 m x 18 m)."""
+
+
 def corridor_path(num: int) -> np.ndarray:
     x = np.linspace(2.0, 2.0 + 0.8 * (num - 1), num)
     y = 8.0 + 0.3 * np.sin(x / 3.0)
@@ -71,7 +74,7 @@ def corridor_path(num: int) -> np.ndarray:
 def setup(num_beams: int, horizon: int):
     segs = jnp.asarray(office_world())
     sensor = make_sensor(uniform_beams(num_beams, math.pi), range_min=0.05, range_max=15.0)
-    spec = GridSpec.from_bounds(-2.0, -2.0, 26.0, 18.0, 0.05)
+    spec = SlamConfig(map_extent=MAP_EXTENT).grid
     path = corridor_path(12 + horizon)
 
     @jax.jit
@@ -81,10 +84,10 @@ def setup(num_beams: int, horizon: int):
 
     scans = np.stack([np.asarray(scan(jnp.asarray(p))) for p in path])
     params = default_params()
-    insert = jax.jit(insert_scan, static_argnums=(0, 6, 7))
-    grid_map = empty_map(spec)
+    insert = jax.jit(paged_map.insert_scans, static_argnums=(0, 6, 7))
+    grid_map = paged_map.empty(spec, 1, 2000)  # one particle's map
     for p, r in zip(path[:10], scans[:10]):
-        grid_map, _ = insert(spec, grid_map, jnp.asarray(p), jnp.asarray(r), sensor, params.insertion, 15.0, 4)
+        grid_map, _ = insert(spec, grid_map, jnp.asarray(p)[None], jnp.asarray(r), sensor, params.insertion, 15.0, 4)
     motions = np.asarray(between(path[:-1], path[1:]), np.float32)
     t = 10
     inputs = StepInputs(
@@ -97,7 +100,7 @@ def setup(num_beams: int, horizon: int):
 
 
 def make_state(grid_map, pose, n):
-    maps = jax.tree.map(lambda a: jnp.array(jnp.broadcast_to(a, (n,) + a.shape)), grid_map)
+    maps = paged_map.resample(grid_map, jnp.zeros((n,), jnp.int32))  # n particles sharing its tiles
     return rbpf.SlamState(jnp.broadcast_to(pose, (n, 3)), jnp.full((n,), -math.log(n), jnp.float32), maps,
                           jnp.int32(0))
 
@@ -123,8 +126,8 @@ _step = jax.jit(rbpf.step, static_argnames="config")
 
 
 def _propose_all(keys, poses, maps, inputs, sensor, params, config):
-    return jax.vmap(lookahead.propose, in_axes=(0, 0, 0, None, None, None, None))(
-        keys, poses, maps, inputs, sensor, params, config)
+    return jax.vmap(lookahead.propose, in_axes=(0, 0, PagedField(0, None), None, None, None, None))(
+        keys, poses, paged_map.fields(maps), inputs, sensor, params, config)
 
 
 _propose = jax.jit(_propose_all, static_argnames="config")
@@ -177,27 +180,29 @@ def main(argv=None):
     num_beams, n0, l0, k0 = 180, 30, 100, 5
     k_max = 8
     spec, sensor, params, grid_map, inputs, pose = setup(num_beams, k_max)
-    base = SlamConfig(num_particles=n0, proposal="lp", grid=spec, num_localizers=l0, horizon=k0,
+    base = SlamConfig(num_particles=n0, proposal="lp", map_extent=MAP_EXTENT, num_localizers=l0, horizon=k0,
                       max_insert_range=15.0)
-    print(f"devices: {jax.devices()}  map {spec.shape}  B={num_beams}")
+    print(f"devices: {jax.devices()}  map {spec.num_tiles} tiles  B={num_beams}")
 
     main_row = measure_step(base, spec, sensor, params, grid_map, inputs, pose, n0, l0, k0, reps)
 
-    # Baseline in the same run: the same number of beam lookups, plain nearest cell.
-    state = make_state(grid_map, pose, n0)
+    # Baseline in the same run: the same number of beam lookups, plain nearest cell in dense maps.
+    _, field, dense_grid = paged_map.to_dense(spec, grid_map, 0)
+    dense_fields = jnp.broadcast_to(jnp.asarray(field), (n0,) + field.shape)
     num_poses = l0 * (k0 + 1)
     rng = np.random.default_rng(0)
     poses = jnp.asarray(np.asarray(pose) + rng.normal(0, 0.1, (n0, num_poses, 3)), jnp.float32)
     ranges = inputs.ranges
-    plain = timings(lambda i: plain_lookup(poses + 1e-6 * i, state.maps.hit_dist2, ranges,
+    plain = timings(lambda i: plain_lookup(poses + 1e-6 * i, dense_fields, ranges,
                                            sensor.beam_angles, 1.0 / spec.resolution,
-                                           jnp.asarray(spec.origin, jnp.float32)), reps)
+                                           jnp.asarray(dense_grid.origin, jnp.float32)), reps)
     t_plain = plain["median"]
     plain_rate = main_row["beam_evals"] / t_plain
 
     # The same RBPF step with the odometry proposal: what the step costs besides the LP
     # (scan insertion into every map, SLAM resampling). No future scans.
     op_config = dataclasses.replace(base, proposal="op", horizon=0)
+    state = make_state(grid_map, pose, n0)
     op_inputs = inputs._replace(future_motions=inputs.future_motions[:0], future_ranges=inputs.future_ranges[:0],
                                 future_valid=inputs.future_valid[:0])
     op_step = timings(lambda i: _step(jax.random.key(i), state, op_inputs, sensor, params, op_config), reps)

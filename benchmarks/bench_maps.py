@@ -1,102 +1,173 @@
-"""Dense against paged maps: the cost of inserting a scan into every particle's map and of a resampling.
+"""What paged maps cost: memory and time of whole runs, against N, and under vmap.
 
-The dense maps are what the filters use today: an (N, H, W) stack sized like Intel's grid
-(1,451 x 1,649 cells at 5 cm), one ``occupancy.insert_scan`` per particle under ``vmap``, and
-resampling as a gather of whole maps. The paged maps (``jaxslam.paged_map``) keep tiles in one
-shared pool: insertion gathers a window of tiles per particle and writes back the changed ones,
-resampling copies page tables. Both insert the same scans (a 180-degree laser, 181 beams,
-ranges from the simulated office, 15 m reach) at poses spread as a particle cloud is; the
-figures are the median of ``--reps`` timed calls after one compiling call.
+Sections (each merges its figures into ``--out``, a JSON file):
 
-    python benchmarks/bench_maps.py --out results/bench_maps.json [--particles 30 100]
+* ``intel``: ``jaxslam map`` on Intel, SMP, 30 particles, seed 1: peak resident memory and
+  wall time, and the same command on the log's first 50 scans (the map's *marginal* memory is
+  the difference). With ``--previous DIR`` (a checkout of an earlier commit, e.g. a second git
+  worktree) the same two commands run there too, in the same session, one after the other.
+* ``killian``: the whole MIT Killian log, SMP, 30 particles: peak memory, real-time factor.
+* ``sweep``: Intel's first ``--max-scans`` scans at N = ``--particles``: peak memory, time per
+  processed scan (compile excluded), and the bytes each extra particle costs (a least-squares
+  slope of peak memory against N).
+* ``vmap``: the simulated office of ``jaxslam demo``, 8 seeds: one ``vmap`` of the whole filter
+  over the seeds against a loop of the same 8 runs (both compiled first, then timed).
+
+Every run is a separate process (peak memory per run, from ``os.wait4``); logs are read from
+``--data`` (default ``../shared/data`` beside the repository). Ratios are meaningful within
+one invocation only (the machine is shared).
+
+    python benchmarks/bench_maps.py intel --previous ../prev --out docs/results/bench_maps.json
+    python benchmarks/bench_maps.py sweep --particles 30 100 300 1000 --max-scans 3000
+    python benchmarks/bench_maps.py killian
+    python benchmarks/bench_maps.py vmap --seeds 8
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import paged_map
-from jaxslam.config import default_params
-from jaxslam.grid import GridSpec
-from jaxslam.occupancy import empty_map, insert_scan
-from jaxslam.sim import office_scenario
-
-MAX_RANGE, RADIUS = 15.0, 4
+REPO = Path(__file__).resolve().parent.parent
 
 
-def _median_seconds(fn, reps):
-    jax.block_until_ready(fn())  # compile
-    times = []
-    for _ in range(reps):
+def run_map(log: Path, particles: int, *, max_scans: int | None = None, repo: Path = REPO, proposal: str = "smp",
+            seed: int = 1) -> dict:
+    """One ``jaxslam map`` process in ``repo``: wall seconds, peak resident MB, and its summary."""
+    with tempfile.TemporaryDirectory() as out:
+        cmd = [sys.executable, "-m", "jaxslam.cli", "map", str(log), "--proposal", proposal, "--particles",
+               str(particles), "--seed", str(seed), "--out", out, "--no-progress"]
+        if max_scans is not None:
+            cmd += ["--max-scans", str(max_scans)]
+        env = dict(os.environ, PYTHONPATH=str(repo))
         t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+        proc = subprocess.Popen(cmd, cwd=repo, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        stdout, stderr = proc.stdout.read(), proc.stderr.read()
+        if os.waitstatus_to_exitcode(status) != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{stderr[-3000:]}")
+        summary = json.loads((Path(out) / "summary.json").read_text())
+    return {"command": " ".join(cmd[1:]), "repo": str(repo), "wall_s": wall, "peak_mb": usage.ru_maxrss / 1024,
+            "filter_s": summary["timings"]["total"], "compile_s": summary["timings"]["compile"],
+            "real_time_factor": summary["timings"]["real_time_factor"],
+            "scans_processed": summary["scans_processed"], "map_pool": summary.get("map_pool"),
+            "stdout": stdout.strip().splitlines()[-1:]}
 
 
-def measure(num_particles: int, reps: int) -> dict:
-    log = office_scenario(jax.random.key(0), num_scans=200, num_beams=181).log
-    sensor, ranges = log.sensor, jnp.asarray(log.ranges[100])
-    center = log.odometry[100]
-    rng = np.random.default_rng(0)
-    poses = jnp.asarray(center + rng.normal(0, [0.1, 0.1, 0.02], (num_particles, 3)), jnp.float32)
-    insertion = default_params().insertion
-    ancestors = jnp.asarray(rng.integers(0, num_particles, num_particles), jnp.int32)
-
-    dense_spec = GridSpec((1451, 1649), 0.05, (float(center[0]) - 36.0, float(center[1]) - 41.0))
-    dense = jax.tree.map(lambda a: jnp.broadcast_to(a, (num_particles,) + a.shape), empty_map(dense_spec))
-    dense_insert = jax.jit(jax.vmap(insert_scan, in_axes=(None, 0, 0, None, None, None, None, None)),
-                           static_argnums=(0, 6, 7))
-    dense_resample = jax.jit(lambda maps, anc: jax.tree.map(lambda a: a[anc], maps))
-
-    spec = paged_map.PagedGridSpec()
-    window = spec.window_tiles(MAX_RANGE, RADIUS)
-    paged = paged_map.empty(spec, num_particles, capacity=num_particles * window * window)
-    paged_insert = jax.jit(paged_map.insert_scans, static_argnums=(0, 6, 7))
-    paged_resample = jax.jit(paged_map.resample)
-    filled, _ = paged_insert(spec, paged, poses, ranges, sensor, insertion, MAX_RANGE, RADIUS)
-    shared = paged_resample(filled, jnp.zeros(num_particles, jnp.int32))  # every particle shares one map
-
-    return {
-        "particles": num_particles,
-        "dense_insert_s": _median_seconds(
-            lambda: dense_insert(dense_spec, dense, poses, ranges, sensor, insertion, MAX_RANGE, RADIUS), reps),
-        "dense_resample_s": _median_seconds(lambda: dense_resample(dense, ancestors), reps),
-        "dense_map_bytes_per_particle": int(dense_spec.num_cells * 3),
-        "paged_insert_into_empty_s": _median_seconds(
-            lambda: paged_insert(spec, paged, poses, ranges, sensor, insertion, MAX_RANGE, RADIUS), reps),
-        "paged_insert_into_shared_s": _median_seconds(
-            lambda: paged_insert(spec, shared, poses, ranges, sensor, insertion, MAX_RANGE, RADIUS), reps),
-        "paged_resample_s": _median_seconds(lambda: paged_resample(filled, ancestors), reps),
-        "paged_page_table_bytes_per_particle": int(np.prod(spec.num_tiles) * 4),
-        "paged_tiles_written_per_particle": float(paged_map.tiles_in_use(filled)) / num_particles,
-        "paged_tile_bytes": int(spec.tile_size**2 * 3),
-        "window_tiles": window,
-    }
+def section_intel(args) -> dict:
+    log = args.data / "intel.sort.bag"
+    out = {}
+    for name, repo in [("this", REPO)] + ([("previous", args.previous.resolve())] if args.previous else []):
+        full = run_map(log, 30, repo=repo)
+        first = run_map(log, 30, repo=repo, max_scans=50)
+        out[name] = {"full": full, "first_50_scans": first, "marginal_mb": full["peak_mb"] - first["peak_mb"]}
+        print(f"{name}: {full['wall_s']:.1f} s wall ({full['filter_s']:.1f} s filter), peak {full['peak_mb']:.0f} MB, "
+              f"marginal {out[name]['marginal_mb']:.0f} MB", flush=True)
+    if args.previous:
+        out["wall_ratio_this_over_previous"] = out["this"]["full"]["wall_s"] / out["previous"]["full"]["wall_s"]
+        out["filter_ratio_this_over_previous"] = out["this"]["full"]["filter_s"] / out["previous"]["full"]["filter_s"]
+    return out
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--particles", type=int, nargs="+", default=[30])
-    parser.add_argument("--reps", type=int, default=5)
-    parser.add_argument("--out", default="results/bench_maps.json")
-    args = parser.parse_args(argv)
-    rows = [measure(n, args.reps) for n in args.particles]
-    for row in rows:
-        print(json.dumps(row))
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"rows": rows, "device": str(jax.devices()[0])}, indent=2))
-    print(f"wrote {out}")
-    return 0
+def section_killian(args) -> dict:
+    row = run_map(args.data / "mit-killian.bag", 30)
+    print(f"killian: {row['filter_s']:.0f} s filter, real-time factor {row['real_time_factor']:.1f}, "
+          f"peak {row['peak_mb']:.0f} MB", flush=True)
+    return row
+
+
+def section_sweep(args) -> dict:
+    rows = []
+    for n in args.particles:
+        row = run_map(args.data / "intel.sort.bag", n, max_scans=args.max_scans)
+        steps = max(row["scans_processed"] - 1, 1)
+        row["seconds_per_update"] = (row["filter_s"] - row["compile_s"]) / steps
+        rows.append(row)
+        print(f"N={n}: {row['seconds_per_update'] * 1000:.1f} ms per update, peak {row['peak_mb']:.0f} MB", flush=True)
+    ns = np.array([r_n for r_n in args.particles], float)
+    peaks = np.array([r["peak_mb"] for r in rows])
+    slope = float(np.polyfit(ns, peaks, 1)[0]) if len(rows) > 1 else None
+    return {"max_scans": args.max_scans, "rows": rows, "mb_per_extra_particle": slope}
+
+
+def section_vmap(args) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from jaxslam import rbpf
+    from jaxslam.cli import DEMO_DEFAULTS
+    from jaxslam.config import build_setup
+    from jaxslam.laserlog import select_updates
+    from jaxslam.sim import office_scenario
+
+    log = office_scenario(jax.random.key(0)).log
+    config, settings, params = build_setup(dict(DEMO_DEFAULTS))
+    local = rbpf._local_log(log, rbpf.local_frame_offset(log))
+    selection = select_updates(local, settings.linear_update, settings.angular_update)
+    inputs = jax.tree.map(jnp.asarray, rbpf.build_inputs(local, selection, config.lookahead_steps))
+    steps = selection.indices.size - 1
+    capacity, max_new = rbpf.pool_size(config)
+    capacity *= 4  # room for the whole run: no growth inside the timed calls
+
+    def one_run(key):
+        state = rbpf.init(key, jnp.asarray(local.ranges[0]), local.sensor, params, config,
+                          jnp.asarray(local.odometry[0], jnp.float32), pool_capacity=capacity, max_new_tiles=max_new)
+        keys = jax.random.split(key, steps)
+        state, info = jax.lax.scan(lambda s, x: rbpf.step(x[0], s, x[1], local.sensor, params, config), state,
+                                   (keys, inputs))
+        return state.poses, state.maps.overflow, info.log_evidence
+
+    keys = jax.random.split(jax.random.key(1), args.seeds)
+    single, batched = jax.jit(one_run), jax.jit(jax.vmap(one_run))
+    jax.block_until_ready(single(keys[0]))
+    jax.block_until_ready(batched(keys))
+    t0 = time.perf_counter()
+    loop = [single(k) for k in keys]
+    jax.block_until_ready(loop)
+    loop_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(batched(keys))
+    vmap_s = time.perf_counter() - t0
+    if bool(np.any(np.asarray(out[1]))) or any(bool(o[1]) for o in loop):
+        raise RuntimeError("the pool overflowed inside a timed run; raise its capacity")
+    np.testing.assert_allclose(np.asarray(out[0][0]), np.asarray(loop[0][0]), atol=1e-4)  # the same runs
+    print(f"vmap over {args.seeds} seeds: {vmap_s:.2f} s, loop {loop_s:.2f} s, speed-up {loop_s / vmap_s:.2f}x",
+          flush=True)
+    return {"seeds": args.seeds, "steps": steps, "num_particles": config.num_particles, "loop_s": loop_s,
+            "vmap_s": vmap_s, "speedup": loop_s / vmap_s}
+
+
+SECTIONS = {"intel": section_intel, "killian": section_killian, "sweep": section_sweep, "vmap": section_vmap}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("sections", nargs="+", choices=sorted(SECTIONS))
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="folder of the logs")
+    ap.add_argument("--previous", type=Path, help="a checkout of an earlier commit to compare with (intel)")
+    ap.add_argument("--particles", type=int, nargs="+", default=[30, 100, 300, 1000])
+    ap.add_argument("--max-scans", type=int, default=3000, help="sweep: scans of Intel to use")
+    ap.add_argument("--seeds", type=int, default=8)
+    ap.add_argument("--out", type=Path, default=Path("results/bench_maps.json"))
+    args = ap.parse_args(argv)
+    results = json.loads(args.out.read_text()) if args.out.exists() else {}
+    for name in args.sections:
+        results[name] = SECTIONS[name](args)
+        results[name]["measured"] = time.strftime("%Y-%m-%d %H:%M")
+        results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count()}
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

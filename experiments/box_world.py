@@ -30,7 +30,6 @@ DIR/noise_scale.png and DIR/noise_scale.md (success rate +- binomial standard er
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import math
@@ -45,7 +44,6 @@ from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the sha
 from jaxslam import rbpf
 from jaxslam.cli import parse_assignments
 from jaxslam.config import CONFIG_FIELDS, SETTINGS_FIELDS, ConfigError, build_setup
-from jaxslam.grid import GridSpec
 from jaxslam.metrics import checkpoint_passages, passage_errors, revisiting_accuracy
 from jaxslam.rbpf import particle_paths
 from jaxslam.sim import box_world_scenario
@@ -81,8 +79,9 @@ def method_settings(exp: dict, name: str, overrides: dict | None = None) -> dict
     """Method ``name``'s flat names: the json's common ones, the method's, then ``overrides``; checked
     and typed by ``build_setup`` (so "2" and 2 give one record), sorted."""
     flat = {**exp["common"], **exp["methods"][name], **(overrides or {})}
-    if {"grid", "num_particles"} & set(flat):
-        raise ConfigError("grid and num_particles are the experiment's (grid_margin, a table's particles)")
+    if {"map_extent", "resolution", "num_particles"} & set(flat):
+        raise ConfigError("map_extent, resolution and num_particles are the experiment's (grid_margin, "
+                          "grid_resolution, a table's particles)")
     config, settings, _ = build_setup(flat)
     typed = {k: getattr(config, k) if k in CONFIG_FIELDS else getattr(settings, k) if k in SETTINGS_FIELDS
              else float(v) for k, v in flat.items()}
@@ -132,16 +131,16 @@ def scenario_for(seed: int, scale: float, world: dict):
 
 def filter_setup(record: dict, scenario, world: dict):
     """The filter's config, run settings and params for one cell: the cell's names, over the fixed
-    grid, the insertion range and the simulator's odometry noise times ``motion_scale``."""
+    virtual grid (the world and ``grid_margin`` metres round it, from the filter's local origin),
+    the insertion range and the simulator's odometry noise times ``motion_scale``."""
     xmin, ymin, xmax, ymax = scenario.world.bounds
-    m = world["grid_margin"]
-    grid = GridSpec.from_bounds(xmin - m, ymin - m, xmax + m, ymax + m, world["grid_resolution"])
+    x0, y0 = rbpf.local_frame_offset(scenario.log)
+    reach = max(abs(xmin - x0), abs(xmax - x0), abs(ymin - y0), abs(ymax - y0)) + world["grid_margin"]
     noise = scaled_noise(scenario.metadata["motion_params"], world["motion_scale"])
     flat = {"max_insert_range": scenario.log.sensor.range_max.item() + world["insert_range_margin"],
             **{f"motion.{name}": value for name, value in noise.items()}, **record["settings"],
-            "num_particles": record["N"]}
-    config, settings, params = build_setup(flat)
-    return dataclasses.replace(config, grid=grid), settings, params
+            "num_particles": record["N"], "map_extent": 2.0 * reach, "resolution": world["grid_resolution"]}
+    return build_setup(flat)
 
 
 def run_once(record: dict, seed: int, world: dict, progress: bool = False):
@@ -176,11 +175,11 @@ def run_once(record: dict, seed: int, world: dict, progress: bool = False):
 
 
 def save_example(path: Path, result, scenario, ra: float):
-    best, idx = result.best_particle, result.selection.indices
+    idx = result.selection.indices
+    logodds, _, grid = result.dense_map()
     np.savez_compressed(
-        path, logodds=np.asarray(result.state.maps.logodds[best]), best_path=result.best_path,
-        truth=scenario.true_poses[idx], odometry=scenario.log.odometry[idx],
-        segments=scenario.world.segments, extent=np.asarray(result.config.grid.extent), ra=ra)
+        path, logodds=logodds, best_path=result.best_path, truth=scenario.true_poses[idx],
+        odometry=scenario.log.odometry[idx], segments=scenario.world.segments, extent=np.asarray(grid.extent), ra=ra)
 
 
 # ----------------------------------------------------------------------------- summaries and figures

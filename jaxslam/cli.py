@@ -186,26 +186,34 @@ def _format_gb(nbytes: float) -> str:
 def _check_memory(log, config, settings) -> None:
     """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.rbpf.estimate_run_bytes`)
     exceeds the machine's available memory; skipped where that cannot be read."""
-    from jaxslam.rbpf import available_memory_bytes, estimate_run_bytes, run_grid
+    from jaxslam.rbpf import available_memory_bytes, estimate_run_bytes
 
     available = available_memory_bytes()
     if available is None:
         return
-    need, how = estimate_run_bytes(config, run_grid(log, config, settings), log.num_beams)
+    need, how = estimate_run_bytes(config, log.num_beams)
     if need > available:
         lp = ", --localizers" if config.proposal == "lp" else ""
         raise ConfigError(f"the run needs about {_format_gb(need)} GB ({how}) but {_format_gb(available)} GB are "
-                          f"available; lower --particles{lp}, or shrink the map: --set map_padding=... (m), "
-                          f"a coarser --set resolution=... (m), or a --set grid=...")
+                          f"available; lower --particles{lp}, or a smaller --set map_extent=... (m), or a "
+                          f"coarser --set resolution=... (m)")
 
 
 def _check_disk(log, config, settings, out, checkpoints: bool) -> None:
     """Refuse (``ConfigError``) a run whose outputs (and checkpoints) would not fit on the disk."""
-    from jaxslam.outputs import OutputError, check_free_space, expected_output_bytes
-    from jaxslam.rbpf import run_grid
+    import math
 
-    need = expected_output_bytes(run_grid(log, config, settings).num_cells, log.num_scans, config.num_particles,
-                                 checkpoints)
+    import numpy as np
+
+    from jaxslam.outputs import OutputError, check_free_space, expected_output_bytes
+    from jaxslam.rbpf import pool_size
+
+    # The map covers about the odometry's extent plus the beams' reach (outputs are cropped to it).
+    span = np.ptp(log.odometry[:, :2], axis=0) + 2 * config.max_insert_range
+    map_cells = int(math.ceil(span[0] / config.resolution) * math.ceil(span[1] / config.resolution))
+    ty, tx = config.grid.num_tiles
+    state_bytes = 4 * config.num_particles * ty * tx + 3 * pool_size(config)[0] * config.tile_size**2
+    need = expected_output_bytes(map_cells, log.num_scans, state_bytes if checkpoints else 0)
     try:
         check_free_space(out, need)
     except OutputError as err:
@@ -287,6 +295,9 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     from jaxslam.rbpf import RunInterrupted, save_checkpoint
 
     config, settings, params = setup
+    from jaxslam.rbpf import check_extent
+
+    check_extent(log, config)
     _check_memory(log, config, settings)
     _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
     ckpt = checkpoint_path(args.out)
@@ -321,11 +332,10 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
             from jaxslam.refine import refine_trajectory
 
             # In the filter's local frame (result.frame_offset subtracted), as the map was built.
-            local = result.local_config
+            _, field, grid = result.dense_map(local=True)
             t0 = time.perf_counter()
-            refined = refine_trajectory(local.grid, result.state.maps.hit_dist2[result.best_particle],
-                                        result.to_local(result.trajectory), log.ranges, log.sensor,
-                                        params, local, odometry=result.to_local(log.odometry))
+            refined = refine_trajectory(grid, field, result.to_local(result.trajectory), log.ranges, log.sensor,
+                                        params, result.config, odometry=result.to_local(log.odometry))
             refined = refined._replace(poses=result.to_world(refined.poses),
                                        matched_poses=result.to_world(refined.matched_poses))
             refine_seconds = time.perf_counter() - t0
@@ -347,7 +357,7 @@ def _fmt(value) -> str:
 
 
 DEMO_DEFAULTS = {"proposal": "smp", "num_particles": 20, "linear_update": 0.25, "angular_update": 0.25,
-                 "max_insert_range": 10.0, "map_padding": 5.0, "beam_stride": 1}
+                 "max_insert_range": 10.0, "beam_stride": 1}
 """``jaxslam demo``'s defaults: the simulated office is small, so scans are processed more often
 than GMapping's 1 m / 0.5 rad, and every beam is used (its 10 m laser sees little along the
 20 m corridor)."""

@@ -5,7 +5,7 @@
   frozen, hashable dataclass passed to ``jax.jit`` as a static argument; changing it
   recompiles.
 * ``RunSettings`` holds what only the host-side driver reads (the update rule that selects
-  the processed scans, and how a grid is sized from a log): changing it never recompiles.
+  the processed scans): changing it never recompiles.
 * ``SlamParams`` holds the numbers (noise, gains, thresholds): a pytree of float32 arrays,
   traced, so changing it never recompiles and it can be differentiated.
 
@@ -23,7 +23,6 @@ value raises :class:`ConfigError` naming it, its value and what is accepted.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import numbers
 from typing import Any, NamedTuple
@@ -32,10 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxslam.grid import GridSpec
 from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
 from jaxslam.motion import MotionParams
 from jaxslam.occupancy import InsertionParams
+from jaxslam.paged_map import PagedGridSpec
 from jaxslam.resampling import RESAMPLERS
 
 PROPOSALS = ("op", "smp", "lp")
@@ -53,9 +52,15 @@ class SlamConfig:
     """N, the number of SLAM particles (each with its own map)."""
     proposal: str = "smp"
     """Proposal distribution: "op" (odometry), "smp" (scan matching), "lp" (look-ahead)."""
-    grid: GridSpec | None = None
-    """The map's shape and placement; None: ``rbpf.run`` sizes it from the log
-    (``RunSettings.resolution`` and ``map_padding``)."""
+    resolution: float = 0.05
+    """Map cell side (m)."""
+    map_extent: float = 1280.0
+    """Side (m) of the square virtual grid the maps live on, centred on the log's first pose
+    (rounded; ``rbpf.run``'s local frame). Memory grows with the area mapped, not with this:
+    a particle's map holds only the tiles it wrote (:mod:`jaxslam.paged_map`); its page table
+    costs 4 bytes per tile of the extent (0.64 MB at the default 1.28 km and 64-cell tiles)."""
+    tile_size: int = 64
+    """Cells per side of a map tile: the unit particles share and copy on write."""
     max_insert_range: float = 15.0
     """Beams are inserted into the map up to this range (m); sets samples per beam."""
     field_radius: int = 4
@@ -87,15 +92,18 @@ class SlamConfig:
 
     def __post_init__(self):
         _normalize_fields(self, "SlamConfig")
-        grid = self.grid
-        if grid is not None and not isinstance(grid, GridSpec):
-            raise ConfigError(f"SlamConfig: grid must be a GridSpec or None, got {grid!r}")
-        if grid is not None and not (all(math.isfinite(v) for v in grid.origin) and math.isfinite(grid.resolution)):
-            raise ConfigError(f"SlamConfig: grid origin and resolution must be finite, got {grid}")
         checks = [
             (self.num_particles >= 1, f"num_particles must be >= 1, got {self.num_particles}"),
             (self.proposal in PROPOSALS, f"proposal must be one of {PROPOSALS}, got {self.proposal!r}"),
+            (self.resolution > 0, f"resolution must be > 0 (m), got {self.resolution}"),
+            (self.map_extent > 0, f"map_extent must be > 0 (m), got {self.map_extent}"),
+            (self.tile_size in (8, 16, 32, 64, 128, 256, 512, 1024),
+             f"tile_size must be a power of two in 8..1024 (cells), got {self.tile_size}"),
+            (self.map_extent / self.resolution <= 46340,
+             f"map_extent / resolution must be at most 46,340 cells a side (int32 cell indices), got "
+             f"{self.map_extent} m / {self.resolution} m"),
             (self.max_insert_range > 0, f"max_insert_range must be > 0 (m), got {self.max_insert_range}"),
+
             (1 <= self.field_radius <= 11,
              f"field_radius must be in 1..11 (its squared distances fit uint8), got {self.field_radius}"),
             (self.likelihood_lookup in FIELD_LOOKUPS,
@@ -115,6 +123,11 @@ class SlamConfig:
                 raise ConfigError(f"SlamConfig: {message}")
 
     @property
+    def grid(self) -> PagedGridSpec:
+        """The virtual grid of the maps, in the filter's local frame (centred on its origin)."""
+        return PagedGridSpec.centred((0.0, 0.0), self.map_extent, self.resolution, self.tile_size)
+
+    @property
     def lookahead_steps(self) -> int:
         """Future scans each step carries: the horizon for LP, none otherwise."""
         return self.horizon if self.proposal == "lp" else 0
@@ -122,25 +135,19 @@ class SlamConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RunSettings:
-    """Host-side settings of ``rbpf.run``: which scans are processed and how a grid is sized
-    from a log. Never part of the jitted step, so changing them never recompiles it."""
+    """Host-side settings of ``rbpf.run``: which scans are processed. Never part of the jitted
+    step, so changing them never recompiles it."""
 
     linear_update: float = 1.0
     """Process a scan after this much travel (m) since the last processed one (GMapping)."""
     angular_update: float = 0.5
     """... or after this much rotation (rad)."""
-    resolution: float = 0.05
-    """Map cell size (m) of a grid sized from the log (``SlamConfig.grid`` None)."""
-    map_padding: float = 8.0
-    """Metres added around the odometry's extent when the grid is sized from the log."""
 
     def __post_init__(self):
         _normalize_fields(self, "RunSettings")  # numbers, finite
         checks = [
             (self.linear_update >= 0, f"linear_update must be >= 0 (m), got {self.linear_update}"),
             (self.angular_update >= 0, f"angular_update must be >= 0 (rad), got {self.angular_update}"),
-            (self.resolution > 0, f"resolution must be > 0 (m), got {self.resolution}"),
-            (self.map_padding >= 0, f"map_padding must be >= 0 (m), got {self.map_padding}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -369,56 +376,14 @@ def config_to_dict(config) -> dict[str, Any]:
     return dataclasses.asdict(config)
 
 
-_GRID_FORMAT = '{"shape": [rows, cols], "resolution": metres, "origin": [x, y]} or null'
-
-
-def grid_from_value(value, name: str = "grid") -> GridSpec | None:
-    """A :class:`GridSpec` from a config value: None, a GridSpec, a dict ``{"shape": [rows, cols],
-    "resolution": r, "origin": [x, y]}`` (as ``summary.json`` writes it) or that dict as a JSON
-    string (``--set grid={...}``; ``--set grid=null`` for None). Anything else raises ``ConfigError``."""
-    if value is None or isinstance(value, GridSpec):
-        return value
-    if isinstance(value, str):
-        try:
-            value = json.loads(value)
-        except json.JSONDecodeError:
-            raise ConfigError(f"config field {name} must be {_GRID_FORMAT}, got {value!r}") from None
-        if value is None:
-            return None
-    if not isinstance(value, dict):
-        raise ConfigError(f"config field {name} must be {_GRID_FORMAT}, got {value!r}")
-    missing = [k for k in ("shape", "resolution", "origin") if k not in value]
-    extra = sorted(set(value) - {"shape", "resolution", "origin"}, key=str)
-    if missing or extra:
-        raise ConfigError(f"config field {name} must be {_GRID_FORMAT}; "
-                          + (f"missing {missing}" if missing else f"unknown key(s) {extra}") + f", got {value!r}")
-    shape, origin = value["shape"], value["origin"]
-    if not isinstance(shape, (list, tuple)) or len(shape) != 2:
-        raise ConfigError(f"config field {name}.shape must be [rows, cols], got {shape!r}")
-    if not isinstance(origin, (list, tuple)) or len(origin) != 2:
-        raise ConfigError(f"config field {name}.origin must be [x, y] (m), got {origin!r}")
-    rows, cols = (check_int(f"config field {name}.shape", v) for v in shape)
-    if rows < 1 or cols < 1:
-        raise ConfigError(f"config field {name}.shape must be positive [rows, cols], got {list(shape)!r}")
-    resolution = check_float(f"config field {name}.resolution", value["resolution"])
-    if resolution <= 0:
-        raise ConfigError(f"config field {name}.resolution must be > 0 (m), got {resolution!r}")
-    ox, oy = (check_float(f"config field {name}.origin", v) for v in origin)
-    return GridSpec((rows, cols), resolution, (ox, oy))
-
-
 def _dataclass_from_dict(cls, values: dict[str, Any]):
     """``cls(**values)`` with strings (from ``--set``) parsed to their field's type: "3" is
     fine for an int field, "2.9" is not; numbers must already have the field's type (an int
-    field refuses 2.9 and True, see ``SlamConfig.__post_init__``). ``grid`` goes through
-    :func:`grid_from_value`. Bad values raise ``ConfigError`` naming the field."""
+    field refuses 2.9 and True, see ``SlamConfig.__post_init__``). Bad values raise ``ConfigError`` naming the field."""
     if not isinstance(values, dict):
         raise ConfigError(f"{cls.__name__} fields must be a dict of names and values, got {values!r}")
     kwargs = {}
     for name, value in values.items():
-        if name == "grid":
-            kwargs[name] = grid_from_value(value)
-            continue
         kind = type(getattr(cls, name))
         if isinstance(value, str) and kind is not str:
             text = value.strip()
@@ -446,6 +411,13 @@ def config_from_dict(values: dict[str, Any]) -> SlamConfig:
     return _dataclass_from_dict(SlamConfig, values)
 
 
+REMOVED_NAMES = {
+    "grid": "the maps are paged on a virtual grid centred on the log's start: set map_extent (m) and resolution (m)",
+    "map_padding": "the maps no longer follow the odometry's bounding box: set map_extent (m), the virtual grid's side",
+}
+"""Names of settings that were removed, and what replaces them (for the error message)."""
+
+
 def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamParams]:
     """The config, run settings and parameters of one flat dictionary of names.
 
@@ -454,6 +426,9 @@ def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamPa
     missing keeps its default. This is the one builder behind ``--set``, config files and the
     experiments' method tables. Unknown names and bad values raise ``ConfigError``.
     """
+    for name in values:
+        if name in REMOVED_NAMES:
+            raise ConfigError(f"{name} was removed: {REMOVED_NAMES[name]}")
     config_values = {k: v for k, v in values.items() if k in CONFIG_FIELDS}
     settings_values = {k: v for k, v in values.items() if k in SETTINGS_FIELDS}
     param_values = {k: v for k, v in values.items() if k not in CONFIG_FIELDS and k not in SETTINGS_FIELDS}

@@ -87,16 +87,3 @@ def flat_index(spec: GridSpec, cell: Int[Array, "... 2"]) -> Int[Array, "..."]:
     """Row-major flat index of (row, col) cells; out-of-map cells get ``num_cells`` (dropped by scatters)."""
     idx = cell[..., 0] * spec.shape[1] + cell[..., 1]
     return jnp.where(in_bounds(spec, cell), idx, spec.num_cells)
-
-
-def flat_index_of_floored(spec: GridSpec, cell_xy: Float[Array, "... 2"]) -> Int[Array, "..."]:
-    """Flat index of cells given as floored float (col, row) = (x, y) cell coordinates;
-    out-of-map cells get ``num_cells``. Same result as ``flat_index(world_to_cell(...))``
-    without computing the cell coordinates twice (the insertion's hot loop)."""
-    h, w = spec.shape
-    col, row = cell_xy[..., 0], cell_xy[..., 1]
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    # Integer arithmetic on clipped values: float32 row * w + col is inexact past 2^24 cells.
-    row_i = jnp.clip(row, 0, h - 1).astype(jnp.int32)
-    col_i = jnp.clip(col, 0, w - 1).astype(jnp.int32)
-    return jnp.where(inside, row_i * w + col_i, spec.num_cells)

@@ -22,9 +22,9 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int, UInt8
+from jaxtyping import Array, Bool, Float, Int, UInt8
 
-from jaxslam.grid import GridSpec, flat_index, flat_index_of_floored, world_to_cell
+from jaxslam.grid import GridSpec, cell_clip_bound, flat_index
 from jaxslam.laser import SensorSpec, laser_rays
 
 LOGODDS_DTYPE = jnp.float16
@@ -63,13 +63,104 @@ class InsertionParams(NamedTuple):
     """Metres of free space cleared along a "no return" beam (range >= range_max)."""
 
 
-def _field_kernel(radius: int) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets (K, 2) within ``radius`` cells and their squared lengths (K,)."""
+def field_kernel(radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Offsets (K, 2) (row, col) within ``radius`` cells and their squared lengths (K,) uint8:
+    where an endpoint registers itself in the likelihood field."""
     r = np.arange(-radius, radius + 1)
     dr, dc = np.meshgrid(r, r, indexing="ij")
     d2 = dr**2 + dc**2
     keep = d2 <= radius**2
     return np.stack([dr[keep], dc[keep]], axis=-1).astype(np.int32), np.minimum(d2[keep], FAR).astype(np.uint8)
+
+
+class ScanCells(NamedTuple):
+    """The cells one scan updates, as (row, col) cells of a grid (they may lie outside it)."""
+
+    free_cells: Int[Array, "B S 2"]
+    """The cell of every sample along every beam (one sample per cell length)."""
+    free: Bool[Array, "B S"]
+    """Samples that clear their cell: before the beam's end, each cell once per beam."""
+    end_cells: Int[Array, "B 2"]
+    """The endpoint cell of every beam."""
+    returned: Bool[Array, "B"]
+    """Beams whose endpoint marks its cell occupied and registers in the field."""
+
+
+def scan_cells(
+    spec: GridSpec,
+    pose: Float[Array, "3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    params: InsertionParams,
+    max_insert_range: float,
+) -> ScanCells:
+    """Which cells of ``spec``'s grid one scan taken at robot ``pose`` clears and marks.
+
+    Every cell a beam crosses before its endpoint is cleared once per beam; the endpoint cell
+    of a returned beam (range_min <= r < min(range_max, max_insert_range)) is marked. A "no
+    return" beam (r >= range_max) clears free space up to ``no_return_free_range``, but never
+    past range_max (the laser says nothing of the space beyond its reach), and marks nothing.
+    Beams are traced up to ``max_insert_range`` metres (static: it sets the number of samples
+    per beam, one per cell).
+    """
+    res = spec.resolution
+    num_samples = int(math.ceil(max_insert_range / res)) + 1
+    origin, angle = laser_rays(pose, sensor)
+    no_return = ranges >= sensor.range_max
+    returned = (~no_return) & (ranges >= sensor.range_min) & (ranges < max_insert_range)
+    no_return_len = jnp.minimum(jnp.minimum(params.no_return_free_range, sensor.range_max), max_insert_range)
+    free_len = jnp.where(no_return, no_return_len, jnp.minimum(ranges, max_insert_range))
+    free_len = jnp.where((ranges < sensor.range_min) & ~no_return, 0.0, free_len)
+    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)  # (B, 2)
+
+    dist = jnp.arange(num_samples, dtype=jnp.float32) * res  # (S,)
+    points = origin + dist[None, :, None] * direction[:, None, :]  # (B, S, 2)
+    end_points = origin + ranges[:, None] * direction  # (B, 2)
+    # Floored cell coordinates as unclipped floats for the duplicate and endpoint tests (the int
+    # cells are clipped far from the grid, which would merge distinct cells outside it).
+    corner = jnp.asarray(spec.origin, jnp.float32)
+    sample_xy = jnp.floor((points - corner) / res)
+    end_xy = jnp.floor((end_points - corner) / res)
+    same_as_prev = jnp.concatenate(
+        [jnp.zeros((sample_xy.shape[0], 1), bool), jnp.all(sample_xy[:, 1:] == sample_xy[:, :-1], axis=-1)], axis=1)
+    is_end = jnp.all(sample_xy == end_xy[:, None, :], axis=-1) & returned[:, None]
+    free = (dist[None, :] < free_len[:, None]) & ~same_as_prev & ~is_end  # (B, S)
+    return ScanCells(_floored_to_cells(spec, sample_xy), free, _floored_to_cells(spec, end_xy), returned)
+
+
+def _floored_to_cells(spec: GridSpec, xy: Float[Array, "... 2"]) -> Int[Array, "... 2"]:
+    """Floored float (x, y) cell coordinates as int32 (row, col), clipped as ``world_to_cell`` clips."""
+    big = cell_clip_bound(spec)
+    return jnp.clip(xy[..., ::-1], -big, big).astype(jnp.int32)
+
+
+def update_cells(
+    logodds: Float[Array, "M"],
+    hit_dist2: UInt8[Array, "M"],
+    free_idx: Int[Array, "..."],
+    end_idx: Int[Array, "..."],
+    splat_idx: Int[Array, "... K"],
+    splat_d2: UInt8[Array, "K"],
+    params: InsertionParams,
+) -> tuple[Float[Array, "M"], UInt8[Array, "M"]]:
+    """Apply scans' updates to flat cell storage (a dense map's cells, or a pool of tiles).
+
+    ``free_idx`` cells get ``logodds_free`` (once per entry), ``end_idx`` cells
+    ``logodds_occupied``; ``splat_idx[..., k]`` cells take the min of their field and
+    ``splat_d2[k]``. An index equal to the storage size (M) updates nothing (the scatters skip
+    it without touching memory). The static-state binary Bayes update in log-odds (an addition,
+    see :mod:`jaxslam.binary_bayes`), then the clamp as scatter-max / scatter-min on the touched
+    cells: free cells only decrease and endpoint cells only increase, so each needs one bound.
+    """
+    dtype = logodds.dtype
+    free_idx, end_idx = free_idx.reshape(-1), end_idx.reshape(-1)
+    logodds = logodds.at[free_idx].add(params.logodds_free.astype(dtype), mode="drop")
+    logodds = logodds.at[free_idx].max(params.logodds_min.astype(dtype), mode="drop")
+    logodds = logodds.at[end_idx].add(params.logodds_occupied.astype(dtype), mode="drop")
+    logodds = logodds.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
+    splat_d2 = jnp.broadcast_to(jnp.asarray(splat_d2), splat_idx.shape)
+    hit_dist2 = hit_dist2.at[splat_idx.reshape(-1)].min(splat_d2.reshape(-1), mode="drop")
+    return logodds, hit_dist2
 
 
 def insert_scan(
@@ -81,88 +172,28 @@ def insert_scan(
     params: InsertionParams,
     max_insert_range: float,
     field_radius: int,
-    window_offset: Int[Array, "2"] | None = None,
 ) -> tuple[GridMap, Int[Array, ""]]:
-    """Insert one scan taken at robot ``pose`` into one map.
+    """Insert one scan taken at robot ``pose`` into one dense map (see :func:`scan_cells` for
+    which cells change, :func:`update_cells` for how). The likelihood field registers every
+    endpoint ever inserted (a scatter-min of the squared cell distances within
+    ``field_radius`` cells of each endpoint).
 
-    Every cell a beam crosses before its endpoint gets ``logodds_free`` once per beam;
-    the endpoint cell of a returned beam (range_min <= r < min(range_max, max_insert_range))
-    gets ``logodds_occupied`` and registers an endpoint in the likelihood field. A "no
-    return" beam (r >= range_max) clears free space up to ``no_return_free_range``, but never
-    past range_max (the laser says nothing of the space beyond its reach), and marks nothing
-    occupied. Beams are traced up to ``max_insert_range`` metres (static:
-    it sets the number of samples per beam, one per cell).
+    The filters keep their maps paged (:mod:`jaxslam.paged_map`, which applies the same
+    updates to the same cells); a dense map is for a single map (tests, tools).
 
-    The likelihood field registers every endpoint ever inserted (a scatter-min of the
-    squared cell distances within ``field_radius`` cells of each endpoint).
-
-    ``window_offset`` (row, col), traced: ``grid_map`` is a window of ``spec``'s grid whose cell
-    (0, 0) is the grid's cell ``window_offset`` (its shape is the arrays'); cells are still
-    computed in ``spec``'s frame, so a window gets exactly the updates the whole grid would
-    (:mod:`jaxslam.paged_map` inserts into windows of its tiles). None: the map is the grid.
-
-    Returns the new map and the number of beam samples (free or endpoint) that fell
-    outside the map (or the window) and were dropped.
+    Returns the new map and the number of beam samples (free or endpoint) that fell outside
+    the map and were dropped.
     """
-    res = spec.resolution
-    num_samples = int(math.ceil(max_insert_range / res)) + 1
-    origin, angle = laser_rays(pose, sensor)
-    no_return = ranges >= sensor.range_max
-    returned = (~no_return) & (ranges >= sensor.range_min) & (ranges < max_insert_range)
-    no_return_len = jnp.minimum(jnp.minimum(params.no_return_free_range, sensor.range_max), max_insert_range)
-    free_len = jnp.where(no_return, no_return_len,
-                         jnp.minimum(ranges, max_insert_range))
-    free_len = jnp.where((ranges < sensor.range_min) & ~no_return, 0.0, free_len)
-    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)  # (B, 2)
-
-    dist = jnp.arange(num_samples, dtype=jnp.float32) * res  # (S,)
-    points = origin + dist[None, :, None] * direction[:, None, :]  # (B, S, 2)
-    end_points = origin + ranges[:, None] * direction  # (B, 2)
-    # Cell coordinates as unclipped floats for the duplicate and endpoint tests (world_to_cell
-    # clips far-away points, which would merge distinct cells outside the map).
-    corner = jnp.asarray(spec.origin, jnp.float32)
-    sample_cells = jnp.floor((points - corner) / res)
-    end_cells_f = jnp.floor((end_points - corner) / res)
-    same_as_prev = jnp.concatenate(
-        [jnp.zeros((sample_cells.shape[0], 1), bool),
-         jnp.all(sample_cells[:, 1:] == sample_cells[:, :-1], axis=-1)], axis=1)
-    is_end = jnp.all(sample_cells == end_cells_f[:, None, :], axis=-1) & returned[:, None]
-    free = (dist[None, :] < free_len[:, None]) & ~same_as_prev & ~is_end  # (B, S)
-
-    target = spec  # the array's grid: the whole grid, or a window of it
-    if window_offset is not None:
-        target = GridSpec(grid_map.logodds.shape, res, spec.origin)
-        offset_xy = jnp.stack([window_offset[1], window_offset[0]]).astype(jnp.float32)  # (col, row)
-        sample_cells = sample_cells - offset_xy  # exact: integer-valued floats below 2^24
-        end_cells_f = end_cells_f - offset_xy
-    free_cell_idx = flat_index_of_floored(target, sample_cells)
-    end_cell_idx = flat_index_of_floored(target, end_cells_f)
-    outside = (jnp.sum(free & (free_cell_idx == target.num_cells))
-               + jnp.sum(returned & (end_cell_idx == target.num_cells)))
-    # Samples that update nothing get the out-of-map index, so the scatters skip them
-    # without touching memory (most of a short beam's samples lie past its end).
-    free_idx = jnp.where(free, free_cell_idx, target.num_cells).reshape(-1)
-    end_idx = jnp.where(returned, end_cell_idx, target.num_cells)
-
-    # The static-state binary Bayes update in log-odds (an addition, see binary_bayes), then
-    # the clamp as scatter-max / scatter-min on the touched cells: free cells only decrease
-    # and endpoint cells only increase, so each needs one bound. All in place, O(B x S).
-    dtype = grid_map.logodds.dtype
-    flat = grid_map.logodds.reshape(-1)
-    flat = flat.at[free_idx].add(params.logodds_free.astype(dtype), mode="drop")
-    flat = flat.at[free_idx].max(params.logodds_min.astype(dtype), mode="drop")
-    flat = flat.at[end_idx].add(params.logodds_occupied.astype(dtype), mode="drop")
-    flat = flat.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
-    logodds = flat.reshape(target.shape)
-
-    offsets, d2 = _field_kernel(field_radius)
-    end_cells = world_to_cell(spec, end_points)
-    if window_offset is not None:
-        end_cells = end_cells - window_offset.astype(jnp.int32)
-    splat_cells = end_cells[:, None, :] + jnp.asarray(offsets)[None]  # (B, K, 2)
-    splat_idx = jnp.where(returned[:, None], flat_index(target, splat_cells), target.num_cells)
-    hit_dist2 = grid_map.hit_dist2.reshape(-1).at[splat_idx.reshape(-1)].min(
-        jnp.broadcast_to(jnp.asarray(d2), splat_idx.shape).reshape(-1), mode="drop"
-    )
-    return GridMap(logodds, hit_dist2.reshape(target.shape)), outside
-
+    cells = scan_cells(spec, pose, ranges, sensor, params, max_insert_range)
+    free_cell_idx = flat_index(spec, cells.free_cells)
+    end_cell_idx = flat_index(spec, cells.end_cells)
+    outside = (jnp.sum(cells.free & (free_cell_idx == spec.num_cells))
+               + jnp.sum(cells.returned & (end_cell_idx == spec.num_cells)))
+    offsets, d2 = field_kernel(field_radius)
+    splat_idx = flat_index(spec, cells.end_cells[:, None, :] + jnp.asarray(offsets)[None])
+    logodds, hit_dist2 = update_cells(
+        grid_map.logodds.reshape(-1), grid_map.hit_dist2.reshape(-1),
+        jnp.where(cells.free, free_cell_idx, spec.num_cells),
+        jnp.where(cells.returned, end_cell_idx, spec.num_cells),
+        jnp.where(cells.returned[:, None], splat_idx, spec.num_cells), d2, params)
+    return GridMap(logodds.reshape(spec.shape), hit_dist2.reshape(spec.shape)), outside

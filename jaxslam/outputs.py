@@ -40,7 +40,7 @@ def run_warnings(result) -> list[str]:
         if steps.size:
             first = int(steps[0])
             out.append(f"{int(counts.sum())} {what}; first at step {first + 1} (scan {int(idx[first + 1])} of the log)"
-                       + ("; enlarge the map (map_padding or grid)" if name != "degenerate" else ""))
+                       + ("; enlarge the map (--set map_extent=... m)" if name != "degenerate" else ""))
     return out
 
 
@@ -63,7 +63,10 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         "mean_ess": float(np.mean(info.ess)) if info.ess.size else None,
         "fallbacks": int(np.sum(info.num_fallbacks)),
         "log_evidence": float(np.sum(info.log_evidence)),
-        "warnings": list(getattr(log, "warnings", ())) + run_warnings(result),
+        "map_pool": dict(result.map_pool),
+        "warnings": list(getattr(log, "warnings", ())) + run_warnings(result)
+        + [f"the map pool grew to {g['capacity']} tiles at step {g['step']} (that chunk was repeated and "
+           "recompiled)" for g in result.map_pool.get("growths", ())],
         "log_notes": list(getattr(log, "notes", ())),
     }
 
@@ -112,9 +115,8 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     from jaxslam.io.trajectory import write_trajectory
     from jaxslam.plotting import plot_slam_result
 
-    best = result.best_particle
-    logodds = np.asarray(result.state.maps.logodds[best])
-    cropped, spec = crop_to_known(logodds, result.config.grid)
+    logodds, _, grid = result.dense_map()
+    cropped, spec = crop_to_known(logodds, grid)
     summary = summarize(log, result, params, seed, source)
     if refined is not None:
         summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
@@ -240,13 +242,12 @@ def check_output_folder(out_dir) -> None:
     _check_creatable(out_dir, target)
 
 
-def expected_output_bytes(grid_cells: int, num_scans: int, num_particles: int, checkpoints: bool) -> int:
+def expected_output_bytes(map_cells: int, num_scans: int, checkpoint_bytes: int = 0) -> int:
     """A generous estimate of the bytes a ``jaxslam map`` run writes: the map as PGM and PNG (at
-    most 2 bytes a cell of the grid), the trajectories (about 80 bytes a scan, twice with
-    ``--refine``), the figure and summary (a few MB), and with ``checkpoints`` (``--checkpoint-every``)
-    a checkpoint (every particle's maps, 3 bytes a cell each)."""
-    checkpoint = 3 * grid_cells * num_particles if checkpoints else 0
-    return 2 * grid_cells + 2 * 80 * num_scans + 5_000_000 + checkpoint
+    most 2 bytes a cell of the mapped area), the trajectories (about 80 bytes a scan, twice with
+    ``--refine``), the figure and summary (a few MB), and ``checkpoint_bytes`` for a checkpoint
+    (``--checkpoint-every``: the particles' page tables and the maps' pool)."""
+    return 2 * map_cells + 2 * 80 * num_scans + 5_000_000 + checkpoint_bytes
 
 
 def check_free_space(out_dir, need_bytes: int) -> None:

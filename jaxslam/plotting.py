@@ -8,9 +8,21 @@ from jaxslam.binary_bayes import probability
 from jaxslam.grid import GridSpec
 
 
-def plot_map(ax, logodds, spec: GridSpec, cmap: str = "gray_r"):
-    """Draw an occupancy map (log-odds (H, W)) as p(occupied): white free, black occupied, grey unknown."""
-    prob = probability(np.asarray(logodds))
+def plot_map(ax, logodds, spec: GridSpec, cmap: str = "gray_r", max_pixels: int = 4096):
+    """Draw an occupancy map (log-odds (H, W)) as p(occupied): white free, black occupied, grey unknown.
+
+    A map larger than ``max_pixels`` on a side is shown in blocks of cells (each block its
+    largest log-odds, so that walls stay visible): a figure of a campus-sized map then costs
+    megabytes, not gigabytes."""
+    logodds = np.asarray(logodds)
+    block = -(-max(logodds.shape) // max_pixels)
+    if block > 1:
+        h, w = (-(-d // block) * block for d in logodds.shape)
+        padded = np.zeros((h, w), logodds.dtype)
+        padded[:logodds.shape[0], :logodds.shape[1]] = logodds
+        logodds = padded.reshape(h // block, block, w // block, block).max(axis=(1, 3))
+        spec = GridSpec((h // block, w // block), spec.resolution * block, spec.origin)
+    prob = probability(logodds.astype(np.float32))
     image = ax.imshow(prob, origin="lower", extent=spec.extent, cmap=cmap, vmin=0.0, vmax=1.0,
                       interpolation="nearest")
     ax.set_aspect("equal")
@@ -58,8 +70,8 @@ def plot_slam_result(result, log=None, world=None, ax=None):
     fig = None
     if ax is None:
         fig, ax = plt.subplots(figsize=(8, 8))
-    best = result.best_particle
-    plot_map(ax, result.state.maps.logodds[best], result.config.grid)
+    logodds, _, grid = result.dense_map()
+    plot_map(ax, logodds, grid)
     idx = result.selection.indices
     if log is not None:
         plot_path(ax, log.odometry[idx], label="odometry", color="tab:orange", lw=0.8, alpha=0.8)

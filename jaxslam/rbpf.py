@@ -4,7 +4,9 @@ Each of N particles carries a pose and its own occupancy grid map. A step
 draws every particle's next pose from the configured proposal (odometry,
 scan matching or look-ahead; all see the map m_{t-1}), updates its weight,
 inserts the scan into its map at the new pose, and resamples when the ESS
-falls below ``resample_threshold * N`` (maps are copied only then).
+falls below ``resample_threshold * N``. The maps are paged (:mod:`jaxslam.paged_map`):
+tiles in one pool shared by all particles, so resampling copies page tables, and an
+insertion copies only the shared tiles it writes.
 
 ``init`` / ``step`` are pure and jittable (``config`` static); ``run`` drives
 a whole :class:`~jaxslam.laserlog.LaserLog`: update selection in NumPy (the host-side
@@ -25,13 +27,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from jaxslam import particle_filter, resampling
+from jaxslam import particle_filter
 from jaxslam.config import RunSettings, SlamConfig, SlamParams
-from jaxslam.driver import run_in_chunks
-from jaxslam.grid import GridSpec, flat_index, world_to_cell
+from jaxslam.driver import pad_items, run_in_chunks
+from jaxslam import paged_map
+from jaxslam.grid import GridSpec, in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.laserlog import LaserLog, UpdateSelection, select_updates
-from jaxslam.occupancy import GridMap, empty_map, insert_scan
+from jaxslam.paged_map import PagedField, PagedGridSpec, PagedMaps
 from jaxslam.proposals import lookahead, odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 
@@ -43,8 +46,8 @@ class SlamState(NamedTuple):
     """Pose of each particle at the last processed scan."""
     log_weights: Float[Array, "N"]
     """Normalised log-weights (logsumexp = 0)."""
-    maps: GridMap
-    """Each particle's map, stacked (N, H, W)."""
+    maps: PagedMaps
+    """Every particle's map: page tables (N, TY, TX) into one shared pool of tiles."""
     step: Int[Array, ""]
     """Number of steps taken since ``init``."""
 
@@ -74,9 +77,15 @@ class SlamInfo(NamedTuple):
     num_fallbacks: Int[Array, ""]
     """Particles whose proposal fell back (SMP: failed match; LP: no weight)."""
     outside_samples: Int[Array, ""]
-    """Beam samples (all particles) that fell outside the map and were dropped."""
+    """Beam samples (all particles) that fell outside the virtual grid and were dropped."""
     poses_outside: Int[Array, ""]
-    """Particles whose pose lies outside the map."""
+    """Particles whose pose lies outside the virtual grid."""
+    tiles_in_use: Int[Array, ""]
+    """Pool tiles some particle's map references after the step."""
+    pool_overflow: Bool[Array, ""]
+    """The maps' pool could not hold this step's new tiles: the step was not taken (the state
+    is the one it was given, with ``maps.overflow`` set). Grow the pool
+    (:func:`jaxslam.paged_map.grow`) and take it again; ``run`` does."""
 
 
 def _proposal_fn(kind: str):
@@ -87,7 +96,19 @@ def _proposal_fn(kind: str):
     return lookahead.propose
 
 
-@jax.jit(static_argnames=("config",))
+def pool_size(config: SlamConfig) -> tuple[int, int]:
+    """The map pool a run starts with: ``(capacity, max_new_tiles)`` in tiles (see
+    :class:`~jaxslam.paged_map.PagedMaps`). An insertion copies or creates up to about 20 tiles per
+    particle (64-cell tiles, 15 m beams; more after a resampling, fewer when the particles own
+    their tiles); the pool starts with room for that many and a few steps of growth, and ``run``
+    grows it when a step needs more (one recompile each time, reported)."""
+    k = config.grid.window_tiles(config.max_insert_range, config.field_radius)
+    n = config.num_particles
+    max_new_tiles = n * min(k * k, 24) + k * k
+    return 4 * max_new_tiles + 256, max_new_tiles
+
+
+@jax.jit(static_argnames=("config", "pool_capacity", "max_new_tiles"))
 def init(
     key: PRNGKeyArray,
     first_ranges: Float[Array, "B"],
@@ -95,31 +116,31 @@ def init(
     params: SlamParams,
     config: SlamConfig,
     initial_pose: Float[Array, "3"] | None = None,
+    *,
+    pool_capacity: int | None = None,
+    max_new_tiles: int | None = None,
 ) -> SlamState:
-    """All particles at ``initial_pose`` (default the origin) with the first scan in their maps.
+    """All particles at ``initial_pose`` (default the origin) sharing one map, the first scan's.
 
     ``key`` is unused (the start is deterministic) but kept first for a uniform API.
     ``initial_pose`` must be given inside ``jax.jit`` callers that trace it; None means the origin.
-    ``config.grid`` must be set (``run`` sizes it from the log).
+    ``pool_capacity`` and ``max_new_tiles`` (static) size the maps' pool; None: :func:`pool_size`.
     """
-    spec = _require_grid(config)
+    spec = config.grid
     n = config.num_particles
+    default_capacity, default_new = pool_size(config)
+    capacity = default_capacity if pool_capacity is None else pool_capacity
+    new_tiles = default_new if max_new_tiles is None else max_new_tiles
     pose = jnp.zeros(3, jnp.float32) if initial_pose is None else jnp.asarray(initial_pose, jnp.float32)
-    one_map, _ = insert_scan(spec, empty_map(spec), pose, jnp.asarray(first_ranges, jnp.float32), sensor,
-                             params.insertion, config.max_insert_range, config.field_radius)
-    maps = jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), one_map)
+    one, _ = paged_map.insert_scans(spec, paged_map.empty(spec, 1, capacity, new_tiles), pose[None],
+                                    jnp.asarray(first_ranges, jnp.float32), sensor, params.insertion,
+                                    config.max_insert_range, config.field_radius)
     return SlamState(
         poses=jnp.broadcast_to(pose, (n, 3)),
         log_weights=jnp.full((n,), -math.log(n), jnp.float32),
-        maps=maps,
+        maps=paged_map.resample(one, jnp.zeros((n,), jnp.int32)),
         step=jnp.int32(0),
     )
-
-
-def _require_grid(config: SlamConfig) -> GridSpec:
-    if config.grid is None:
-        raise ValueError("config.grid is None: set a GridSpec (run() sizes one from the log)")
-    return config.grid
 
 
 def step(
@@ -130,8 +151,12 @@ def step(
     params: SlamParams,
     config: SlamConfig,
 ) -> tuple[SlamState, SlamInfo]:
-    """One RBPF update with scan ``inputs.ranges`` (all beams) after motion ``inputs.motion``."""
-    spec = _require_grid(config)
+    """One RBPF update with scan ``inputs.ranges`` (all beams) after motion ``inputs.motion``.
+
+    When the maps' pool cannot hold the step's new tiles the step is not taken: the state comes
+    back as it was, ``maps.overflow`` and ``info.pool_overflow`` set; grow the pool
+    (:func:`jaxslam.paged_map.grow`) and call again with the same key (``run`` does)."""
+    spec = config.grid
     n = config.num_particles
     key_prop, key_res = jax.random.split(key)
 
@@ -139,22 +164,18 @@ def step(
     _, lik_future = subsample_beams(sensor, inputs.future_ranges, config.beam_stride)
     lik_inputs = inputs._replace(ranges=lik_ranges, future_ranges=lik_future)
     propose = _proposal_fn(config.proposal)
-    out: ProposalOutput = jax.vmap(propose, in_axes=(0, 0, 0, None, None, None, None))(
-        jax.random.split(key_prop, n), state.poses, state.maps, lik_inputs, lik_sensor, params, config
-    )
+    out: ProposalOutput = jax.vmap(propose, in_axes=(0, 0, PagedField(0, None), None, None, None, None))(
+        jax.random.split(key_prop, n), state.poses, paged_map.fields(state.maps), lik_inputs, lik_sensor, params,
+        config)
 
     update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
                                                    params.resample_threshold, config.resampler)
-
-    def insert(grid_map, pose):
-        return insert_scan(spec, grid_map, pose, inputs.ranges, sensor, params.insertion,
-                           config.max_insert_range, config.field_radius)
-
-    maps, outside = jax.vmap(insert)(state.maps, out.pose)
-    # Survivors keep their slots, so only the maps of dead particles are overwritten, in place.
-    ancestors = resampling.keep_survivors_in_place(update.ancestors)
-    maps = copy_particles_in_place(maps, ancestors)
-    pose_cells = world_to_cell(spec, out.pose[:, :2])
+    maps, outside = paged_map.insert_scans(spec, state.maps, out.pose, inputs.ranges, sensor, params.insertion,
+                                           config.max_insert_range, config.field_radius)
+    # An insertion that did not fit wrote nothing: the step is not taken (retried after growth).
+    stalled = maps.overflow
+    ancestors = jnp.where(stalled, jnp.arange(n, dtype=update.ancestors.dtype), update.ancestors)
+    maps = paged_map.resample(maps, ancestors)
     info = SlamInfo(
         ess=update.ess,
         resampled=update.resampled,
@@ -167,28 +188,14 @@ def step(
         ancestors=ancestors,
         num_fallbacks=jnp.sum(out.fallback).astype(jnp.int32),
         outside_samples=jnp.sum(outside).astype(jnp.int32),
-        poses_outside=jnp.sum(flat_index(spec, pose_cells) == spec.num_cells).astype(jnp.int32),
+        poses_outside=jnp.sum(~in_bounds(spec.grid, world_to_cell(spec.grid, out.pose[:, :2]))).astype(jnp.int32),
+        tiles_in_use=paged_map.tiles_in_use(maps).astype(jnp.int32),
+        pool_overflow=stalled,
     )
-    new_state = SlamState(out.pose[ancestors], update.new_log_weights, maps, state.step + 1)
+    new_state = SlamState(jnp.where(stalled, state.poses, out.pose[ancestors]),
+                          jnp.where(stalled, state.log_weights, update.new_log_weights), maps,
+                          state.step + jnp.where(stalled, 0, 1).astype(state.step.dtype))
     return new_state, info
-
-
-def copy_particles_in_place(tree, ancestors: Int[Array, "N"]):
-    """``tree[i] = tree[ancestors[i]]`` along the leading axis, copying only where they differ.
-
-    Needs ``ancestors`` from :func:`resampling.keep_survivors_in_place` (no overwritten slot
-    is a source). A loop over particles with a conditional copy: inside a jitted loop XLA
-    updates the (N, H, W) maps in place, where a gather ``maps[ancestors]`` would allocate
-    and write a whole new stack of maps at every resampling.
-    """
-
-    def body(i, tree):
-        def copy(t):
-            return jax.tree.map(lambda a: a.at[i].set(a[ancestors[i]]), t)
-
-        return jax.lax.cond(ancestors[i] != i, copy, lambda t: t, tree)
-
-    return jax.lax.fori_loop(0, ancestors.shape[0], body, tree)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -206,9 +213,9 @@ class SlamResult(NamedTuple):
     selection: UpdateSelection
     """The processed scans and the motion between them."""
     config: SlamConfig
-    """The config used, with the grid resolved, in the world frame (``local_config``: as the step saw it)."""
+    """The config used (its ``grid`` is in the local frame; ``world_grid`` places it in the log's)."""
     settings: RunSettings
-    """The host-side settings used (update rule, grid sizing)."""
+    """The host-side settings used (the update rule)."""
     best_path: np.ndarray
     """(S, 3) float64 poses at the processed scans along the ancestry of the final best particle
     (world frame)."""
@@ -221,13 +228,36 @@ class SlamResult(NamedTuple):
     """(2,) float64 (x0, y0) in metres: the translation of the log's first odometry pose rounded to a
     multiple of 64 m, which ``run`` subtracted from the log before the filter ran (the filter's
     *local frame*; zero for a log that starts within 32 m of the origin). ``state``
-    and ``info`` are in that frame; ``best_path``, ``trajectory`` and ``config.grid`` are in the
-    log's (world) frame. ``to_world`` converts."""
+    and ``info`` are in that frame; ``best_path`` and ``trajectory`` are in the log's (world)
+    frame. ``to_world`` converts."""
+    map_pool: dict
+    """The maps' pool: ``capacity`` and ``max_new_tiles`` at the end, ``tiles_in_use`` and
+    ``peak_request`` (the most new tiles one step asked for), ``bytes`` (the pool and the page
+    tables) and ``growths``: one entry per growth (``step``, the new ``capacity`` and
+    ``max_new_tiles``), each a repeated chunk and a recompile."""
 
     @property
     def best_particle(self) -> int:
         """Index of the final particle with the largest weight (whose map and path are the result's)."""
         return particle_filter.best_particle(self.state.log_weights)
+
+    @property
+    def world_grid(self) -> PagedGridSpec:
+        """The virtual grid placed in the log's (world) frame."""
+        grid = self.config.grid
+        x0, y0 = self.frame_offset
+        return dataclasses.replace(grid, origin=(grid.origin[0] + float(x0), grid.origin[1] + float(y0)))
+
+    def dense_map(self, particle: int | None = None, local: bool = False) -> tuple[np.ndarray, np.ndarray, GridSpec]:
+        """One particle's map (default the best) as dense host arrays over the tiles it wrote:
+        ``(logodds (H, W) float16, hit_dist2 (H, W) uint8, grid)``, the grid in the world frame
+        (``local``: in the filter's local frame, as ``state``'s poses are)."""
+        particle = self.best_particle if particle is None else int(particle)
+        logodds, field, box = paged_map.to_dense(self.config.grid, self.state.maps, particle)
+        if local:
+            return logodds, field, box
+        x0, y0 = self.frame_offset
+        return logodds, field, dataclasses.replace(box, origin=(box.origin[0] + float(x0), box.origin[1] + float(y0)))
 
     def to_world(self, poses) -> np.ndarray:
         """Poses (..., 3) or points (..., 2) of the local frame (``state.poses``,
@@ -242,21 +272,6 @@ class SlamResult(NamedTuple):
         out = np.array(poses, dtype=np.float64)
         out[..., :2] -= self.frame_offset
         return out
-
-    @property
-    def local_config(self) -> SlamConfig:
-        """``config`` with its grid in the local frame, as the jitted step saw it: use it with
-        ``state`` (e.g. to step on or to scan-match against its maps with local poses)."""
-        (x0, y0), (ox, oy) = self.frame_offset, self.config.grid.origin
-        return dataclasses.replace(self.config, grid=dataclasses.replace(self.config.grid, origin=(ox - x0, oy - y0)))
-
-
-def auto_grid(log: LaserLog, settings: RunSettings, indices: np.ndarray | None = None) -> GridSpec:
-    """A grid covering the odometry's extent plus ``settings.map_padding`` metres, at ``settings.resolution``."""
-    xy = log.odometry[:, :2] if indices is None else log.odometry[indices, :2]
-    lo = xy.min(axis=0) - settings.map_padding
-    hi = xy.max(axis=0) + settings.map_padding
-    return GridSpec.from_bounds(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), settings.resolution)
 
 
 def build_inputs(log: LaserLog, selection: UpdateSelection, lookahead_steps: int) -> StepInputs:
@@ -282,11 +297,14 @@ def build_inputs(log: LaserLog, selection: UpdateSelection, lookahead_steps: int
 
 @jax.jit(static_argnames=("config",), donate_argnames=("state",))
 def _run_chunk(state, keys, inputs, valid, sensor, params, config):
-    def body(state, xs):
+    def body(carry, xs):
+        state, stalled = carry
         key, inp, ok = xs
-        # A padding step past the end of the log sees a scan with no usable beam (nothing
-        # enters the maps, every weight increment is 0) and may not resample; its pose
-        # draws are discarded. Masking, not lax.cond: a cond over the state would copy maps.
+        # A padding step past the end of the log, or any step after one the pool could not hold
+        # (the host grows the pool and repeats from there), sees a scan with no usable beam
+        # (nothing enters the maps, every weight increment is 0) and may not resample; its pose
+        # draws are discarded.
+        ok = ok & ~stalled
         inp = jax.tree.map(lambda a, b: jnp.where(ok, a, b), inp, _noop_inputs(inp))
         noop_params = params._replace(resample_threshold=jnp.where(ok, params.resample_threshold, 0.0))
         new_state, info = step(key, state, inp, sensor, noop_params, config)
@@ -294,10 +312,12 @@ def _run_chunk(state, keys, inputs, valid, sensor, params, config):
             poses=jnp.where(ok, new_state.poses, state.poses),
             log_weights=jnp.where(ok, new_state.log_weights, state.log_weights),
             step=jnp.where(ok, new_state.step, state.step),
+            maps=new_state.maps._replace(overflow=stalled | new_state.maps.overflow),
         )
-        return new_state, info
+        return (new_state, stalled | info.pool_overflow), info
 
-    return jax.lax.scan(body, state, (keys, inputs, valid))
+    (state, _), infos = jax.lax.scan(body, (state, jnp.bool_(False)), (keys, inputs, valid))
+    return state, infos
 
 
 def _noop_inputs(inputs: StepInputs) -> StepInputs:
@@ -358,18 +378,13 @@ class RunProgress(NamedTuple):
     callable returning them (they are concatenated only when asked)."""
 
 
-def _frame_offset(log: LaserLog) -> np.ndarray:
+def local_frame_offset(log: LaserLog) -> np.ndarray:
+    """(2,) float64: the translation ``run`` subtracts from ``log`` (its first odometry pose's, rounded
+    to a multiple of 64 m): the origin of the filter's local frame, where the virtual grid is centred."""
     # The first pose's translation, rounded to a multiple of 64 m: a log that starts within 32 m of
     # the origin runs exactly as given, and shifting a log by a multiple of 64 m changes no bit of
     # the filter's arithmetic (the local logs are equal); |local coordinates| <= 32 m + the log's extent.
     return np.round(np.asarray(log.odometry[0, :2], dtype=np.float64) / 64.0) * 64.0 + 0.0
-
-
-def _shift_grid(grid: GridSpec, offset: np.ndarray) -> GridSpec:  # offset added to the origin, float64
-    if not np.any(offset):
-        return grid
-    origin = (float(grid.origin[0] + offset[0]), float(grid.origin[1] + offset[1]))
-    return dataclasses.replace(grid, origin=origin)
 
 
 def _local_log(log: LaserLog, offset: np.ndarray) -> LaserLog:  # offset subtracted from x, y, float64
@@ -384,44 +399,46 @@ def _local_log(log: LaserLog, offset: np.ndarray) -> LaserLog:  # offset subtrac
     return dataclasses.replace(log, odometry=odometry, ground_truth=ground_truth)
 
 
-def _prepare(log: LaserLog, config: SlamConfig, settings: RunSettings):
-    """``(frame_offset, local log, selection, local config, world grid)`` as ``run`` uses them."""
-    frame_offset = _frame_offset(log)
-    log = _local_log(log, frame_offset)  # from here on, the local frame
-    selection = select_updates(log, settings.linear_update, settings.angular_update)
-    if config.grid is None:
-        config = dataclasses.replace(config, grid=auto_grid(log, settings, selection.indices))
-        world_grid = _shift_grid(config.grid, frame_offset)
-    else:
-        world_grid = config.grid
-        config = dataclasses.replace(config, grid=_shift_grid(config.grid, -frame_offset))
-    return frame_offset, log, selection, config, world_grid
+def check_extent(log: LaserLog, config: SlamConfig) -> None:
+    """Refuse (``ConfigError``) a log whose odometry leaves the virtual grid, before any work:
+    the message names the setting to change (``map_extent``). Beams that reach past the grid's
+    edge, or a path that drifts off it later, are counted (``SlamInfo.outside_samples``,
+    ``poses_outside``) and reported with the same advice."""
+    from jaxslam.config import ConfigError
+
+    reach = float(np.abs(np.asarray(log.odometry[:, :2], np.float64) - local_frame_offset(log)).max(initial=0.0))
+    half = config.grid.num_tiles[0] * config.grid.tile_size * config.resolution / 2.0
+    if reach >= half:
+        need = 2.0 * (reach + config.max_insert_range)
+        raise ConfigError(f"the log's odometry reaches {reach:.1f} m from its start, beyond the map: the virtual grid "
+                          f"spans +-{half:.1f} m (map_extent={config.map_extent:g} m); set --set "
+                          f"map_extent={math.ceil(need / 64) * 64} or more (memory grows with the area mapped, the "
+                          f"page tables with the extent)")
 
 
-def run_grid(log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettings()) -> GridSpec:
-    """The grid (world frame) that ``run(key, log, config, params, settings)`` will use: ``config.grid``,
-    or when it is None the one sized from the log (cheap: no filter work; for memory estimates)."""
-    return _prepare(log, config, settings)[4]
-
-
-def estimate_run_bytes(config: SlamConfig, grid: GridSpec, num_beams: int) -> tuple[int, str]:
-    """A rough estimate of the memory (bytes) a ``run`` with ``config`` on ``grid`` needs, and how
+def estimate_run_bytes(config: SlamConfig, num_beams: int) -> tuple[int, str]:
+    """A rough estimate of the memory (bytes) a ``run`` with ``config`` needs at its start, and how
     it was reckoned (for a refusal message).
 
-    The particles' maps dominate: N x H x W cells x 3 bytes (float16 log-odds + uint8 field),
-    counted 3 times (the state, its copy across a chunk call, the insertion's temporaries). Scan
-    insertion traces every beam with one sample per cell up to ``max_insert_range``: N x B x S
-    samples of about 40 bytes (points, cells, masks). The look-ahead proposal adds its N x L x B
-    float32 beam terms (B the beams used in likelihoods, ``num_beams / beam_stride``), twice;
-    about 1 GB is added for XLA (compiled code, buffers) and the host.
+    The page tables (N x TY x TX int32, twice: a chunk's input is kept to repeat it when the pool
+    overflows, and resampling gathers them), the pool (capacity x T x T x 3 bytes, twice) as
+    :func:`pool_size` sizes it, and scan insertion, which traces every beam with one sample per
+    cell up to ``max_insert_range``: N x B x S samples of about 40 bytes. The look-ahead proposal
+    adds its N x L x B float32 beam terms (B the beams used in likelihoods, ``num_beams /
+    beam_stride``), twice; about 1 GB is added for XLA (compiled code, buffers) and the host.
+    The pool grows with the area mapped (it is reported in ``summary.json``).
     """
     n = config.num_particles
-    h, w = grid.shape
-    maps = n * h * w * 3 * 3
-    samples = int(math.ceil(config.max_insert_range / grid.resolution)) + 1
+    ty, tx = config.grid.num_tiles
+    t = config.tile_size
+    capacity, _ = pool_size(config)
+    pages = n * ty * tx * 4 * 2
+    pool = capacity * t * t * 3 * 2
+    samples = int(math.ceil(config.max_insert_range / config.resolution)) + 1
     insertion = n * num_beams * samples * 40
-    how = f"{n} particles x {h} x {w} cells x 3 bytes x 3 + {n} x {num_beams} beams x {samples} samples x 40 bytes"
-    total = maps + insertion + 2**30
+    how = (f"{n} particles x {ty} x {tx} tiles x 4 bytes x 2 + {capacity} tiles x {t} x {t} cells x 3 bytes x 2 + "
+           f"{n} x {num_beams} beams x {samples} samples x 40 bytes")
+    total = pages + pool + insertion + 2**30
     if config.proposal == "lp":
         beams = -(-num_beams // config.beam_stride)
         lp = n * config.num_localizers * beams * 4 * 2
@@ -453,6 +470,7 @@ def run(
     progress: bool = True,
     on_chunk=None,
     resume: RunProgress | None = None,
+    initial_pool: tuple[int, int] | None = None,
 ) -> SlamResult:
     """Map a whole log: select the scans, then ``lax.scan`` the step over them in chunks.
 
@@ -463,16 +481,20 @@ def run(
     float64. The rounding keeps a log that starts within 32 m of the origin bit for bit as it
     was, and makes a shift of the whole log by a multiple of 64 m change nothing but the offset.
     ``result.frame_offset`` holds it; ``result.state`` and ``result.info`` stay in the local
-    frame (``result.to_world`` converts), ``result.config.grid`` is reported in the world frame.
-    A grid given in ``config`` is in world coordinates; the step is compiled with it shifted into
-    the local frame, so logs with different offsets compile the step once each.
+    frame (``result.to_world`` converts). The maps' virtual grid (``config.grid``) is centred on
+    the local origin, so every log compiles the same step.
+
+    The maps' pool starts at :func:`pool_size`; a chunk in which a step needed more tiles than
+    the pool had is repeated from its start with a grown pool (one recompile; reported on
+    stderr and in ``result.map_pool``). A log whose odometry leaves the virtual grid is refused
+    first (:func:`check_extent`).
 
     Args:
       key: the run's randomness (the same key reproduces the run bit for bit).
       log: the laser log.
-      config: static settings of the step; ``config.grid`` None sizes the grid from the log.
+      config: static settings of the step.
       params: traced numbers.
-      settings: host-side settings: the update rule and the grid sizing.
+      settings: host-side settings: the update rule.
       chunk_size: steps per compiled call (every chunk has this many steps, the last padded
         with no-op steps, so the step compiles once).
       progress: show a tqdm bar.
@@ -483,13 +505,18 @@ def run(
         config, params, settings and ``chunk_size``: the run goes on from it, and its result is
         bit for bit the uninterrupted run's (the per-step keys are derived from ``key`` as before
         and the steps done are skipped; the chunks fall on the same steps).
+      initial_pool: ``(capacity, max_new_tiles)`` of the maps' pool at the start (default
+        :func:`pool_size`); the pool grows as needed, and its size never changes the result.
     """
     from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
 
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+    check_extent(log, config)
     t_start = time.perf_counter()
-    frame_offset, log, selection, config, world_grid = _prepare(log, config, settings)
+    frame_offset = local_frame_offset(log)
+    log = _local_log(log, frame_offset)  # from here on, the local frame
+    selection = select_updates(log, settings.linear_update, settings.angular_update)
     sensor = log.sensor
     initial_pose = jnp.asarray(log.odometry[0], jnp.float32)
     key_init, key_steps = jax.random.split(key)
@@ -500,24 +527,61 @@ def run(
     done = 0
     prior_info = None
     if resume is None:
-        state = init(key_init, jnp.asarray(log.ranges[0]), sensor, params, config, initial_pose)
+        capacity, max_new_tiles = pool_size(config) if initial_pool is None else initial_pool
+        while True:  # the first scan alone may not fit a pool given too small
+            state = init(key_init, jnp.asarray(log.ranges[0]), sensor, params, config, initial_pose,
+                         pool_capacity=int(capacity), max_new_tiles=int(max_new_tiles))
+            if not bool(state.maps.overflow):
+                break
+            capacity, max_new_tiles = 2 * int(capacity), 2 * int(max_new_tiles)
     else:
         done = int(resume.steps_done)
-        n, (h, w) = config.num_particles, config.grid.shape
         if resume.num_steps != num_steps or not 0 <= done <= num_steps or (done % chunk_size and done != num_steps):
             raise ValueError(f"resume: {done} of {resume.num_steps} steps done does not fit this run "
                              f"({num_steps} steps, chunks of {chunk_size})")
-        if np.shape(resume.state.maps.logodds) != (n, h, w):
-            raise ValueError(f"resume: the saved maps are {np.shape(resume.state.maps.logodds)}, this run's "
-                             f"are {(n, h, w)}")
+        expected = (config.num_particles,) + config.grid.num_tiles
+        if np.shape(resume.state.maps.pages) != expected:
+            raise ValueError(f"resume: the saved page tables are {np.shape(resume.state.maps.pages)}, this run's "
+                             f"are {expected} (particles, tiles)")
         state = jax.tree.map(jnp.asarray, resume.state)
         prior_info = resume.info
         step_keys = step_keys[done:]
         inputs = jax.tree.map(lambda a: a[done:], inputs)
 
+    growths = [] if initial_pool is None or state.maps.capacity == initial_pool[0] else [
+        {"step": 0, "capacity": state.maps.capacity, "max_new_tiles": state.maps.max_new_tiles}]
+    chunk_starts = iter(range(done, max(num_steps, 1), chunk_size))
+
     def chunk_fn(state, xs, valid):
         keys, chunk_inputs = xs
-        return _run_chunk(state, keys, chunk_inputs, valid, sensor, params, config)
+        start = next(chunk_starts)
+        done_infos, offset = [], 0
+        while True:
+            state, info = _run_chunk(state, keys, chunk_inputs, valid, sensor, params, config)
+            stalled = np.flatnonzero(np.asarray(info.pool_overflow) & valid)
+            if stalled.size == 0:
+                done_infos.append(info)
+                break
+            # Step s did not fit the pool: its state is the one before it. Keep the steps before
+            # it, grow the pool from what s asked for, and take the chunk's rest again from s.
+            s = int(stalled[0])
+            done_infos.append(jax.tree.map(lambda a: a[:s], info))
+            maps = state.maps
+            max_new = max(2 * maps.max_new_tiles, 2 * int(maps.peak_request))
+            capacity = max(2 * maps.capacity, int(paged_map.tiles_in_use(maps)) + 2 * max_new)
+            state = state._replace(maps=paged_map.grow(config.grid, maps, capacity, max_new))
+            offset += s
+            growths.append({"step": start + offset, "capacity": capacity, "max_new_tiles": max_new})
+            if progress:
+                import sys
+
+                print(f"jaxslam: the map pool grew to {capacity} tiles ({max_new} new per step) at step "
+                      f"{start + offset}; that step and the chunk's rest are taken again (one recompile)",
+                      file=sys.stderr)
+            keys, chunk_inputs = (jax.tree.map(lambda a: pad_items(a[s:], chunk_size), t) for t in (keys, chunk_inputs))
+            valid = np.concatenate([valid[s:], np.zeros(s, bool)])
+        info = jax.tree.map(lambda *parts: np.concatenate([np.asarray(p) for p in parts])[:chunk_size], *done_infos)
+        return state, info
 
     def with_prior(info):
         if prior_info is None:
@@ -551,14 +615,19 @@ def run(
         "total": total,
         "real_time_factor": log.duration / total if total > 0 else float("inf"),
     }
-    return SlamResult(state, info, selection, dataclasses.replace(config, grid=world_grid), settings, best_path,
-                      trajectory, timings, frame_offset)
+    maps = state.maps
+    map_pool = {
+        "capacity": maps.capacity, "max_new_tiles": maps.max_new_tiles,
+        "tiles_in_use": int(paged_map.tiles_in_use(maps)), "peak_request": int(maps.peak_request),
+        "bytes": int(sum(np.asarray(a).nbytes for a in maps)), "growths": growths,
+    }
+    return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings, frame_offset, map_pool)
 
 
 # ---------------------------------------------------------------------------------------------
 # Checkpoints of a run (written by ``on_chunk``, read back for ``resume``).
 
-CHECKPOINT_VERSION = 1
+CHECKPOINT_VERSION = 2  # 2: paged maps
 
 
 def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:
@@ -573,9 +642,9 @@ def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:
     arrays = {"version": np.int64(CHECKPOINT_VERSION), "identity": np.array(json.dumps(identity, sort_keys=True)),
               "steps_done": np.int64(progress.steps_done), "num_steps": np.int64(progress.num_steps)}
     state = progress.state
-    for name, value in (("poses", state.poses), ("log_weights", state.log_weights),
-                        ("maps.logodds", state.maps.logodds), ("maps.hit_dist2", state.maps.hit_dist2),
-                        ("step", state.step)):
+    fields = {"poses": state.poses, "log_weights": state.log_weights, "step": state.step,
+              **{f"maps.{name}": value for name, value in zip(PagedMaps._fields, state.maps)}}
+    for name, value in fields.items():
         arrays[f"state.{name}"] = np.array(value)  # a copy: the device buffer may be donated next
     for name, value in zip(SlamInfo._fields, info):
         arrays[f"info.{name}"] = np.asarray(value)
@@ -593,8 +662,8 @@ def load_checkpoint(path) -> tuple[RunProgress, dict]:
             if int(z["version"]) != CHECKPOINT_VERSION:
                 raise ValueError(f"{path}: checkpoint version {int(z['version'])}, expected {CHECKPOINT_VERSION}")
             identity = json.loads(str(z["identity"]))
-            state = SlamState(z["state.poses"], z["state.log_weights"],
-                              GridMap(z["state.maps.logodds"], z["state.maps.hit_dist2"]), z["state.step"])
+            maps = PagedMaps(*(z[f"state.maps.{name}"] for name in PagedMaps._fields))
+            state = SlamState(z["state.poses"], z["state.log_weights"], maps, z["state.step"])
             info = SlamInfo(*(z[f"info.{name}"] for name in SlamInfo._fields))
             progress = RunProgress(int(z["steps_done"]), int(z["num_steps"]), state, info)
     except (KeyError, zipfile.BadZipFile, EOFError, json.JSONDecodeError) as err:

@@ -109,23 +109,3 @@ def resample_if_needed(
     ancestors = jnp.where(do, drawn, jnp.arange(n, dtype=jnp.int32))
     new_log_weights = jnp.where(do, jnp.full_like(normalized, -jnp.log(n)), normalized)
     return ancestors, new_log_weights, do
-
-
-def keep_survivors_in_place(ancestors: Int[Array, "N"]) -> Int[Array, "N"]:
-    """Reorder resampled ancestor indices so that every surviving particle keeps its slot.
-
-    Returns a permutation of ``ancestors`` (the same multiset: an equally valid resampling)
-    in which ``out[j] == j`` whenever particle j was drawn at least once; the extra copies
-    fill the slots of the particles that were not drawn. Copying state with it
-    (``state[i] = state[out[i]]`` for ``out[i] != i``) is then safe in place, because no
-    slot that is overwritten is ever a source: only the maps of dead particles are written.
-    """
-    n = ancestors.shape[0]
-    counts = jnp.bincount(ancestors, length=n)
-    alive = counts > 0
-    extras = jnp.maximum(counts - 1, 0)
-    # The m-th extra copy (in particle order) is of particle extra_source[m].
-    extra_source = jnp.searchsorted(jnp.cumsum(extras), jnp.arange(n), side="right")
-    dead_rank = jnp.cumsum(~alive) - 1
-    filler = extra_source[jnp.clip(dead_rank, 0, n - 1)]
-    return jnp.where(alive, jnp.arange(n), jnp.minimum(filler, n - 1)).astype(jnp.int32)

@@ -129,7 +129,7 @@ class MatchedGaussian(NamedTuple):
     """The match succeeded (score >= ``scan_match.min_score``, finite weight)."""
 
 
-def matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain,
+def matched_gaussian(pose, field, inputs, sensor, params, config, fit_gain,
                      start_key=None) -> MatchedGaussian:
     """Scan-match z_t from the odometry prediction and fit a Gaussian on the 27-pose stencil.
 
@@ -149,11 +149,11 @@ def matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain,
     if start_key is not None:
         start_std = motion.noise_std(inputs.motion, params.motion) * sm.start_noise
         predicted = compose(pose, inputs.motion + jax.random.normal(start_key, (3,), pose.dtype) * start_std)
-    result = match(spec, grid_map.hit_dist2, predicted, inputs.ranges, sensor, params.likelihood,
+    result = match(spec, field, predicted, inputs.ranges, sensor, params.likelihood,
                    sm.linear_step, sm.angular_step, config.match_iterations, config.match_lookup)
     candidates, offsets, spacing = stencil_poses(result.pose, sm)
     untempered = params.likelihood._replace(gain=jnp.float32(1.0))
-    raw_log_lik = endpoint_log_likelihoods(spec, grid_map.hit_dist2, candidates, inputs.ranges, sensor, untempered,
+    raw_log_lik = endpoint_log_likelihoods(spec, field, candidates, inputs.ranges, sensor, untempered,
                                            config.likelihood_lookup)
     log_motion = motion.log_density(candidates, pose, inputs.motion, params.motion)
     log_eta = jax.scipy.special.logsumexp(params.likelihood.gain * raw_log_lik + log_motion) + jnp.sum(jnp.log(spacing))

@@ -45,3 +45,53 @@ def build_room_map(num_scans: int = 3):
     for pose in room_path(6)[:num_scans]:
         grid_map, _ = insert(SPEC, grid_map, jnp.asarray(pose), scan_at(pose), SENSOR, params.insertion, 10.0, 4)
     return grid_map
+
+
+ROOM_EXTENT = 20.0
+"""``map_extent`` (m) of configs used with :func:`paged_field` (a virtual grid of 7 x 7 tiles at 5 cm)."""
+
+
+def paged_maps(grid_map, config, num_particles: int = 1, spare_tiles: int = 200):
+    """The dense room map ``grid_map`` (on ``SPEC``) as ``num_particles`` particles' shared paged
+    maps on ``config.grid`` (NumPy; every tile of the virtual grid gets a slot, and
+    ``spare_tiles`` free slots follow): the maps a filter's particles would hold."""
+    from jaxslam.occupancy import FAR
+    from jaxslam.paged_map import PagedMaps, empty
+
+    spec = config.grid
+    t = spec.tile_size
+    row0 = round((SPEC.origin[1] - spec.origin[1]) / spec.resolution)
+    col0 = round((SPEC.origin[0] - spec.origin[0]) / spec.resolution)
+    assert spec.resolution == SPEC.resolution and row0 >= 0 and col0 >= 0
+    assert abs(row0 * spec.resolution - (SPEC.origin[1] - spec.origin[1])) < 1e-6  # cells line up
+    ty, tx = spec.num_tiles
+    h, w = SPEC.shape
+
+    def tiles(dense, fill):
+        full = np.full((ty * t, tx * t), fill, dense.dtype)
+        full[row0:row0 + h, col0:col0 + w] = dense
+        return full.reshape(ty, t, tx, t).transpose(0, 2, 1, 3).reshape(ty * tx, t, t)
+
+    used = ty * tx
+    base = empty(spec, num_particles, used + spare_tiles)
+    refcount = np.zeros(used + spare_tiles, np.int32)
+    refcount[:used] = num_particles
+    holders = np.zeros((used + spare_tiles, num_particles), bool)
+    holders[:used] = True
+    free = np.arange(used, used + base.max_new_tiles)
+    free = np.where(free < used + spare_tiles, free, used + spare_tiles).astype(np.int32)
+    return PagedMaps(
+        pages=jnp.asarray(np.broadcast_to(np.arange(used, dtype=np.int32).reshape(ty, tx), (num_particles, ty, tx))),
+        logodds=base.logodds.at[:used].set(tiles(np.asarray(grid_map.logodds), 0.0)),
+        hit_dist2=base.hit_dist2.at[:used].set(tiles(np.asarray(grid_map.hit_dist2), FAR)),
+        refcount=jnp.asarray(refcount), holders=jnp.asarray(holders), free_slots=jnp.asarray(free),
+        overflow=base.overflow, peak_request=base.peak_request)
+
+
+def paged_field(grid_map, config):
+    """The dense room map ``grid_map`` (on ``SPEC``) as one particle's paged likelihood field on
+    ``config.grid``: what a proposal reads in a filter."""
+    from jaxslam.paged_map import PagedField
+
+    maps = paged_maps(grid_map, config, 1, spare_tiles=1)
+    return PagedField(maps.pages[0], maps.hit_dist2)

@@ -78,16 +78,12 @@ CASES = [
      _config({"settings": {"linear_update": 1}})),
     ("cfg-not-json", WITH_CFG, ["cannot read config file"], _config("{config: nope")),
     ("cfg-missing-file", [*MAP, "--config", "{out}.json"], ["cannot read config file"], None),
-    ("cfg-grid-string", WITH_CFG, ["config field grid must be", "'100x100'"], _config({"config": {"grid": "100x100"}})),
-    ("cfg-grid-no-resolution", WITH_CFG, ["config field grid", "missing ['resolution']"],
-     _config({"config": {"grid": {"shape": [100, 100], "origin": [0, 0]}}})),
-    ("cfg-grid-bad-shape", WITH_CFG, ["grid.shape must be positive"],
-     _config({"config": {"grid": {"shape": [0, 100], "resolution": 0.05, "origin": [0, 0]}}})),
-    ("cfg-grid-fractional-shape", WITH_CFG, ["grid.shape must be an integer, got 2.5"],
-     _config({"config": {"grid": {"shape": [2.5, 100], "resolution": 0.05, "origin": [0, 0]}}})),
-    ("cfg-nested-params", WITH_CFG, ["unknown parameter", "'motion'"], _config({"params": {"motion": {"srr": 0.1}}})),
-    # --set values.
-    ("set-grid-number", [*MAP, *_sets("grid=100")], ["config field grid must be", "got 100"], None),
+    ("cfg-grid-removed", WITH_CFG, ["grid was removed", "map_extent"],
+     _config({"config": {"grid": {"shape": [100, 100], "resolution": 0.05, "origin": [0, 0]}}})),
+    ("cfg-map-padding-removed", WITH_CFG, ["map_padding was removed", "map_extent"],
+     _config({"config": {"map_padding": 5}})),
+    ("cfg-tile-size", WITH_CFG, ["tile_size must be a power of two", "got 48"], _config({"config": {"tile_size": 48}})),
+    ("set-extent-negative", [*MAP, *_sets("map_extent=-5")], ["map_extent must be > 0", "-5"], None),
     ("set-int-given-float", [*MAP, *_sets("beam_stride=2.9")], ["beam_stride must be a", "integer", "'2.9'"], None),
     ("set-int-given-word", [*MAP, *_sets("num_particles=lots")], ["num_particles", "integer", "'lots'"], None),
     ("set-no-equals", [*MAP, *_sets("linear_update")], ["NAME=VALUE"], None),
@@ -246,15 +242,14 @@ def test_values_that_are_legitimate_are_accepted():
         "beam_stride": "3", "num_particles": np.int64(5), "max_insert_range": 8, "linear_update": "0",
         "resample_threshold": 1.01, "lookahead.resample_threshold": 2.0, "scan_match.min_score": 1.01,
         "motion.srr": 0, "motion.srt": np.float32(0.0), "likelihood.z_hit": 0, "scan_match.start_noise": "0",
-        "grid": {"shape": [10, 20], "resolution": 0.05, "origin": [-1, 2.5]}, "horizon": 0,
+        "map_extent": "100", "resolution": 0.1, "horizon": 0,
     })
     assert config.beam_stride == 3 and type(config.beam_stride) is int
     assert config.num_particles == 5 and type(config.num_particles) is int
     assert config.max_insert_range == 8.0 and type(config.max_insert_range) is float
-    assert config.grid.shape == (10, 20) and config.grid.origin == (-1.0, 2.5)
+    assert config.map_extent == 100.0 and config.grid.num_tiles == (16, 16) and config.grid.origin == (-51.2, -51.2)
     assert settings.linear_update == 0.0
     assert float(params.resample_threshold) == pytest.approx(1.01)
-    assert build_setup({"grid": "null"})[0].grid is None
     with pytest.raises(ConfigError, match="beam_stride must be an integer, got 2.9"):
         build_setup({"beam_stride": 2.9})
 
@@ -385,17 +380,17 @@ def _trap_filter(monkeypatch):
     monkeypatch.setattr(jaxslam.rbpf, "run", trap)
 
 
-def test_the_memory_estimate_counts_maps_insertion_lp_terms_and_xla():
+def test_the_memory_estimate_counts_page_tables_pool_insertion_lp_terms_and_xla():
     from jaxslam.config import SlamConfig
-    from jaxslam.grid import GridSpec
-    from jaxslam.rbpf import estimate_run_bytes
+    from jaxslam.rbpf import estimate_run_bytes, pool_size
 
-    grid = GridSpec((100, 200), 0.05, (0.0, 0.0))
-    need, how = estimate_run_bytes(SlamConfig(num_particles=10, grid=grid), grid, 181)
+    config = SlamConfig(num_particles=10)
+    need, how = estimate_run_bytes(config, 181)
+    capacity, _ = pool_size(config)
     samples = 15 * 20 + 1  # max_insert_range 15 m at 5 cm, one sample a cell
-    assert need == 10 * 100 * 200 * 3 * 3 + 10 * 181 * samples * 40 + 2**30
-    assert how.startswith("10 particles x 100 x 200 cells x 3 bytes x 3 + 10 x 181 beams x 301 samples")
-    lp, how_lp = estimate_run_bytes(SlamConfig(num_particles=10, proposal="lp", num_localizers=50), grid, 181)
+    assert need == 10 * 400 * 400 * 4 * 2 + capacity * 64 * 64 * 3 * 2 + 10 * 181 * samples * 40 + 2**30
+    assert how.startswith(f"10 particles x 400 x 400 tiles x 4 bytes x 2 + {capacity} tiles x 64 x 64 cells")
+    lp, how_lp = estimate_run_bytes(SlamConfig(num_particles=10, proposal="lp", num_localizers=50), 181)
     assert lp == need + 10 * 50 * 91 * 4 * 2 and "50 localizers x 91 beams" in how_lp
 
 
@@ -412,11 +407,20 @@ def test_available_memory_is_read_from_meminfo():
 def test_a_run_too_large_for_the_machine_is_refused_before_the_filter(tmp_path, small_log, capsys, monkeypatch):
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
-    argv = ["map", str(tmp_path / "office.clf"), "--particles", "100000", "--set", "map_padding=200",
+    argv = ["map", str(tmp_path / "office.clf"), "--particles", "100000", "--set", "map_extent=2000",
             "--no-progress", "--out", str(tmp_path / "out")]
     line = _run_refused(argv, ["the run needs about", "100000 particles x", "GB are available", "--particles",
-                               "map_padding"], capsys)
-    assert int(line.split("needs about ")[1].split()[0]) > 10_000  # GB: 100000 x 8000 x 8000 cells
+                               "map_extent"], capsys)
+    assert int(line.split("needs about ")[1].split()[0]) > 300  # GB: 100000 x 625 x 625 tiles x 4 bytes x 2
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_log_leaving_the_map_is_refused_before_the_filter(tmp_path, small_log, capsys, monkeypatch):
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    _trap_filter(monkeypatch)
+    argv = ["map", str(tmp_path / "office.clf"), "--set", "map_extent=2", "--no-progress", "--out",
+            str(tmp_path / "out")]
+    _run_refused(argv, ["beyond the map", "map_extent=2 m", "--set map_extent="], capsys)
     assert not (tmp_path / "out").exists()
 
 
@@ -428,15 +432,13 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
     monkeypatch.setattr(jaxslam.rbpf, "available_memory_bytes", lambda: 8 * 10**9)
     from jaxslam.io import read_log
 
-    config, settings, _ = build_setup({"linear_update": 0.3})
-    grid = jaxslam.rbpf.run_grid(read_log(tmp_path / "office.clf"), config, settings)
-    h, w = grid.shape
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
             "--no-progress", "--out", str(tmp_path / "out")]
-    samples = int(np.ceil(config.max_insert_range / grid.resolution)) + 1
-    need = 30000 * h * w * 9 + 30000 * small_log.num_beams * samples * 40 + 2**30
+    config, _, _ = build_setup({"num_particles": 30000})
+    need, how = jaxslam.rbpf.estimate_run_bytes(config, small_log.num_beams)
+    assert how.startswith("30000 particles x 400 x 400 tiles x 4 bytes x 2")
     expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
-    _run_refused(argv, [f"needs about {expected} GB (30000 particles x {h} x {w} cells x 3 bytes x 3",
+    _run_refused(argv, [f"needs about {expected} GB ({how}",
                         "but 8.0 GB are available"], capsys)
 
 

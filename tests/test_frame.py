@@ -2,7 +2,7 @@
 
 ``rbpf.run`` subtracts the first odometry pose's translation (rounded to a multiple of 64 m) on
 the host in float64 before anything reaches float32, and adds it back to the paths and the
-reported grid. So the simulated office shifted by 5,000 km (a multiple of 64 m) runs bit for
+maps' placement. So the simulated office shifted by 5,000 km (a multiple of 64 m) runs bit for
 bit as the unshifted one, and only the offset separates the outputs.
 """
 
@@ -22,8 +22,8 @@ from jaxslam.outputs import write_slam_outputs
 from jaxslam.sim import office_scenario
 
 SHIFT = 5_000_000.0  # 5,000 km: float32 resolves 0.5 m there
-SETTINGS = RunSettings(linear_update=0.3, angular_update=0.25, map_padding=4.0)
-CONFIG = SlamConfig(num_particles=4, proposal="smp", max_insert_range=10.0, beam_stride=1)
+SETTINGS = RunSettings(linear_update=0.3, angular_update=0.25)
+CONFIG = SlamConfig(num_particles=4, proposal="smp", max_insert_range=10.0, beam_stride=1, map_extent=128.0)
 
 
 def _shifted(log, shift):
@@ -65,7 +65,8 @@ def test_a_log_5000_km_away_maps_as_the_same_log_near_the_origin(runs):
     np.testing.assert_array_equal(np.asarray(far.state.poses), np.asarray(near.state.poses))
     np.testing.assert_array_equal(np.asarray(far.state.log_weights), np.asarray(near.state.log_weights))
     np.testing.assert_array_equal(far.info.proposed_poses, near.info.proposed_poses)
-    np.testing.assert_array_equal(np.asarray(far.state.maps.logodds), np.asarray(near.state.maps.logodds))
+    for far_part, near_part in zip(far.state.maps, near.state.maps):
+        np.testing.assert_array_equal(np.asarray(far_part), np.asarray(near_part))
     # Paths in the world frame: the shift added back in float64 (its ulp at 5,000 km is 1e-9 m).
     back = far.best_path.copy()
     back[:, :2] -= SHIFT
@@ -75,22 +76,14 @@ def test_a_log_5000_km_away_maps_as_the_same_log_near_the_origin(runs):
     np.testing.assert_allclose(traj, near.trajectory, rtol=0, atol=1e-6)
     np.testing.assert_allclose(far.to_world(np.asarray(far.state.poses))[:, :2] - SHIFT,
                                np.asarray(near.state.poses)[:, :2], rtol=0, atol=1e-6)
-    # The reported grid is in the world frame; the step's grid in the local one.
-    assert far.config.grid.shape == near.config.grid.shape
-    np.testing.assert_allclose(np.subtract(far.config.grid.origin, near.config.grid.origin), [SHIFT, SHIFT],
+    # One virtual grid, centred on the local origin; placed in the world by the offset.
+    assert far.config.grid == near.config.grid
+    np.testing.assert_allclose(np.subtract(far.world_grid.origin, near.world_grid.origin), [SHIFT, SHIFT],
                                rtol=0, atol=1e-8)
-    assert far.local_config.grid == near.local_config.grid == near.config.grid
-
-
-def test_a_world_grid_given_far_away_is_shifted_into_the_local_frame(runs):
-    near_log, far_log, near, far = runs
-    given = dataclasses.replace(near.config.grid, origin=(near.config.grid.origin[0] + SHIFT,
-                                                          near.config.grid.origin[1] + SHIFT))
-    result = rbpf.run(jax.random.key(0), far_log, dataclasses.replace(CONFIG, grid=given), default_params(),
-                      SETTINGS, progress=False)
-    assert result.config.grid == given  # reported as given, in the world frame
-    np.testing.assert_array_equal(np.asarray(result.state.poses), np.asarray(near.state.poses))
-    np.testing.assert_array_equal(result.best_path, far.best_path)
+    far_map, _, far_box = far.dense_map()
+    near_map, _, near_box = near.dense_map()
+    np.testing.assert_array_equal(far_map, near_map)
+    np.testing.assert_allclose(np.subtract(far_box.origin, near_box.origin), [SHIFT, SHIFT], rtol=0, atol=1e-8)
 
 
 def test_the_outputs_differ_by_the_offset_only(runs, tmp_path):
@@ -108,7 +101,7 @@ def test_the_outputs_differ_by_the_offset_only(runs, tmp_path):
     far_traj[:, 1:3] -= SHIFT
     np.testing.assert_allclose(far_traj, near_traj, rtol=0, atol=2e-6)  # 9 decimals written
     summary = json.loads((tmp_path / "far" / "summary.json").read_text())
-    assert summary["config"]["grid"]["origin"][0] == pytest.approx(far.config.grid.origin[0], abs=1e-9)
+    assert summary["config"]["map_extent"] == CONFIG.map_extent
 
 
 def test_the_command_line_maps_and_refines_a_far_log_as_a_near_one(office_log, tmp_path):

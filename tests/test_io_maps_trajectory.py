@@ -277,7 +277,7 @@ def test_map_command_writes_the_cropped_map(tmp_path):
     log_path.write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
     assert main(["map", str(log_path), "--particles", "2", "--proposal", "op", "--no-progress",
-                 "--set", "linear_update=0.3", "--set", "max_insert_range=3", "--set", "map_padding=10",
+                 "--set", "linear_update=0.3", "--set", "max_insert_range=3",
                  "--out", str(out)]) == 0
     probability, spec = read_map(out / "map.yaml")
     grid = GridSpec.from_bounds(-10.0, -10.0, 12.0, 10.0, 0.05)  # the odometry's extent padded by 10 m

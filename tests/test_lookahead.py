@@ -19,7 +19,7 @@ from jaxslam.laserlog import LaserLog
 from jaxslam.likelihood_field import endpoint_log_likelihood
 from jaxslam.proposals import lookahead as la
 from jaxslam.proposals.base import StepInputs
-from rooms import SENSOR, SPEC, build_room_map, room_path, scan_at
+from rooms import ROOM_EXTENT, SENSOR, SPEC, build_room_map, paged_field, room_path, scan_at
 
 # ---------------------------------------------------------------------------------------------
 # 1-D linear-Gaussian toy model: x_s = x_{s-1} + u_s + N(0, q^2), z_s = x_s + N(0, r^2).
@@ -243,8 +243,19 @@ def room_map():
     return build_room_map(3)
 
 
+FIELD_GRID = SlamConfig(map_extent=ROOM_EXTENT).grid
+"""The virtual grid of ``lp_config`` (and of :func:`room_field`)."""
+
+
+@pytest.fixture(scope="module")
+def room_field(room_map):
+    """The room map as a filter's particle reads it (a paged field on ``FIELD_GRID``)."""
+    return paged_field(room_map, SlamConfig(map_extent=ROOM_EXTENT))
+
+
 def lp_config(num_localizers=40, horizon=3, **kw):
-    return SlamConfig(num_particles=4, proposal="lp", grid=SPEC, num_localizers=num_localizers, horizon=horizon,
+    return SlamConfig(num_particles=4, proposal="lp", map_extent=ROOM_EXTENT, num_localizers=num_localizers,
+                      horizon=horizon,
                       max_insert_range=10.0, **kw)
 
 
@@ -284,27 +295,27 @@ def test_fused_likelihood_equals_direct_formula(room_map):
 
 
 @pytest.mark.parametrize("alpha,localizer_gain", [(0.0, 1.0), (0.3, 1.0), (0.3, 0.1), (0.3, 0.5)])
-def test_grid_lp_k0_increment_is_log_mean_likelihood(room_map, alpha, localizer_gain):
+def test_grid_lp_k0_increment_is_log_mean_likelihood(room_field, alpha, localizer_gain):
     """k = 0: the localizers weigh with ``lookahead.localizer_gain``; the SLAM increment is the
     log mean of their likelihoods scaled by likelihood.gain / localizer_gain (the evidence
     tempered to the filter's gain; equal gains leave it as is)."""
     params = default_params(**{"lookahead.alpha": alpha, "lookahead.localizer_gain": localizer_gain})
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0)
-    ex = _jit_explain(jax.random.key(0), pose, room_map, inputs, SENSOR, params, config)
+    ex = _jit_explain(jax.random.key(0), pose, room_field, inputs, SENSOR, params, config)
     localizer_lik = params.likelihood._replace(gain=jnp.float32(localizer_gain))
-    g = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
+    g = jax.vmap(lambda p: endpoint_log_likelihood(FIELD_GRID, room_field, p, inputs.ranges, SENSOR,
                                                    localizer_lik))(ex.poses_t)
     np.testing.assert_allclose(ex.log_lik_t, g, rtol=1e-5, atol=1e-3)
     scale = float(params.likelihood.gain) / localizer_gain
     expected = scale * (jax.scipy.special.logsumexp(g) - math.log(config.num_localizers))
     np.testing.assert_allclose(ex.draw.log_weight_increment, expected, rtol=1e-5, atol=1e-3)
-    out = _jit_propose(jax.random.key(0), pose, room_map, inputs, SENSOR, params, config)
+    out = _jit_propose(jax.random.key(0), pose, room_field, inputs, SENSOR, params, config)
     np.testing.assert_allclose(out.pose, ex.poses_t[ex.draw.index], atol=1e-5)
     assert not bool(out.fallback)
 
 
-def test_scan_matched_localizers_are_importance_weighted(room_map):
+def test_scan_matched_localizers_are_importance_weighted(room_field):
     """lookahead_initial="scan_match": the time-t localizers come from the matched Gaussian q and
     g_i = log p(z | x_i) + log p(x_i | x_{t-1}, u) - log q(x_i); with k = 0 the increment is
     log mean exp(g), an importance-sampling estimate of the same p(z_t | x_{t-1}, m, u_t)."""
@@ -317,11 +328,11 @@ def test_scan_matched_localizers_are_importance_weighted(room_map):
                                "scan_match.start_noise": 0.0})
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0, lookahead_initial="scan_match")
-    ex = _jit_explain(jax.random.key(3), pose, room_map, inputs, SENSOR, params, config)
-    gaussian = matched_gaussian(pose, room_map, inputs, SENSOR, params, config,
+    ex = _jit_explain(jax.random.key(3), pose, room_field, inputs, SENSOR, params, config)
+    gaussian = matched_gaussian(pose, room_field, inputs, SENSOR, params, config,
                                            fit_gain=params.lookahead.localizer_gain)
     assert bool(gaussian.matched)
-    lik = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
+    lik = jax.vmap(lambda p: endpoint_log_likelihood(FIELD_GRID, room_field, p, inputs.ranges, SENSOR,
                                                      params.likelihood))(ex.poses_t)
     g = (lik + motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
          - gaussian_log_density(ex.poses_t, gaussian))
@@ -330,11 +341,11 @@ def test_scan_matched_localizers_are_importance_weighted(room_map):
     np.testing.assert_allclose(ex.draw.log_weight_increment, expected, rtol=1e-5, atol=1e-3)
     # The cloud sits around the match, not spread like the motion model's.
     spread_sm = float(np.std(np.asarray(ex.poses_t)[:, :2]))
-    odo = _jit_explain(jax.random.key(3), pose, room_map, inputs, SENSOR, params, lp_config(horizon=0))
+    odo = _jit_explain(jax.random.key(3), pose, room_field, inputs, SENSOR, params, lp_config(horizon=0))
     assert spread_sm < float(np.std(np.asarray(odo.poses_t)[:, :2]))
 
 
-def test_grid_lp_shrinking_horizon_equals_smaller_k(room_map):
+def test_grid_lp_shrinking_horizon_equals_smaller_k(room_field):
     params = default_params()
     short_inputs, pose = room_inputs(2)
     long_inputs, _ = room_inputs(4, valid=[True, True, False, False])
@@ -342,21 +353,18 @@ def test_grid_lp_shrinking_horizon_equals_smaller_k(room_map):
     long_inputs = long_inputs._replace(
         future_motions=long_inputs.future_motions.at[2:].set(3.0),
         future_ranges=long_inputs.future_ranges.at[2:].set(0.7))
-    short = _jit_propose(jax.random.key(5), pose, room_map, short_inputs, SENSOR, params, lp_config(horizon=2))
-    long = _jit_propose(jax.random.key(5), pose, room_map, long_inputs, SENSOR, params, lp_config(horizon=4))
+    short = _jit_propose(jax.random.key(5), pose, room_field, short_inputs, SENSOR, params, lp_config(horizon=2))
+    long = _jit_propose(jax.random.key(5), pose, room_field, long_inputs, SENSOR, params, lp_config(horizon=4))
     np.testing.assert_allclose(long.pose, short.pose, atol=1e-6)
     np.testing.assert_allclose(long.log_weight_increment, short.log_weight_increment, atol=1e-5)
 
 
-def test_lp_step_compiles_once_per_config(room_map):
+def test_lp_step_compiles_once_per_config():
     config = lp_config()
     n = config.num_particles
-    state = rbpf.SlamState(
-        poses=jnp.broadcast_to(jnp.asarray(room_path(6)[1]), (n, 3)),
-        log_weights=jnp.full((n,), -math.log(n), jnp.float32),
-        maps=jax.tree.map(lambda a: jnp.broadcast_to(a, (n,) + a.shape), room_map),
-        step=jnp.int32(0),
-    )
+    state = rbpf.init(jax.random.key(0), scan_at(room_path(6)[1]), SENSOR, default_params(), config,
+                      jnp.asarray(room_path(6)[1]))
+    assert state.poses.shape == (n, 3)
     inputs, _ = room_inputs(config.horizon)
 
     @jax.jit(static_argnames="config")
@@ -387,7 +395,7 @@ def test_lp_run_end_to_end_on_a_simulated_log():
     ranges = np.stack([np.asarray(scan_at(p)) for p in truth])
     log = LaserLog(np.arange(14, dtype=np.float64), np.stack(odom), ranges, SENSOR, truth, "room")
     config = SlamConfig(num_particles=4, proposal="lp", num_localizers=24, horizon=2, max_insert_range=10.0)
-    settings = RunSettings(linear_update=0.0, angular_update=0.0, map_padding=2.5)
+    settings = RunSettings(linear_update=0.0, angular_update=0.0)
     params = default_params(**{"lookahead.alpha": 0.1})
     result = rbpf.run(jax.random.key(0), log, config, params, settings, chunk_size=8, progress=False)
     assert result.best_path.shape == (14, 3)
@@ -437,7 +445,7 @@ def test_revisiting_accuracy_weights_particle_errors():
 
 
 @pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
-def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
+def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_field):
     """scan_match.start_noise: 0 starts the hill climber at the prediction (bit for bit the same
     as no start key); 1 starts each particle from its own odometry draw, as GMapping does: the
     matches differ (the particles keep diversity) but stay on the same optimum."""
@@ -448,7 +456,7 @@ def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
 
     def fit(noise, key=None):
         params = default_params(**{"scan_match.start_noise": noise})
-        return matched_gaussian(pose, room_map, inputs, SENSOR, params, config, 1.0, start_key=key)
+        return matched_gaussian(pose, room_field, inputs, SENSOR, params, config, 1.0, start_key=key)
 
     reference = fit(0.0)
     np.testing.assert_array_equal(fit(0.0, jax.random.key(1)).mean, reference.mean)
@@ -459,7 +467,7 @@ def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_map):
 
 
 @pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
-def test_scan_matched_localizers_estimate_the_same_evidence(room_map):
+def test_scan_matched_localizers_estimate_the_same_evidence(room_field):
     """LP-SM: localizers drawn from the matched Gaussian q and weighted g_i = log p(z_t | x_i)
     + log p(x_i | x_{t-1}, u_t) - log q(x_i). With k = 0 the increment is exactly log mean
     exp(g) with g so defined, and exp(increment) estimates the same p(z_t | x_{t-1}, m, u_t) as the
@@ -473,10 +481,10 @@ def test_scan_matched_localizers_estimate_the_same_evidence(room_map):
                                "scan_match.start_noise": 0.0})
     config = lp_config(horizon=0, lookahead_initial="scan_match")
     # The importance weights, recomputed by hand.
-    ex = _jit_explain(jax.random.key(5), pose, room_map, inputs, SENSOR, params, config)
-    gaussian = matched_gaussian(pose, room_map, inputs, SENSOR, params, config, fit_gain=0.1)
+    ex = _jit_explain(jax.random.key(5), pose, room_field, inputs, SENSOR, params, config)
+    gaussian = matched_gaussian(pose, room_field, inputs, SENSOR, params, config, fit_gain=0.1)
     assert bool(gaussian.matched)
-    lik = jax.vmap(lambda p: endpoint_log_likelihood(SPEC, room_map.hit_dist2, p, inputs.ranges, SENSOR,
+    lik = jax.vmap(lambda p: endpoint_log_likelihood(FIELD_GRID, room_field, p, inputs.ranges, SENSOR,
                                                      params.likelihood))(ex.poses_t)
     log_motion = motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
     np.testing.assert_allclose(ex.log_lik_t, lik + log_motion - gaussian_log_density(ex.poses_t, gaussian),
@@ -489,7 +497,7 @@ def test_scan_matched_localizers_estimate_the_same_evidence(room_map):
     stats = {}
     for initial in ("odometry", "scan_match"):
         cfg = lp_config(horizon=0, lookahead_initial=initial)
-        draws = jax.vmap(lambda k, c=cfg: _jit_explain(k, pose, room_map, inputs, SENSOR, params, c)
+        draws = jax.vmap(lambda k, c=cfg: _jit_explain(k, pose, room_field, inputs, SENSOR, params, c)
                          .draw.log_weight_increment)(keys)
         values = np.exp(np.asarray(draws, np.float64))
         stats[initial] = (values.mean(), values.std(ddof=1) / math.sqrt(values.size))

@@ -67,10 +67,22 @@ def test_paged_maps_equal_dense_maps_through_insertions_and_resamplings(seed):
             dense = jax.tree.map(lambda a: a[ancestors], dense)
         assert not bool(maps.overflow)
         assert_same(maps, dense)
-    # The reference counts are the page tables' references.
+    # The reference counts, holders and free list are the page tables'.
+    assert_counts_match_page_tables(maps)
+
+
+def assert_counts_match_page_tables(maps):
     pages = np.asarray(maps.pages)
-    counts = np.bincount(pages[pages >= 0], minlength=maps.refcount.shape[0])
+    counts = np.bincount(pages[pages >= 0], minlength=maps.capacity)
     np.testing.assert_array_equal(np.asarray(maps.refcount), counts)
+    holders = np.zeros((maps.capacity, pages.shape[0]), bool)
+    for n in range(pages.shape[0]):
+        holders[pages[n][pages[n] >= 0], n] = True
+    np.testing.assert_array_equal(np.asarray(maps.holders), holders)
+    free = np.flatnonzero(counts == 0)[:maps.max_new_tiles]
+    expected = np.full(maps.max_new_tiles, maps.capacity)
+    expected[:free.size] = free
+    np.testing.assert_array_equal(np.asarray(maps.free_slots), expected)
 
 
 def test_writing_a_shared_tile_copies_it_for_the_writer_only():
@@ -81,39 +93,45 @@ def test_writing_a_shared_tile_copies_it_for_the_writer_only():
     maps = resample_paged(maps, jnp.array([0, 0], jnp.int32))  # both particles now share particle 0's map
     shared = int(P.tiles_in_use(maps))
     np.testing.assert_array_equal(np.asarray(maps.pages[0]), np.asarray(maps.pages[1]))
+    assert_counts_match_page_tables(maps)
     before = dense_view(maps, 0)
-    # Particle 1 alone inserts a scan near particle 0's (its page table with the shared pool,
-    # whose reference counts still count particle 0's references).
-    nearby_pose = poses[0] + jnp.array([0.3, -0.2, 0.5])
-    only_1, _ = insert_paged(SPEC, maps._replace(pages=maps.pages[1:]), nearby_pose[None], ranges, SENSOR, INSERTION,
-                             MAX_RANGE, RADIUS)
-    merged = only_1._replace(pages=jnp.concatenate([maps.pages[:1], only_1.pages]))
-    after = dense_view(merged, 0)
+    # Particle 1 alone inserts a scan near particle 0's; particle 0's scan lies outside the grid.
+    nearby = jnp.stack([jnp.array([100.0, 100.0, 0.0]), poses[0] + jnp.array([0.3, -0.2, 0.5])])
+    after_insert, outside = insert_paged(SPEC, maps, nearby, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+    assert int(outside[0]) > 0
+    after = dense_view(after_insert, 0)
     np.testing.assert_array_equal(after[0], before[0])  # particle 0's map did not change
     np.testing.assert_array_equal(after[1], before[1])
-    changed = np.asarray(merged.pages[1]) != np.asarray(merged.pages[0])
+    changed = np.asarray(after_insert.pages[1]) != np.asarray(after_insert.pages[0])
     assert changed.any()  # particle 1 got copies of the tiles it wrote
-    assert int(P.tiles_in_use(merged)) > shared
+    assert int(P.tiles_in_use(after_insert)) > shared
+    assert_counts_match_page_tables(after_insert)
 
 
-def test_a_small_pool_overflows_and_a_grown_one_gives_the_same_maps():
+@pytest.mark.parametrize("limit", ["capacity", "max_new_tiles"])
+def test_a_small_pool_overflows_and_a_grown_one_gives_the_same_maps(limit):
     rng = np.random.default_rng(3)
     poses, ranges = random_scan(rng, N)
     big, _ = insert_paged(SPEC, P.empty(SPEC, N, 400), poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
     needed = int(P.tiles_in_use(big))
-    small = P.empty(SPEC, N, needed - 3)
-    state = small
+    assert int(big.peak_request) == needed
+    state = P.empty(SPEC, N, needed - 3) if limit == "capacity" else P.empty(SPEC, N, 400, max_new_tiles=needed - 3)
     attempt, _ = insert_paged(SPEC, state, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
     assert bool(attempt.overflow)
+    # All or nothing: the maps are as they were (and the host can insert again after growing).
+    for name in ("pages", "logodds", "hit_dist2", "refcount", "holders", "free_slots"):
+        np.testing.assert_array_equal(np.asarray(getattr(attempt, name)), np.asarray(getattr(state, name)), name)
+    assert int(attempt.peak_request) == needed
     # The host grows the pool and repeats the step from the state before it.
-    grown = P.grow(state, needed + 10)
+    grown = P.grow(SPEC, state, max(needed + 10, state.capacity), needed + 10)
     again, _ = insert_paged(SPEC, grown, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
     assert not bool(again.overflow)
     for n in range(N):
         for a, b in zip(dense_view(again, n), dense_view(big, n)):
             np.testing.assert_array_equal(a, b)
+    assert_counts_match_page_tables(again)
     with pytest.raises(ValueError, match="capacity"):
-        P.grow(grown, 5)
+        P.grow(SPEC, grown, 5, 5)
 
 
 def test_to_dense_places_the_written_tiles():

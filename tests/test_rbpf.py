@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import rbpf, resampling
+from jaxslam import rbpf
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, config_from_dict, default_params, params_from_dict, params_to_dict
-from jaxslam.grid import GridSpec
 from jaxslam.laserlog import select_updates
 from jaxslam.sim import office_scenario
 
@@ -24,18 +21,17 @@ def office_log():
     return log.subset(np.arange(120))
 
 
-SETTINGS = RunSettings(linear_update=0.3, angular_update=0.25, map_padding=4.0)
+SETTINGS = RunSettings(linear_update=0.3, angular_update=0.25)
 
 
 def small_config(**kw) -> SlamConfig:
-    base = dict(num_particles=8, proposal="smp", max_insert_range=10.0, beam_stride=1)
+    base = dict(num_particles=8, proposal="smp", max_insert_range=10.0, beam_stride=1, map_extent=128.0)
     base.update(kw)
     return SlamConfig(**base)
 
 
 def _prepared(log, config):
     selection = select_updates(log, SETTINGS.linear_update, SETTINGS.angular_update)
-    config = dataclasses.replace(config, grid=rbpf.auto_grid(log, SETTINGS, selection.indices))
     inputs = rbpf.build_inputs(log, selection, config.lookahead_steps)
     return config, selection, inputs
 
@@ -107,7 +103,8 @@ def test_chunking_does_not_change_the_result(office_log):
     a = rbpf.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=7, progress=False)
     b = rbpf.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=64, progress=False)
     np.testing.assert_array_equal(np.asarray(a.state.poses), np.asarray(b.state.poses))
-    np.testing.assert_array_equal(np.asarray(a.state.maps.logodds), np.asarray(b.state.maps.logodds))
+    for name in ("pages", "logodds", "hit_dist2", "refcount"):
+        np.testing.assert_array_equal(np.asarray(getattr(a.state.maps, name)), np.asarray(getattr(b.state.maps, name)))
     np.testing.assert_array_equal(a.best_path, b.best_path)
     assert int(a.state.step) == int(b.state.step) == a.selection.indices.size - 1
 
@@ -122,23 +119,6 @@ def test_same_seed_reproduces_bit_for_bit(office_log):
     assert not np.array_equal(np.asarray(a.info.proposed_poses), np.asarray(c.info.proposed_poses))
 
 
-@pytest.mark.parametrize("seed", range(5))
-def test_keep_survivors_in_place(seed):
-    rng = np.random.default_rng(seed)
-    n = 12
-    log_w = jnp.asarray(np.log(rng.dirichlet(np.full(n, 0.3))), jnp.float32)
-    drawn = resampling.systematic(jax.random.key(seed), log_w, n)
-    reordered = np.asarray(resampling.keep_survivors_in_place(drawn))
-    assert sorted(reordered.tolist()) == sorted(np.asarray(drawn).tolist())  # same multiset
-    survivors = np.unique(np.asarray(drawn))
-    np.testing.assert_array_equal(reordered[survivors], survivors)  # survivors keep their slot
-    # The in-place copy equals a plain gather.
-    tree = {"a": jnp.arange(n * 6.0).reshape(n, 2, 3), "b": jnp.arange(n, dtype=jnp.int32)}
-    copied = jax.jit(rbpf.copy_particles_in_place)(tree, jnp.asarray(reordered))
-    np.testing.assert_array_equal(np.asarray(copied["a"]), np.asarray(tree["a"])[reordered])
-    np.testing.assert_array_equal(np.asarray(copied["b"]), reordered)
-
-
 def test_backtrack_path_follows_ancestry():
     proposed = np.arange(3 * 2 * 3, dtype=np.float32).reshape(3, 2, 3)  # 3 steps, 2 particles
     ancestors = np.array([[0, 0], [1, 1], [0, 1]])
@@ -151,15 +131,20 @@ def test_backtrack_path_follows_ancestry():
 
 
 def test_map_leaving_the_grid_is_counted_not_wrapped(office_log):
+    """Beams that reach past the virtual grid are dropped and reported; odometry that leaves it
+    is refused before any work, naming the setting to change."""
     log = office_log.subset(np.arange(30))
-    tiny = GridSpec((60, 60), 0.05, (float(log.odometry[0, 0]) - 1.5, float(log.odometry[0, 1]) - 1.5))
-    result = rbpf.run(jax.random.key(0), log, small_config(proposal="op", grid=tiny), default_params(), SETTINGS,
-                      progress=False)
+    reach = float(np.abs(log.odometry[:, :2] - rbpf.local_frame_offset(log)).max())
+    config = small_config(proposal="op", map_extent=2 * reach + 0.5, tile_size=16)
+    result = rbpf.run(jax.random.key(0), log, config, default_params(), SETTINGS, progress=False)
     assert result.info.outside_samples.sum() > 0
     from jaxslam.outputs import run_warnings
 
     warnings = run_warnings(result)
-    assert any("outside the map" in w and "first at step" in w for w in warnings)
+    assert any("outside the map" in w and "first at step" in w and "map_extent" in w for w in warnings)
+    with pytest.raises(ConfigError, match="map_extent"):
+        rbpf.run(jax.random.key(0), log, small_config(proposal="op", map_extent=reach, tile_size=16),
+                 default_params(), SETTINGS, progress=False)
 
 
 def test_config_and_params_validation():
@@ -194,14 +179,48 @@ def test_config_and_params_validation():
 
 def test_run_settings_do_not_recompile_the_step(office_log):
     """The update rule is host-side: two runs that process different scans with the same config
-    (grid given) share one compiled chunk."""
+    share one compiled chunk."""
     log = office_log.subset(np.arange(40))
-    grid = GridSpec.from_bounds(float(log.odometry[:, 0].min()) - 4.0, float(log.odometry[:, 1].min()) - 4.0,
-                                float(log.odometry[:, 0].max()) + 4.0, float(log.odometry[:, 1].max()) + 4.0, 0.05)
-    config = small_config(proposal="op", num_particles=3, grid=grid)
+    config = small_config(proposal="op", num_particles=3)
     rbpf.run(jax.random.key(0), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
     compiled = rbpf._run_chunk._cache_size()
-    other = RunSettings(linear_update=0.6, angular_update=0.5, map_padding=9.0)
+    other = RunSettings(linear_update=0.6, angular_update=0.5)
     result = rbpf.run(jax.random.key(0), log, config, default_params(), other, chunk_size=8, progress=False)
     assert rbpf._run_chunk._cache_size() == compiled
     assert result.settings == other
+
+
+def test_a_pool_too_small_grows_and_gives_the_big_pools_result(office_log):
+    """The pool's size is never part of the result: a run that starts with a tiny pool grows it
+    (each growth repeats a chunk, reported) and ends with the same particles and maps."""
+    log = office_log.subset(np.arange(50))
+    config = small_config(num_particles=4)
+    big = rbpf.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+    small = rbpf.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False,
+                     initial_pool=(24, 8))
+    assert big.map_pool["growths"] == [] and len(small.map_pool["growths"]) >= 2
+    assert small.map_pool["capacity"] > 24 and small.map_pool["tiles_in_use"] == big.map_pool["tiles_in_use"]
+    np.testing.assert_array_equal(np.asarray(small.state.poses), np.asarray(big.state.poses))
+    np.testing.assert_array_equal(small.best_path, big.best_path)
+    for particle in range(config.num_particles):
+        (small_lo, small_field, small_grid), (big_lo, big_field, big_grid) = (
+            small.dense_map(particle), big.dense_map(particle))
+        np.testing.assert_array_equal(small_lo, big_lo)
+        np.testing.assert_array_equal(small_field, big_field)
+        assert small_grid == big_grid
+
+
+def test_a_second_log_compiles_nothing_new(office_log, caplog):
+    """The maps' virtual grid is fixed (centred on each log's own start), so another log with the
+    same laser and config runs on the compiled chunk of the first: JAX logs no compilation."""
+    import logging
+
+    config = small_config(proposal="op", num_particles=3)
+    rbpf.run(jax.random.key(0), office_log.subset(np.arange(40)), config, default_params(), SETTINGS,
+             chunk_size=8, progress=False)
+    other = office_scenario(jax.random.key(11)).log.subset(np.arange(55))  # another office log
+    with jax.log_compiles(), caplog.at_level(logging.WARNING, logger="jax"):
+        caplog.clear()
+        rbpf.run(jax.random.key(1), other, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+    compiled = [r.getMessage() for r in caplog.records if "_run_chunk" in r.getMessage()]
+    assert compiled == [], compiled

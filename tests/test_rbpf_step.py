@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from rooms import SENSOR, SPEC, build_room_map, room_path, scan_at
+from rooms import ROOM_EXTENT, SENSOR, build_room_map, paged_field, paged_maps, room_path, scan_at
 
 from jaxslam import rbpf
 from jaxslam.config import SlamConfig, default_params
@@ -18,10 +18,11 @@ from jaxslam.geometry import between
 from jaxslam.laserlog import LaserLog, select_updates
 from jaxslam.proposals import odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
+from jaxslam.paged_map import PagedField, fields
 from jaxslam.scan_matching import matched_gaussian
 
 N = 6
-CONFIG = SlamConfig(num_particles=N, proposal="smp", grid=SPEC, max_insert_range=10.0, beam_stride=1)
+CONFIG = SlamConfig(num_particles=N, proposal="smp", map_extent=ROOM_EXTENT, max_insert_range=10.0, beam_stride=1)
 # Jitted once here (op by op, a scan-matching step takes tens of seconds).
 smp_propose = jax.jit(scan_match.propose, static_argnames="config")
 op_propose = jax.jit(odometry.propose, static_argnames="config")
@@ -34,6 +35,11 @@ def room_map():
     return build_room_map(3)
 
 
+@pytest.fixture(scope="module")
+def room_field(room_map):
+    return paged_field(room_map, CONFIG)
+
+
 def _inputs():
     path = room_path(6)
     return StepInputs(motion=jnp.asarray(between(path[1], path[2])), ranges=scan_at(path[2]),
@@ -42,16 +48,16 @@ def _inputs():
 
 
 def _state(room_map, pose, log_weights):
-    maps = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,) + a.shape), room_map)
+    maps = paged_maps(room_map, CONFIG, N)
     return rbpf.SlamState(jnp.broadcast_to(pose, (N, 3)), jnp.asarray(log_weights, jnp.float32), maps, jnp.int32(0))
 
 
-def test_smp_weight_is_the_matched_gaussians_and_its_draw_comes_from_it(room_map):
+def test_smp_weight_is_the_matched_gaussians_and_its_draw_comes_from_it(room_field):
     inputs, pose = _inputs()
     params = default_params()
     key = jax.random.key(4)
-    out = smp_propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
-    gaussian = fitted_gaussian(pose, room_map, inputs, SENSOR, params, CONFIG, fit_gain=1.0,
+    out = smp_propose(key, pose, room_field, inputs, SENSOR, params, CONFIG)
+    gaussian = fitted_gaussian(pose, room_field, inputs, SENSOR, params, CONFIG, fit_gain=1.0,
                                start_key=jax.random.fold_in(key, 1))
     assert not bool(out.fallback) and bool(gaussian.matched)
     np.testing.assert_allclose(float(out.log_weight_increment), float(gaussian.log_eta), rtol=1e-6)
@@ -60,15 +66,15 @@ def test_smp_weight_is_the_matched_gaussians_and_its_draw_comes_from_it(room_map
     assert np.all(np.abs(residual) < 5.0)
 
 
-def test_smp_falls_back_to_the_odometry_proposal_when_the_match_fails(room_map):
+def test_smp_falls_back_to_the_odometry_proposal_when_the_match_fails(room_field):
     """A match score under scan_match.min_score (here impossible: 1.01) uses the OP's draw and
     weight, with the OP's own key (the second half of the SMP's split)."""
     inputs, pose = _inputs()
     params = default_params(**{"scan_match.min_score": 1.01})
     key = jax.random.key(4)
-    out = smp_propose(key, pose, room_map, inputs, SENSOR, params, CONFIG)
+    out = smp_propose(key, pose, room_field, inputs, SENSOR, params, CONFIG)
     _, key_fallback = jax.random.split(key)
-    op = op_propose(key_fallback, pose, room_map, inputs, SENSOR, params, CONFIG)
+    op = op_propose(key_fallback, pose, room_field, inputs, SENSOR, params, CONFIG)
     assert bool(out.fallback)
     np.testing.assert_array_equal(np.asarray(out.pose), np.asarray(op.pose))
     assert float(out.log_weight_increment) == float(op.log_weight_increment)
@@ -86,8 +92,8 @@ def test_step_weight_recursion_matches_the_proposals_increments(room_map):
     key = jax.random.key(7)
     new_state, info = step(key, state, inputs, SENSOR, params, CONFIG)
     key_prop, _ = jax.random.split(key)
-    out = jax.vmap(smp_propose, in_axes=(0, 0, 0, None, None, None, None))(
-        jax.random.split(key_prop, N), state.poses, state.maps, inputs, SENSOR, params, CONFIG)
+    out = jax.vmap(smp_propose, in_axes=(0, 0, PagedField(0, None), None, None, None, None))(
+        jax.random.split(key_prop, N), state.poses, fields(state.maps), inputs, SENSOR, params, CONFIG)
     unnormalised = np.asarray(state.log_weights, np.float64) + np.asarray(out.log_weight_increment, np.float64)
     log_evidence = np.logaddexp.reduce(unnormalised)
     np.testing.assert_allclose(np.asarray(new_state.log_weights), unnormalised - log_evidence, atol=1e-5)

@@ -34,7 +34,7 @@ def test_refinement_pulls_perturbed_poses_back_to_the_truth(mapped_office):
     truth = np.asarray(scenario.true_poses, np.float64)
     rng = np.random.default_rng(0)
     noisy = truth + rng.normal(0.0, [0.04, 0.04, 0.02], truth.shape)
-    config = SlamConfig(grid=SPEC, beam_stride=1)
+    config = SlamConfig(beam_stride=1)
     refined = refine_trajectory(SPEC, grid_map.hit_dist2, noisy, scenario.log.ranges, scenario.log.sensor,
                                 params, config, chunk_size=16)  # several chunks, the last one padded
     assert refined.poses.shape == truth.shape and refined.matched.mean() > 0.9
@@ -52,7 +52,7 @@ def test_failed_matches_keep_the_input_pose(mapped_office):
     poses = np.asarray(scenario.true_poses[:5], np.float64) + np.array([0.03, -0.02, 0.01])
     no_returns = np.full((5, scenario.log.num_beams), scenario.log.sensor.range_max, np.float32)
     refined = refine_trajectory(SPEC, grid_map.hit_dist2, poses, no_returns, scenario.log.sensor, params,
-                                SlamConfig(grid=SPEC))
+                                SlamConfig())
     assert not refined.matched.any()
     np.testing.assert_array_equal(refined.poses, poses)
 
@@ -61,7 +61,7 @@ def test_mismatched_shapes_are_named(mapped_office):
     scenario, grid_map, params = mapped_office
     with pytest.raises(ValueError, match="do not match"):
         refine_trajectory(SPEC, grid_map.hit_dist2, np.zeros((4, 3)), scenario.log.ranges[:5],
-                          scenario.log.sensor, params, SlamConfig(grid=SPEC))
+                          scenario.log.sensor, params, SlamConfig())
 
 
 # --- fusing the matches with the odometry --------------------------------------------------
@@ -159,7 +159,7 @@ def test_refinement_with_odometry_stays_on_the_truth(mapped_office):
     truth = np.asarray(scenario.true_poses, np.float64)
     rng = np.random.default_rng(0)
     noisy = truth + rng.normal(0.0, [0.04, 0.04, 0.02], truth.shape)
-    config = SlamConfig(grid=SPEC, beam_stride=1)
+    config = SlamConfig(beam_stride=1)
     params = params._replace(motion=scenario.metadata["motion_params"])  # the odometry's true noise
     refined = refine_trajectory(SPEC, grid_map.hit_dist2, noisy, scenario.log.ranges, scenario.log.sensor,
                                 params, config, odometry=scenario.log.odometry, chunk_size=16)
@@ -183,7 +183,7 @@ def test_bilinear_matcher_lands_closer_than_a_cell(mapped_office):
     noisy = truth + np.random.default_rng(0).normal(0.0, [0.04, 0.04, 0.02], truth.shape)
     errors = {}
     for lookup in ("nearest", "bilinear"):
-        config = SlamConfig(grid=SPEC, beam_stride=1, match_lookup=lookup)
+        config = SlamConfig(beam_stride=1, match_lookup=lookup)
         refined = refine_trajectory(SPEC, grid_map.hit_dist2, noisy, scenario.log.ranges, scenario.log.sensor,
                                     params, config)
         errors[lookup] = np.median(np.hypot(*(refined.matched_poses[:, :2] - truth[:, :2]).T))

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from rooms import SENSOR, SPEC, build_room_map, room_path, scan_at
+from rooms import ROOM_EXTENT, SENSOR, SPEC, build_room_map, paged_field, room_path, scan_at
 
 from jaxslam import motion
 from jaxslam.config import SlamConfig, default_params
@@ -21,7 +21,7 @@ from jaxslam.proposals.base import StepInputs
 from jaxslam.scan_matching import match, match_score, matched_gaussian
 
 PARAMS = default_params()
-CONFIG = SlamConfig(num_particles=4, proposal="smp", grid=SPEC, max_insert_range=10.0)
+CONFIG = SlamConfig(num_particles=4, proposal="smp", map_extent=ROOM_EXTENT, max_insert_range=10.0)
 
 
 @pytest.fixture(scope="module")
@@ -29,9 +29,10 @@ def room_map():
     return build_room_map(3)
 
 
-def _match(room_map, start, ranges, iterations=24, lookup="nearest"):
+def _match(room_map, start, ranges, iterations=24, lookup="nearest", spec=SPEC):
     sm = PARAMS.scan_match
-    return jax.jit(match, static_argnums=(0, 8, 9))(SPEC, room_map.hit_dist2, jnp.asarray(start, jnp.float32),
+    field = room_map.hit_dist2 if spec is SPEC else paged_field(room_map, CONFIG)
+    return jax.jit(match, static_argnums=(0, 8, 9))(spec, field, jnp.asarray(start, jnp.float32),
                                                     ranges, SENSOR, PARAMS.likelihood, sm.linear_step,
                                                     sm.angular_step, iterations, lookup)
 
@@ -92,16 +93,17 @@ def test_matched_gaussian_weight_is_the_stencil_riemann_sum(room_map):
     stencil poses round the match, recomputed in float64; the fitted mean and covariance are the
     softmax-weighted moments of the stencil (untempered fit) plus the floor."""
     inputs, pose = _room_step_inputs()
-    gaussian = matched_gaussian(pose, room_map, inputs, SENSOR, PARAMS, CONFIG, fit_gain=1.0)
+    field = paged_field(room_map, CONFIG)  # as a filter's particle reads its map
+    gaussian = matched_gaussian(pose, field, inputs, SENSOR, PARAMS, CONFIG, fit_gain=1.0)
     assert bool(gaussian.matched)
     sm = PARAMS.scan_match
     spacing = np.array([float(sm.linear_step), float(sm.linear_step), float(sm.angular_step)])
     # The match itself, from the odometry prediction with the config's lookup.
     result = _match(room_map, np.asarray(compose(pose, inputs.motion)), inputs.ranges, CONFIG.match_iterations,
-                    CONFIG.match_lookup)
+                    CONFIG.match_lookup, spec=CONFIG.grid)
     offsets = np.array(list(itertools.product((-1, 0, 1), repeat=3)), np.float64) * spacing
     candidates = np.asarray(result.pose, np.float64) + offsets
-    raw = np.array([float(endpoint_log_likelihood(SPEC, room_map.hit_dist2, jnp.asarray(c, jnp.float32),
+    raw = np.array([float(endpoint_log_likelihood(CONFIG.grid, field, jnp.asarray(c, jnp.float32),
                                                   inputs.ranges, SENSOR, PARAMS.likelihood._replace(gain=1.0)))
                     for c in candidates])
     log_motion = np.asarray(motion.log_density(jnp.asarray(candidates, jnp.float32), pose, inputs.motion,

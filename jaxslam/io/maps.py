@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxslam.binary_bayes import probability
 from jaxslam.grid import GridSpec
 from jaxslam.laserlog import LogError
 
@@ -88,7 +87,9 @@ def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65,
         ``{"pgm": Path, "yaml": Path, "png": Path}``. The YAML's ``image`` is the PGM's file
         name (relative to the YAML); the PNG shows the same image (same orientation).
     """
-    grid = np.asarray(logodds, dtype=np.float64)
+    grid = np.asarray(logodds)
+    if not np.issubdtype(grid.dtype, np.floating):
+        grid = grid.astype(np.float64)
     if grid.shape != spec.shape:
         raise ValueError(f"logodds has shape {grid.shape}, the spec says {spec.shape}")
     if not np.all(np.isfinite(grid)):
@@ -97,10 +98,13 @@ def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65,
         raise ValueError(
             f"need 0 <= free_thresh < 0.5 < occupied_thresh <= 1, got {free_thresh}, {occupied_thresh}"
         )
-    p_occupied = probability(grid)
+    # p > threshold <=> log-odds > logit(threshold): compared in the map's own dtype, cell by
+    # cell, so a large map (Killian's, 10^8 cells) costs no float64 copies.
     pixels = np.full(grid.shape, UNKNOWN_PIXEL, dtype=np.uint8)
-    pixels[p_occupied > occupied_thresh] = OCCUPIED_PIXEL
-    pixels[p_occupied < free_thresh] = FREE_PIXEL
+    if occupied_thresh < 1.0:
+        pixels[grid > _logit(occupied_thresh)] = OCCUPIED_PIXEL
+    if free_thresh > 0.0:
+        pixels[grid < _logit(free_thresh)] = FREE_PIXEL
     image = np.ascontiguousarray(pixels[::-1])  # image row 0 is the top: the largest y
 
     stem = Path(os.fspath(path_stem))
@@ -121,10 +125,16 @@ def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65,
         f"free_thresh: {float(free_thresh)!r}\n",
         encoding="utf-8",
     )
-    import matplotlib.image
+    from PIL import Image  # matplotlib's own dependency; writes the 8-bit image as it is
 
-    matplotlib.image.imsave(paths["png"], image, cmap="gray", vmin=0, vmax=255)
+    Image.fromarray(image).save(paths["png"])  # uint8 (H, W): 8-bit grey
     return paths
+
+
+def _logit(p: float) -> np.float64:
+    # np.float64, not float: NumPy then compares a float16 map in float64 (a Python float would be
+    # rounded to float16 first), as the probabilities were compared before.
+    return np.log(np.float64(p)) - np.log1p(-np.float64(p))
 
 
 def read_map(yaml_path) -> tuple[np.ndarray, GridSpec]:

@@ -329,7 +329,7 @@ class LookaheadExplanation(NamedTuple):
     """The localizer cloud at every horizon step."""
 
 
-def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, config, return_history):
+def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, return_history):
     spec = config.grid
     num = config.num_localizers
     # The localizer filter weighs with its own gain (default 1: the scan's own sharpness, as the
@@ -337,7 +337,7 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
     localizer_gain = params.lookahead.localizer_gain
     evidence_scale = params.likelihood.gain / localizer_gain
     localizer_lik = params.likelihood._replace(gain=localizer_gain)
-    move, log_likelihood = _grid_model(params.motion, spec, grid_map.hit_dist2, sensor, localizer_lik,
+    move, log_likelihood = _grid_model(params.motion, spec, field, sensor, localizer_lik,
                                        config.likelihood_lookup)
     start = jnp.broadcast_to(pose, (num, 3))
     key_initial = jax.random.fold_in(key, _TAG_INITIAL)
@@ -350,7 +350,7 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
         # estimates the same p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
         # The matcher's random start (scan_match.start_noise) only picks which q is used; drawn
         # independently of the samples, it leaves the estimate unbiased.
-        gaussian = matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain=localizer_gain,
+        gaussian = matched_gaussian(pose, field, inputs, sensor, params, config, fit_gain=localizer_gain,
                                     start_key=jax.random.fold_in(key_initial, 2))
         matched_t = sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
         log_motion = motion.log_density(matched_t, pose, inputs.motion, params.motion)
@@ -370,7 +370,7 @@ def _propose_impl(key, pose, grid_map, inputs: StepInputs, sensor, params, confi
 def propose(
     key: PRNGKeyArray,
     pose: Float[Array, "3"],
-    grid_map,
+    field,
     inputs: StepInputs,
     sensor: SensorSpec,
     params,
@@ -380,17 +380,17 @@ def propose(
 
     Uses ``config.num_localizers`` (L), the K = ``config.horizon`` future scans in
     ``inputs`` (invalid ones skipped), ``params.lookahead.alpha`` and
-    ``params.lookahead.resample_threshold``; the map stays ``grid_map`` (m_{t-1})
+    ``params.lookahead.resample_threshold``; the map stays ``field`` (m_{t-1}'s likelihood field)
     over the whole horizon. ``fallback`` is True when no time-t sample kept weight.
     """
-    poses_t, _, draw, _, _ = _propose_impl(key, pose, grid_map, inputs, sensor, params, config, False)
+    poses_t, _, draw, _, _ = _propose_impl(key, pose, field, inputs, sensor, params, config, False)
     return ProposalOutput(poses_t[draw.index], draw.log_weight_increment, draw.fallback)
 
 
 def explain(
     key: PRNGKeyArray,
     pose: Float[Array, "3"],
-    grid_map,
+    field,
     inputs: StepInputs,
     sensor: SensorSpec,
     params,
@@ -399,5 +399,5 @@ def explain(
     """The same draw as :func:`propose` (same key, same result) with its intermediate
     quantities: the time-t samples, the horizon's clouds, V, p and J."""
     poses_t, log_lik_t, draw, horizon, history = _propose_impl(
-        key, pose, grid_map, inputs, sensor, params, config, True)
+        key, pose, field, inputs, sensor, params, config, True)
     return LookaheadExplanation(poses_t, log_lik_t, draw, horizon, history)

@@ -9,9 +9,9 @@ from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.likelihood_field import endpoint_log_likelihood
 
 
-def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
+def propose(key, pose, field, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
     """Draw from the motion model; the increment is the endpoint log-likelihood of z_t there."""
     new_pose = motion.sample(key, pose, inputs.motion, params.motion)
-    log_lik = endpoint_log_likelihood(config.grid, grid_map.hit_dist2, new_pose, inputs.ranges, sensor,
+    log_lik = endpoint_log_likelihood(config.grid, field, new_pose, inputs.ranges, sensor,
                                       params.likelihood, config.likelihood_lookup)
     return ProposalOutput(new_pose, log_lik, jnp.bool_(False))

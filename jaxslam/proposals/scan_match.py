@@ -22,14 +22,14 @@ from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.scan_matching import matched_gaussian, sample_gaussian
 
 
-def propose(key, pose, grid_map, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
+def propose(key, pose, field, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
     """One SMP draw for one particle (see the module docstring)."""
     key_sample, key_fallback = jax.random.split(key)
     key_start = jax.random.fold_in(key, 1)  # a separate stream: the other two draws stay as they were
-    gaussian = matched_gaussian(pose, grid_map, inputs, sensor, params, config, fit_gain=1.0, start_key=key_start)
+    gaussian = matched_gaussian(pose, field, inputs, sensor, params, config, fit_gain=1.0, start_key=key_start)
     smp_pose = sample_gaussian(key_sample, gaussian)
     fallback = ~gaussian.matched
-    op = odometry.propose(key_fallback, pose, grid_map, inputs, sensor, params, config)
+    op = odometry.propose(key_fallback, pose, field, inputs, sensor, params, config)
     return ProposalOutput(
         jnp.where(fallback, op.pose, smp_pose),
         jnp.where(fallback, op.log_weight_increment, gaussian.log_eta),
