@@ -29,7 +29,7 @@ from jaxtyping import Array, Bool, Float, UInt8
 from jaxslam.grid import GridSpec, cell_clip_bound, flat_index, world_to_cell
 from jaxslam.laser import SensorSpec, beam_endpoints
 from jaxslam.occupancy import FAR
-from jaxslam.paged_map import PagedField, PagedGridSpec, cell_values
+from jaxslam.paged_map import PagedField, PagedGridSpec, cell_values, computed_once
 
 FIELD_LOOKUPS = ("nearest", "bilinear")
 """How an endpoint reads the likelihood field (see the module docstring)."""
@@ -104,6 +104,8 @@ def endpoint_log_likelihoods(
         # convex combination where a far-away point was clipped (all four cells are FAR there).
         frac = jnp.clip(xy - lower, 0.0, 1.0)
         base = jnp.stack([lower[..., 1], lower[..., 0]], axis=-1).astype(jnp.int32)  # (row, col)
+        if isinstance(hit_dist2, PagedField):  # eight gathers read them: compute them once
+            base, frac = computed_once(lambda b, f: (b, f), base, frac)
         per_beam = 0.0
         for d_row, d_col in ((0, 0), (0, 1), (1, 0), (1, 1)):
             term = table[field_at_cells(spec, hit_dist2, base + jnp.array([d_row, d_col])).astype(jnp.int32)]
@@ -138,7 +140,10 @@ def endpoint_cell_distances(
     """The stored squared cell distance at every beam's endpoint for L robot poses (``FAR``
     outside the map or the field radius), and which beams count (a return within range)."""
     ends, valid = beam_endpoints(poses, ranges, sensor)
-    return field_at_cells(spec, hit_dist2, world_to_cell(_cells_of(spec), ends)), valid
+    cells = world_to_cell(_cells_of(spec), ends)
+    if isinstance(hit_dist2, PagedField):  # two gathers read the cells: compute them once
+        cells = computed_once(lambda c: c, cells)
+    return field_at_cells(spec, hit_dist2, cells), valid
 
 
 def per_beam_log_likelihood_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:

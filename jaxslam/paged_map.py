@@ -211,20 +211,23 @@ def _window_start(spec: PagedGridSpec, pose: Float[Array, "3"], sensor: SensorSp
     return jnp.clip(start, 0, high).astype(jnp.int32)
 
 
-def _computed_once(fn, first, *rest):
+def computed_once(fn, first, *rest):
     """``fn(first, *rest)``, computed into memory once, before anything reads it.
 
-    XLA fuses a cheap-looking elementwise producer into every consumer. For the beam samples
-    (a chain of a few dozen operations per sample, 10^6 samples) that means recomputing the
-    chain inside each gather and scatter that reads it, in scalar loops: measured, it doubled
-    the insertion's time on Intel. The outputs of a loop whose trip count XLA cannot know are
-    always materialised, by vectorised code, once; so ``fn`` runs in a ``while_loop`` whose trip
-    count depends on the data (1, or 2 if ``first``'s first element is NaN: the same result).
+    XLA fuses a cheap-looking elementwise producer into every consumer. For the beam samples of
+    an insertion (a few dozen operations per sample, 10^6 samples) and the beam endpoints of a
+    likelihood (read by a page-table gather and then a pool gather, four times with bilinear
+    reads) that means recomputing them inside each gather and scatter that reads them, in
+    scalar loops: measured, it doubled the insertion's time on Intel and cost the scan matcher
+    about 5 ms a step. The outputs of a loop whose trip count XLA cannot know are always
+    materialised, by vectorised code, once; so ``fn`` runs in a ``while_loop`` whose trip count
+    depends on the data (1, or 2 if ``first``'s first element is +inf: the same result).
     ``jax.lax.optimization_barrier`` does not do this: XLA's CPU pipeline drops it before fusion.
     """
     shapes = jax.eval_shape(fn, first, *rest)
     init = jax.tree.map(lambda shape: jnp.zeros(shape.shape, shape.dtype), shapes)
-    trips = 1 + jnp.isnan(first.reshape(-1)[0]).astype(jnp.int32)
+    probe = first.reshape(-1)[0].astype(jnp.float32)
+    trips = 1 + (probe > jnp.finfo(jnp.float32).max).astype(jnp.int32)
     _, out = jax.lax.while_loop(lambda c: c[0] < trips, lambda c: (c[0] + 1, fn(first, *rest)),
                                 (jnp.int32(0), init))
     return out
@@ -315,7 +318,7 @@ def insert_scans(
                 outside)
 
     (free_tile, free_within), (end_tile, end_within), (splat_tile, splat_within), touched, starts, outside = (
-        _computed_once(jax.vmap(where_cells_go), poses, jnp.arange(n, dtype=jnp.int32)))
+        computed_once(jax.vmap(where_cells_go), poses, jnp.arange(n, dtype=jnp.int32)))
     slots = jax.vmap(lambda p, s: jax.lax.dynamic_slice(p, (s[0], s[1]), (k, k)))(maps.pages, starts).reshape(-1)
     owned = (slots >= 0) & (maps.refcount[jnp.maximum(slots, 0)] == 1)
     need = touched.reshape(-1) & ~owned  # (N K K,)
