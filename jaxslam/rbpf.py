@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 from typing import NamedTuple
 
@@ -399,6 +400,13 @@ def _local_log(log: LaserLog, offset: np.ndarray) -> LaserLog:  # offset subtrac
     return dataclasses.replace(log, odometry=odometry, ground_truth=ground_truth)
 
 
+def _larger_pool(maps: PagedMaps) -> tuple[int, int]:
+    """``(capacity, max_new_tiles)`` after ``maps``' pool overflowed: at least twice the old, and
+    room for the tiles in use plus two of the largest requests seen."""
+    max_new = max(2 * maps.max_new_tiles, 2 * int(maps.peak_request))
+    return max(2 * maps.capacity, int(paged_map.tiles_in_use(maps)) + 2 * max_new), max_new
+
+
 def check_extent(log: LaserLog, config: SlamConfig) -> None:
     """Refuse (``ConfigError``) a log whose odometry leaves the virtual grid, before any work:
     the message names the setting to change (``map_extent``). Beams that reach past the grid's
@@ -533,7 +541,7 @@ def run(
                          pool_capacity=int(capacity), max_new_tiles=int(max_new_tiles))
             if not bool(state.maps.overflow):
                 break
-            capacity, max_new_tiles = 2 * int(capacity), 2 * int(max_new_tiles)
+            capacity, max_new_tiles = _larger_pool(state.maps)
     else:
         done = int(resume.steps_done)
         if resume.num_steps != num_steps or not 0 <= done <= num_steps or (done % chunk_size and done != num_steps):
@@ -566,15 +574,11 @@ def run(
             # it, grow the pool from what s asked for, and take the chunk's rest again from s.
             s = int(stalled[0])
             done_infos.append(jax.tree.map(lambda a: a[:s], info))
-            maps = state.maps
-            max_new = max(2 * maps.max_new_tiles, 2 * int(maps.peak_request))
-            capacity = max(2 * maps.capacity, int(paged_map.tiles_in_use(maps)) + 2 * max_new)
-            state = state._replace(maps=paged_map.grow(config.grid, maps, capacity, max_new))
+            capacity, max_new = _larger_pool(state.maps)
+            state = state._replace(maps=paged_map.grow(config.grid, state.maps, capacity, max_new))
             offset += s
             growths.append({"step": start + offset, "capacity": capacity, "max_new_tiles": max_new})
             if progress:
-                import sys
-
                 print(f"jaxslam: the map pool grew to {capacity} tiles ({max_new} new per step) at step "
                       f"{start + offset}; that step and the chunk's rest are taken again (one recompile)",
                       file=sys.stderr)
