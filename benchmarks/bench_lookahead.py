@@ -31,7 +31,6 @@ import numpy as np
 from jaxslam import paged_map, rbpf
 from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between, compose
-from jaxslam.paged_map import PagedField
 from jaxslam.proposals import lookahead
 from jaxslam.proposals.base import StepInputs
 from jaxslam.laser import make_sensor, uniform_beams
@@ -126,7 +125,7 @@ _step = jax.jit(rbpf.step, static_argnames="config")
 
 
 def _propose_all(keys, poses, maps, inputs, sensor, params, config):
-    return jax.vmap(lookahead.propose, in_axes=(0, 0, PagedField(0, None), None, None, None, None))(
+    return jax.vmap(lookahead.propose, in_axes=(0, 0, paged_map.FIELD_AXES, None, None, None, None))(
         keys, poses, paged_map.fields(maps), inputs, sensor, params, config)
 
 

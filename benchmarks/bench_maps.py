@@ -4,8 +4,9 @@ Sections (each merges its figures into ``--out``, a JSON file):
 
 * ``intel``: ``jaxslam map`` on Intel, SMP, 30 particles, seed 1: peak resident memory and
   wall time, and the same command on the log's first 50 scans (the map's *marginal* memory is
-  the difference). With ``--previous DIR`` (a checkout of an earlier commit, e.g. a second git
-  worktree) the same two commands run there too, in the same session, one after the other.
+  the difference). With ``--previous DIR [DIR ...]`` (checkouts of earlier commits, e.g. git
+  worktrees) the same two commands run there too, in the same session, one after the other;
+  the ratios are against the first.
 * ``killian``: the whole MIT Killian log, SMP, 30 particles: peak memory, real-time factor.
 * ``sweep``: Intel's first ``--max-scans`` scans at N = ``--particles``: peak memory, time per
   processed scan (compile excluded), and the bytes each extra particle costs (a least-squares
@@ -67,7 +68,9 @@ def run_map(log: Path, particles: int, *, max_scans: int | None = None, repo: Pa
 def section_intel(args) -> dict:
     log = args.data / "intel.sort.bag"
     out = {}
-    for name, repo in [("this", REPO)] + ([("previous", args.previous.resolve())] if args.previous else []):
+    previous = [("previous", p.resolve()) if i == 0 else (f"previous_{p.name}", p.resolve())
+                for i, p in enumerate(args.previous or [])]
+    for name, repo in [("this", REPO)] + previous:
         full = run_map(log, 30, repo=repo)
         first = run_map(log, 30, repo=repo, max_scans=50)
         out[name] = {"full": full, "first_50_scans": first, "marginal_mb": full["peak_mb"] - first["peak_mb"]}
@@ -116,12 +119,12 @@ def section_vmap(args) -> dict:
     selection = select_updates(local, settings.linear_update, settings.angular_update)
     inputs = jax.tree.map(jnp.asarray, rbpf.build_inputs(local, selection, config.lookahead_steps))
     steps = selection.indices.size - 1
-    capacity, max_new = rbpf.pool_size(config)
-    capacity *= 4  # room for the whole run: no growth inside the timed calls
+    pool = rbpf.pool_size(config)
+    pool = pool._replace(capacity=4 * pool.capacity)  # room for the whole run: no growth inside the timed calls
 
     def one_run(key):
         state = rbpf.init(key, jnp.asarray(local.ranges[0]), local.sensor, params, config,
-                          jnp.asarray(local.odometry[0], jnp.float32), pool_capacity=capacity, max_new_tiles=max_new)
+                          jnp.asarray(local.odometry[0], jnp.float32), pool=pool)
         keys = jax.random.split(key, steps)
         state, info = jax.lax.scan(lambda s, x: rbpf.step(x[0], s, x[1], local.sensor, params, config), state,
                                    (keys, inputs))
@@ -154,7 +157,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sections", nargs="+", choices=sorted(SECTIONS))
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="folder of the logs")
-    ap.add_argument("--previous", type=Path, help="a checkout of an earlier commit to compare with (intel)")
+    ap.add_argument("--previous", type=Path, nargs="+", help="checkouts of earlier commits to compare with (intel)")
     ap.add_argument("--particles", type=int, nargs="+", default=[30, 100, 300, 1000])
     ap.add_argument("--max-scans", type=int, default=3000, help="sweep: scans of Intel to use")
     ap.add_argument("--seeds", type=int, default=8)

@@ -211,8 +211,10 @@ def _check_disk(log, config, settings, out, checkpoints: bool) -> None:
     # The map covers about the odometry's extent plus the beams' reach (outputs are cropped to it).
     span = np.ptp(log.odometry[:, :2], axis=0) + 2 * config.max_insert_range
     map_cells = int(math.ceil(span[0] / config.resolution) * math.ceil(span[1] / config.resolution))
-    ty, tx = config.grid.num_tiles
-    state_bytes = 4 * config.num_particles * ty * tx + 3 * pool_size(config)[0] * config.tile_size**2
+    dy, dx = config.grid.num_blocks
+    pools = pool_size(config)
+    state_bytes = (4 * (config.num_particles * dy * dx + pools.block_capacity * config.grid.block_size**2)
+                   + 3 * pools.capacity * config.tile_size**2)
     need = expected_output_bytes(map_cells, log.num_scans, state_bytes if checkpoints else 0)
     try:
         check_free_space(out, need)

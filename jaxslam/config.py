@@ -57,8 +57,8 @@ class SlamConfig:
     map_extent: float = 1280.0
     """Side (m) of the square virtual grid the maps live on, centred on the log's first pose
     (rounded; ``rbpf.run``'s local frame). Memory grows with the area mapped, not with this:
-    a particle's map holds only the tiles it wrote (:mod:`jaxslam.paged_map`); its page table
-    costs 4 bytes per tile of the extent (0.64 MB at the default 1.28 km and 64-cell tiles)."""
+    a particle's map holds only the tiles it wrote (:mod:`jaxslam.paged_map`); its directory
+    costs 4 bytes per 16 x 16 tiles of the extent (2.5 KB at the default 1.28 km and 64-cell tiles)."""
     tile_size: int = 64
     """Cells per side of a map tile: the unit particles share and copy on write."""
     max_insert_range: float = 15.0

@@ -104,7 +104,7 @@ def endpoint_log_likelihoods(
         # convex combination where a far-away point was clipped (all four cells are FAR there).
         frac = jnp.clip(xy - lower, 0.0, 1.0)
         base = jnp.stack([lower[..., 1], lower[..., 0]], axis=-1).astype(jnp.int32)  # (row, col)
-        if isinstance(hit_dist2, PagedField):  # eight gathers read them: compute them once
+        if isinstance(hit_dist2, PagedField):  # twelve gathers read them: compute them once
             base, frac = computed_once(lambda b, f: (b, f), base, frac)
         per_beam = 0.0
         for d_row, d_col in ((0, 0), (0, 1), (1, 0), (1, 1)):
@@ -126,7 +126,7 @@ def field_at_cells(spec: GridSpec | PagedGridSpec, hit_dist2: UInt8[Array, "H W"
     field on a :class:`~jaxslam.grid.GridSpec`, or one particle's :class:`~jaxslam.paged_map.PagedField`
     on a :class:`~jaxslam.paged_map.PagedGridSpec` (unwritten tiles read ``FAR``)."""
     if isinstance(hit_dist2, PagedField):
-        return cell_values(spec, hit_dist2.pages, hit_dist2.pool, cells, FAR)
+        return cell_values(spec, hit_dist2, cells, FAR)
     return hit_dist2.reshape(-1).at[flat_index(spec, cells)].get(mode="fill", fill_value=FAR)
 
 
@@ -141,7 +141,7 @@ def endpoint_cell_distances(
     outside the map or the field radius), and which beams count (a return within range)."""
     ends, valid = beam_endpoints(poses, ranges, sensor)
     cells = world_to_cell(_cells_of(spec), ends)
-    if isinstance(hit_dist2, PagedField):  # two gathers read the cells: compute them once
+    if isinstance(hit_dist2, PagedField):  # three gathers read the cells: compute them once
         cells = computed_once(lambda c: c, cells)
     return field_at_cells(spec, hit_dist2, cells), valid
 

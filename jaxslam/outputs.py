@@ -65,8 +65,8 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         "log_evidence": float(np.sum(info.log_evidence)),
         "map_pool": dict(result.map_pool),
         "warnings": list(getattr(log, "warnings", ())) + run_warnings(result)
-        + [f"the map pool grew to {g['capacity']} tiles at step {g['step']} (that chunk was repeated and "
-           "recompiled)" for g in result.map_pool.get("growths", ())],
+        + [f"the map pools grew to {g['capacity']} tiles and {g['block_capacity']} blocks at step {g['step']} "
+           "(that chunk was repeated and recompiled)" for g in result.map_pool.get("growths", ())],
         "log_notes": list(getattr(log, "notes", ())),
     }
 
@@ -246,7 +246,7 @@ def expected_output_bytes(map_cells: int, num_scans: int, checkpoint_bytes: int 
     """A generous estimate of the bytes a ``jaxslam map`` run writes: the map as PGM and PNG (at
     most 2 bytes a cell of the mapped area), the trajectories (about 80 bytes a scan, twice with
     ``--refine``), the figure and summary (a few MB), and ``checkpoint_bytes`` for a checkpoint
-    (``--checkpoint-every``: the particles' page tables and the maps' pool)."""
+    (``--checkpoint-every``: the particles' directories and the maps' pools)."""
     return 2 * map_cells + 2 * 80 * num_scans + 5_000_000 + checkpoint_bytes
 
 

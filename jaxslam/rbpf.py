@@ -5,8 +5,8 @@ draws every particle's next pose from the configured proposal (odometry,
 scan matching or look-ahead; all see the map m_{t-1}), updates its weight,
 inserts the scan into its map at the new pose, and resamples when the ESS
 falls below ``resample_threshold * N``. The maps are paged (:mod:`jaxslam.paged_map`):
-tiles in one pool shared by all particles, so resampling copies page tables, and an
-insertion copies only the shared tiles it writes.
+tiles in one pool and blocks of page table in another, shared by all particles, so resampling
+copies small directories, and an insertion copies only the shared blocks and tiles it writes.
 
 ``init`` / ``step`` are pure and jittable (``config`` static); ``run`` drives
 a whole :class:`~jaxslam.laserlog.LaserLog`: update selection in NumPy (the host-side
@@ -35,7 +35,7 @@ from jaxslam import paged_map
 from jaxslam.grid import GridSpec, in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.laserlog import LaserLog, UpdateSelection, select_updates
-from jaxslam.paged_map import PagedField, PagedGridSpec, PagedMaps
+from jaxslam.paged_map import PagedGridSpec, PagedMaps, PoolSize
 from jaxslam.proposals import lookahead, odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 
@@ -48,7 +48,7 @@ class SlamState(NamedTuple):
     log_weights: Float[Array, "N"]
     """Normalised log-weights (logsumexp = 0)."""
     maps: PagedMaps
-    """Every particle's map: page tables (N, TY, TX) into one shared pool of tiles."""
+    """Every particle's map: directories (N, DY, DX) of shared blocks of page table into one pool of tiles."""
     step: Int[Array, ""]
     """Number of steps taken since ``init``."""
 
@@ -97,19 +97,22 @@ def _proposal_fn(kind: str):
     return lookahead.propose
 
 
-def pool_size(config: SlamConfig) -> tuple[int, int]:
-    """The map pool a run starts with: ``(capacity, max_new_tiles)`` in tiles (see
-    :class:`~jaxslam.paged_map.PagedMaps`). An insertion copies or creates up to about 20 tiles per
-    particle (64-cell tiles, 15 m beams; more after a resampling, fewer when the particles own
-    their tiles); the pool starts with room for that many and a few steps of growth, and ``run``
-    grows it when a step needs more (one recompile each time, reported)."""
-    k = config.grid.window_tiles(config.max_insert_range, config.field_radius)
+def pool_size(config: SlamConfig) -> PoolSize:
+    """The maps' pools a run starts with (see :class:`~jaxslam.paged_map.PagedMaps`). An insertion
+    copies or creates up to about 20 tiles per particle (64-cell tiles, 15 m beams; more after a
+    resampling, fewer when the particles own their tiles) and up to 4 blocks; the pools start
+    with room for that many and a few steps of growth, and ``run`` grows them when a step needs
+    more (one recompile each time, reported)."""
+    spec = config.grid
+    k = spec.window_tiles(config.max_insert_range, config.field_radius)
+    kb = spec.window_blocks(k)
     n = config.num_particles
     max_new_tiles = n * min(k * k, 24) + k * k
-    return 4 * max_new_tiles + 256, max_new_tiles
+    max_new_blocks = n * kb * kb + kb * kb
+    return PoolSize(4 * max_new_tiles + 256, max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)
 
 
-@jax.jit(static_argnames=("config", "pool_capacity", "max_new_tiles"))
+@jax.jit(static_argnames=("config", "pool"))
 def init(
     key: PRNGKeyArray,
     first_ranges: Float[Array, "B"],
@@ -118,22 +121,19 @@ def init(
     config: SlamConfig,
     initial_pose: Float[Array, "3"] | None = None,
     *,
-    pool_capacity: int | None = None,
-    max_new_tiles: int | None = None,
+    pool: PoolSize | None = None,
 ) -> SlamState:
     """All particles at ``initial_pose`` (default the origin) sharing one map, the first scan's.
 
     ``key`` is unused (the start is deterministic) but kept first for a uniform API.
     ``initial_pose`` must be given inside ``jax.jit`` callers that trace it; None means the origin.
-    ``pool_capacity`` and ``max_new_tiles`` (static) size the maps' pool; None: :func:`pool_size`.
+    ``pool`` (static) sizes the maps' pools; None: :func:`pool_size`.
     """
     spec = config.grid
     n = config.num_particles
-    default_capacity, default_new = pool_size(config)
-    capacity = default_capacity if pool_capacity is None else pool_capacity
-    new_tiles = default_new if max_new_tiles is None else max_new_tiles
+    pool = pool_size(config) if pool is None else PoolSize(*pool)
     pose = jnp.zeros(3, jnp.float32) if initial_pose is None else jnp.asarray(initial_pose, jnp.float32)
-    one, _ = paged_map.insert_scans(spec, paged_map.empty(spec, 1, capacity, new_tiles), pose[None],
+    one, _ = paged_map.insert_scans(spec, paged_map.empty(spec, 1, *pool), pose[None],
                                     jnp.asarray(first_ranges, jnp.float32), sensor, params.insertion,
                                     config.max_insert_range, config.field_radius)
     return SlamState(
@@ -165,14 +165,16 @@ def step(
     _, lik_future = subsample_beams(sensor, inputs.future_ranges, config.beam_stride)
     lik_inputs = inputs._replace(ranges=lik_ranges, future_ranges=lik_future)
     propose = _proposal_fn(config.proposal)
-    out: ProposalOutput = jax.vmap(propose, in_axes=(0, 0, PagedField(0, None), None, None, None, None))(
+    out: ProposalOutput = jax.vmap(propose, in_axes=(0, 0, paged_map.FIELD_AXES, None, None, None, None))(
         jax.random.split(key_prop, n), state.poses, paged_map.fields(state.maps), lik_inputs, lik_sensor, params,
         config)
 
     update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
                                                    params.resample_threshold, config.resampler)
+    # Only the particles the resampling keeps insert the scan: the others' maps are dropped next.
+    survivors = jnp.zeros((n,), bool).at[update.ancestors].set(True)
     maps, outside = paged_map.insert_scans(spec, state.maps, out.pose, inputs.ranges, sensor, params.insertion,
-                                           config.max_insert_range, config.field_radius)
+                                           config.max_insert_range, config.field_radius, survivors)
     # An insertion that did not fit wrote nothing: the step is not taken (retried after growth).
     stalled = maps.overflow
     ancestors = jnp.where(stalled, jnp.arange(n, dtype=update.ancestors.dtype), update.ancestors)
@@ -232,10 +234,10 @@ class SlamResult(NamedTuple):
     and ``info`` are in that frame; ``best_path`` and ``trajectory`` are in the log's (world)
     frame. ``to_world`` converts."""
     map_pool: dict
-    """The maps' pool: ``capacity`` and ``max_new_tiles`` at the end, ``tiles_in_use`` and
-    ``peak_request`` (the most new tiles one step asked for), ``bytes`` (the pool and the page
-    tables) and ``growths``: one entry per growth (``step``, the new ``capacity`` and
-    ``max_new_tiles``), each a repeated chunk and a recompile."""
+    """The maps' pools: their sizes at the end (the fields of :class:`~jaxslam.paged_map.PoolSize`),
+    ``tiles_in_use`` and ``blocks_in_use``, ``peak_request`` and ``peak_block_request`` (the most
+    new tiles and blocks one step asked for), ``bytes`` (pools and directories) and ``growths``:
+    one entry per growth (``step`` and the new sizes), each a repeated chunk and a recompile."""
 
     @property
     def best_particle(self) -> int:
@@ -400,11 +402,15 @@ def _local_log(log: LaserLog, offset: np.ndarray) -> LaserLog:  # offset subtrac
     return dataclasses.replace(log, odometry=odometry, ground_truth=ground_truth)
 
 
-def _larger_pool(maps: PagedMaps) -> tuple[int, int]:
-    """``(capacity, max_new_tiles)`` after ``maps``' pool overflowed: at least twice the old, and
-    room for the tiles in use plus two of the largest requests seen."""
-    max_new = max(2 * maps.max_new_tiles, 2 * int(maps.peak_request))
-    return max(2 * maps.capacity, int(paged_map.tiles_in_use(maps)) + 2 * max_new), max_new
+def _larger_pool(maps: PagedMaps) -> PoolSize:
+    """The pools' sizes after ``maps``' pools overflowed: each at least twice the old, and room for
+    what is in use plus two of the largest requests seen."""
+    old = maps.pool_size
+    max_new = max(2 * old.max_new_tiles, 2 * int(maps.peak_request))
+    max_new_blocks = max(2 * old.max_new_blocks, 2 * int(maps.peak_block_request))
+    return PoolSize(max(2 * old.capacity, int(paged_map.tiles_in_use(maps)) + 2 * max_new), max_new,
+                    max(2 * old.block_capacity, int(paged_map.blocks_in_use(maps)) + 2 * max_new_blocks),
+                    max_new_blocks)
 
 
 def check_extent(log: LaserLog, config: SlamConfig) -> None:
@@ -421,32 +427,33 @@ def check_extent(log: LaserLog, config: SlamConfig) -> None:
         raise ConfigError(f"the log's odometry reaches {reach:.1f} m from its start, beyond the map: the virtual grid "
                           f"spans +-{half:.1f} m (map_extent={config.map_extent:g} m); set --set "
                           f"map_extent={math.ceil(need / 64) * 64} or more (memory grows with the area mapped, the "
-                          f"page tables with the extent)")
+                          f"directories with the extent)")
 
 
 def estimate_run_bytes(config: SlamConfig, num_beams: int) -> tuple[int, str]:
     """A rough estimate of the memory (bytes) a ``run`` with ``config`` needs at its start, and how
     it was reckoned (for a refusal message).
 
-    The page tables (N x TY x TX int32, twice: a chunk's input is kept to repeat it when the pool
-    overflows, and resampling gathers them), the pool (capacity x T x T x 3 bytes, twice) as
-    :func:`pool_size` sizes it, and scan insertion, which traces every beam with one sample per
-    cell up to ``max_insert_range``: N x B x S samples of about 40 bytes. The look-ahead proposal
-    adds its N x L x B float32 beam terms (B the beams used in likelihoods, ``num_beams /
+    The tile pool (capacity x T x T x 3 bytes, twice: a chunk's input is kept to repeat it when
+    the pool overflows) and the block pool (B x S x S int32, twice) as :func:`pool_size` sizes them,
+    the directories (N x DY x DX int32, twice), and scan insertion, which traces every beam with one
+    sample per cell up to ``max_insert_range``: N x B x S samples of about 40 bytes. The look-ahead
+    proposal adds its N x L x B float32 beam terms (B the beams used in likelihoods, ``num_beams /
     beam_stride``), twice; about 1 GB is added for XLA (compiled code, buffers) and the host.
-    The pool grows with the area mapped (it is reported in ``summary.json``).
+    The pools grow with the area mapped (they are reported in ``summary.json``).
     """
     n = config.num_particles
-    ty, tx = config.grid.num_tiles
-    t = config.tile_size
-    capacity, _ = pool_size(config)
-    pages = n * ty * tx * 4 * 2
-    pool = capacity * t * t * 3 * 2
+    dy, dx = config.grid.num_blocks
+    t, s = config.tile_size, config.grid.block_size
+    pool_sizes = pool_size(config)
+    tables = (n * dy * dx + pool_sizes.block_capacity * s * s) * 4 * 2
+    pool = pool_sizes.capacity * t * t * 3 * 2
     samples = int(math.ceil(config.max_insert_range / config.resolution)) + 1
     insertion = n * num_beams * samples * 40
-    how = (f"{n} particles x {ty} x {tx} tiles x 4 bytes x 2 + {capacity} tiles x {t} x {t} cells x 3 bytes x 2 + "
+    how = (f"({n} particles x {dy} x {dx} blocks + {pool_sizes.block_capacity} blocks x {s} x {s} tiles) x 4 bytes "
+           f"x 2 + {pool_sizes.capacity} tiles x {t} x {t} cells x 3 bytes x 2 + "
            f"{n} x {num_beams} beams x {samples} samples x 40 bytes")
-    total = pages + pool + insertion + 2**30
+    total = tables + pool + insertion + 2**30
     if config.proposal == "lp":
         beams = -(-num_beams // config.beam_stride)
         lp = n * config.num_localizers * beams * 4 * 2
@@ -535,29 +542,28 @@ def run(
     done = 0
     prior_info = None
     if resume is None:
-        capacity, max_new_tiles = pool_size(config) if initial_pool is None else initial_pool
+        pool = pool_size(config) if initial_pool is None else PoolSize(*(int(v) for v in initial_pool))
         while True:  # the first scan alone may not fit a pool given too small
-            state = init(key_init, jnp.asarray(log.ranges[0]), sensor, params, config, initial_pose,
-                         pool_capacity=int(capacity), max_new_tiles=int(max_new_tiles))
+            state = init(key_init, jnp.asarray(log.ranges[0]), sensor, params, config, initial_pose, pool=pool)
             if not bool(state.maps.overflow):
                 break
-            capacity, max_new_tiles = _larger_pool(state.maps)
+            pool = _larger_pool(state.maps)
     else:
         done = int(resume.steps_done)
         if resume.num_steps != num_steps or not 0 <= done <= num_steps or (done % chunk_size and done != num_steps):
             raise ValueError(f"resume: {done} of {resume.num_steps} steps done does not fit this run "
                              f"({num_steps} steps, chunks of {chunk_size})")
-        expected = (config.num_particles,) + config.grid.num_tiles
-        if np.shape(resume.state.maps.pages) != expected:
-            raise ValueError(f"resume: the saved page tables are {np.shape(resume.state.maps.pages)}, this run's "
-                             f"are {expected} (particles, tiles)")
+        expected = (config.num_particles,) + config.grid.num_blocks
+        if np.shape(resume.state.maps.directory) != expected:
+            raise ValueError(f"resume: the saved map directories are {np.shape(resume.state.maps.directory)}, this "
+                             f"run's are {expected} (particles, blocks)")
         state = jax.tree.map(jnp.asarray, resume.state)
         prior_info = resume.info
         step_keys = step_keys[done:]
         inputs = jax.tree.map(lambda a: a[done:], inputs)
 
-    growths = [] if initial_pool is None or state.maps.capacity == initial_pool[0] else [
-        {"step": 0, "capacity": state.maps.capacity, "max_new_tiles": state.maps.max_new_tiles}]
+    growths = [] if initial_pool is None or state.maps.pool_size == tuple(initial_pool) else [
+        {"step": 0, **state.maps.pool_size._asdict()}]
     chunk_starts = iter(range(done, max(num_steps, 1), chunk_size))
 
     def chunk_fn(state, xs, valid):
@@ -574,12 +580,13 @@ def run(
             # it, grow the pool from what s asked for, and take the chunk's rest again from s.
             s = int(stalled[0])
             done_infos.append(jax.tree.map(lambda a: a[:s], info))
-            capacity, max_new = _larger_pool(state.maps)
-            state = state._replace(maps=paged_map.grow(config.grid, state.maps, capacity, max_new))
+            pool = _larger_pool(state.maps)
+            state = state._replace(maps=paged_map.grow(config.grid, state.maps, pool))
             offset += s
-            growths.append({"step": start + offset, "capacity": capacity, "max_new_tiles": max_new})
+            growths.append({"step": start + offset, **pool._asdict()})
             if progress:
-                print(f"jaxslam: the map pool grew to {capacity} tiles ({max_new} new per step) at step "
+                print(f"jaxslam: the map pools grew to {pool.capacity} tiles ({pool.max_new_tiles} new per step) "
+                      f"and {pool.block_capacity} blocks ({pool.max_new_blocks} new per step) at step "
                       f"{start + offset}; that step and the chunk's rest are taken again (one recompile)",
                       file=sys.stderr)
             keys, chunk_inputs = (jax.tree.map(lambda a: pad_items(a[s:], chunk_size), t) for t in (keys, chunk_inputs))
@@ -621,8 +628,9 @@ def run(
     }
     maps = state.maps
     map_pool = {
-        "capacity": maps.capacity, "max_new_tiles": maps.max_new_tiles,
+        **maps.pool_size._asdict(),
         "tiles_in_use": int(paged_map.tiles_in_use(maps)), "peak_request": int(maps.peak_request),
+        "blocks_in_use": int(paged_map.blocks_in_use(maps)), "peak_block_request": int(maps.peak_block_request),
         "bytes": int(sum(np.asarray(a).nbytes for a in maps)), "growths": growths,
     }
     return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings, frame_offset, map_pool)

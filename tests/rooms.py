@@ -56,7 +56,7 @@ def paged_maps(grid_map, config, num_particles: int = 1, spare_tiles: int = 200)
     maps on ``config.grid`` (NumPy; every tile of the virtual grid gets a slot, and
     ``spare_tiles`` free slots follow): the maps a filter's particles would hold."""
     from jaxslam.occupancy import FAR
-    from jaxslam.paged_map import PagedMaps, empty
+    from jaxslam.paged_map import empty, first_free
 
     spec = config.grid
     t = spec.tile_size
@@ -73,25 +73,32 @@ def paged_maps(grid_map, config, num_particles: int = 1, spare_tiles: int = 200)
         return full.reshape(ty, t, tx, t).transpose(0, 2, 1, 3).reshape(ty * tx, t, t)
 
     used = ty * tx
-    base = empty(spec, num_particles, used + spare_tiles)
+    s = spec.block_size
+    dy, dx = spec.num_blocks
+    spare_blocks = 4 * num_particles + 4
+    base = empty(spec, num_particles, used + spare_tiles, block_capacity=dy * dx + spare_blocks)
     refcount = np.zeros(used + spare_tiles, np.int32)
-    refcount[:used] = num_particles
-    holders = np.zeros((used + spare_tiles, num_particles), bool)
-    holders[:used] = True
-    free = np.arange(used, used + base.max_new_tiles)
-    free = np.where(free < used + spare_tiles, free, used + spare_tiles).astype(np.int32)
-    return PagedMaps(
-        pages=jnp.asarray(np.broadcast_to(np.arange(used, dtype=np.int32).reshape(ty, tx), (num_particles, ty, tx))),
+    refcount[:used] = 1  # each tile is in one block
+    # Every block of the virtual grid holds its tiles' slots; every particle's directory points at all of them.
+    slots = np.full((dy * s, dx * s), -1, np.int32)
+    slots[:ty, :tx] = np.arange(used, dtype=np.int32).reshape(ty, tx)
+    blocks = np.asarray(base.blocks).copy()
+    blocks[:dy * dx] = slots.reshape(dy, s, dx, s).transpose(0, 2, 1, 3).reshape(dy * dx, s, s)
+    block_refcount = np.zeros(dy * dx + spare_blocks, np.int32)
+    block_refcount[:dy * dx] = num_particles
+    return base._replace(
+        directory=jnp.asarray(np.broadcast_to(np.arange(dy * dx, dtype=np.int32).reshape(dy, dx),
+                                              (num_particles, dy, dx))),
+        blocks=jnp.asarray(blocks), block_refcount=jnp.asarray(block_refcount),
         logodds=base.logodds.at[:used].set(tiles(np.asarray(grid_map.logodds), 0.0)),
         hit_dist2=base.hit_dist2.at[:used].set(tiles(np.asarray(grid_map.hit_dist2), FAR)),
-        refcount=jnp.asarray(refcount), holders=jnp.asarray(holders), free_slots=jnp.asarray(free),
-        overflow=base.overflow, peak_request=base.peak_request)
+        refcount=jnp.asarray(refcount), free_slots=first_free(jnp.asarray(refcount), base.max_new_tiles),
+        free_blocks=first_free(jnp.asarray(block_refcount), base.pool_size.max_new_blocks))
 
 
 def paged_field(grid_map, config):
     """The dense room map ``grid_map`` (on ``SPEC``) as one particle's paged likelihood field on
     ``config.grid``: what a proposal reads in a filter."""
-    from jaxslam.paged_map import PagedField
+    from jaxslam.paged_map import particle_field
 
-    maps = paged_maps(grid_map, config, 1, spare_tiles=1)
-    return PagedField(maps.pages[0], maps.hit_dist2)
+    return particle_field(paged_maps(grid_map, config, 1, spare_tiles=1), 0)

@@ -386,10 +386,12 @@ def test_the_memory_estimate_counts_page_tables_pool_insertion_lp_terms_and_xla(
 
     config = SlamConfig(num_particles=10)
     need, how = estimate_run_bytes(config, 181)
-    capacity, _ = pool_size(config)
+    pools = pool_size(config)
     samples = 15 * 20 + 1  # max_insert_range 15 m at 5 cm, one sample a cell
-    assert need == 10 * 400 * 400 * 4 * 2 + capacity * 64 * 64 * 3 * 2 + 10 * 181 * samples * 40 + 2**30
-    assert how.startswith(f"10 particles x 400 x 400 tiles x 4 bytes x 2 + {capacity} tiles x 64 x 64 cells")
+    assert need == ((10 * 25 * 25 + pools.block_capacity * 16 * 16) * 4 * 2 + pools.capacity * 64 * 64 * 3 * 2
+                    + 10 * 181 * samples * 40 + 2**30)
+    assert how.startswith(f"(10 particles x 25 x 25 blocks + {pools.block_capacity} blocks x 16 x 16 tiles) x 4 "
+                          f"bytes x 2 + {pools.capacity} tiles x 64 x 64 cells")
     lp, how_lp = estimate_run_bytes(SlamConfig(num_particles=10, proposal="lp", num_localizers=50), 181)
     assert lp == need + 10 * 50 * 91 * 4 * 2 and "50 localizers x 91 beams" in how_lp
 
@@ -436,7 +438,7 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
             "--no-progress", "--out", str(tmp_path / "out")]
     config, _, _ = build_setup({"num_particles": 30000})
     need, how = jaxslam.rbpf.estimate_run_bytes(config, small_log.num_beams)
-    assert how.startswith("30000 particles x 400 x 400 tiles x 4 bytes x 2")
+    assert how.startswith("(30000 particles x 25 x 25 blocks + ")
     expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
     _run_refused(argv, [f"needs about {expected} GB ({how}",
                         "but 8.0 GB are available"], capsys)

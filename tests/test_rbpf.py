@@ -103,7 +103,7 @@ def test_chunking_does_not_change_the_result(office_log):
     a = rbpf.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=7, progress=False)
     b = rbpf.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=64, progress=False)
     np.testing.assert_array_equal(np.asarray(a.state.poses), np.asarray(b.state.poses))
-    for name in ("pages", "logodds", "hit_dist2", "refcount"):
+    for name in ("directory", "blocks", "logodds", "hit_dist2", "refcount", "block_refcount"):
         np.testing.assert_array_equal(np.asarray(getattr(a.state.maps, name)), np.asarray(getattr(b.state.maps, name)))
     np.testing.assert_array_equal(a.best_path, b.best_path)
     assert int(a.state.step) == int(b.state.step) == a.selection.indices.size - 1
@@ -197,9 +197,10 @@ def test_a_pool_too_small_grows_and_gives_the_big_pools_result(office_log):
     config = small_config(num_particles=4)
     big = rbpf.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
     small = rbpf.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False,
-                     initial_pool=(24, 8))
+                     initial_pool=(24, 8, 4, 2))
     assert big.map_pool["growths"] == [] and len(small.map_pool["growths"]) >= 2
-    assert small.map_pool["capacity"] > 24 and small.map_pool["tiles_in_use"] == big.map_pool["tiles_in_use"]
+    assert small.map_pool["capacity"] > 24 and small.map_pool["block_capacity"] > 4
+    assert small.map_pool["tiles_in_use"] == big.map_pool["tiles_in_use"]
     np.testing.assert_array_equal(np.asarray(small.state.poses), np.asarray(big.state.poses))
     np.testing.assert_array_equal(small.best_path, big.best_path)
     for particle in range(config.num_particles):

@@ -18,7 +18,7 @@ from jaxslam.geometry import between
 from jaxslam.laserlog import LaserLog, select_updates
 from jaxslam.proposals import odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
-from jaxslam.paged_map import PagedField, fields
+from jaxslam.paged_map import FIELD_AXES, fields
 from jaxslam.scan_matching import matched_gaussian
 
 N = 6
@@ -92,7 +92,7 @@ def test_step_weight_recursion_matches_the_proposals_increments(room_map):
     key = jax.random.key(7)
     new_state, info = step(key, state, inputs, SENSOR, params, CONFIG)
     key_prop, _ = jax.random.split(key)
-    out = jax.vmap(smp_propose, in_axes=(0, 0, PagedField(0, None), None, None, None, None))(
+    out = jax.vmap(smp_propose, in_axes=(0, 0, FIELD_AXES, None, None, None, None))(
         jax.random.split(key_prop, N), state.poses, fields(state.maps), inputs, SENSOR, params, CONFIG)
     unnormalised = np.asarray(state.log_weights, np.float64) + np.asarray(out.log_weight_increment, np.float64)
     log_evidence = np.logaddexp.reduce(unnormalised)

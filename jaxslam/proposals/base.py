@@ -6,7 +6,7 @@ m_{t-1}, and returns the log-weight increment. All proposals share the signature
     propose(key, pose, field, inputs, sensor, params, config) -> ProposalOutput
 
 for ONE particle; the RBPF vmaps it over particles. ``field`` is the particle's likelihood
-field m_{t-1} (a :class:`~jaxslam.paged_map.PagedField`: its page table and the shared pool; a
+field m_{t-1} (a :class:`~jaxslam.paged_map.PagedField`: its directory and the shared pools; a
 dense (H, W) field also works where ``config.grid`` is a dense :class:`~jaxslam.grid.GridSpec`). ``inputs.ranges`` and
 ``inputs.future_ranges`` are already beam-subsampled (``config.beam_stride``),
 and ``sensor`` matches them.
