@@ -639,7 +639,7 @@ def run(
 # ---------------------------------------------------------------------------------------------
 # Checkpoints of a run (written by ``on_chunk``, read back for ``resume``).
 
-CHECKPOINT_VERSION = 2  # 2: paged maps
+CHECKPOINT_VERSION = 3  # 2: paged maps; 3: two-level page tables
 
 
 def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:
