@@ -1,4 +1,4 @@
-"""The ``jaxslam`` command: ``map``, ``demo``, ``eval`` and ``doors``.
+"""The ``jaxslam`` command: ``map``, ``demo``, ``eval``, ``diagnose`` and ``doors``.
 
 Every field of :class:`~jaxslam.config.SlamConfig` and :class:`~jaxslam.config.RunSettings`
 and every parameter of :class:`~jaxslam.config.SlamParams` can be set with
@@ -414,6 +414,44 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_diagnose(args: argparse.Namespace) -> int:
+    """Per-step diagnosis of a ``jaxslam map`` run: diagnosis.json and diagnosis.png."""
+    from jaxslam.diagnose import diagnose, plot_diagnosis, read_step_record
+    from jaxslam.io import read_relations, read_trajectory
+    from jaxslam.outputs import strict_json_values, write_file_atomic
+
+    run = Path(args.run_dir)
+    out = Path(args.out) if args.out else run
+    record = read_step_record(run)  # before any work: a clear error for a folder without it
+    relations = read_relations(args.relations) if args.relations else None
+    trajectory = read_trajectory(run / "trajectory.txt") if relations is not None else None
+    result = diagnose(record, trajectory, relations)
+    out.mkdir(parents=True, exist_ok=True)
+    values, nulled = strict_json_values(result)
+    if nulled:
+        values["null_reasons"] = nulled
+    write_file_atomic(out / "diagnosis.json", json.dumps(values, allow_nan=False))
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plot_diagnosis(result, record, title=str(run))
+    try:
+        fig.savefig(out / "diagnosis.png", dpi=120)
+    finally:
+        plt.close(fig)
+    summary = result["summary"]
+    for key, value in summary.items():
+        print(f"{key:>40}: {value}")
+    for name, events in result["events"].items():
+        print(name.replace("_", " ") + ":")
+        for event in events:
+            print("   " + ", ".join(f"{k} {v:.4g}" for k, v in event.items()))
+    print(f"written to {out / 'diagnosis.json'} and {out / 'diagnosis.png'}")
+    return 0
+
+
 def _cmd_doors(args: argparse.Namespace) -> int:
     """One door scenario, one filter: figures and a JSON summary."""
     import time
@@ -497,6 +535,13 @@ def make_parser() -> argparse.ArgumentParser:
     p_eval.add_argument("relations", help="relations file: 't1 t2 x y z roll pitch yaw' per line")
     p_eval.add_argument("--out", help="write the table as JSON to this file (not a folder)")
     p_eval.set_defaults(func=_cmd_eval)
+
+    p_diag = sub.add_parser("diagnose", help="what happened in a map run, step by step (ESS, lineages, "
+                                             "corrections, relation error over time)")
+    p_diag.add_argument("run_dir", help="the output folder of `jaxslam map` (it holds steps.npz)")
+    p_diag.add_argument("relations", nargs="?", help="relations file of the log, for the error over time")
+    p_diag.add_argument("--out", help="folder for diagnosis.json and diagnosis.png (default: RUN_DIR)")
+    p_diag.set_defaults(func=_cmd_diagnose)
 
     p_doors = sub.add_parser("doors", help="localization with door-state estimation (Avots et al. 2002)")
     p_doors.add_argument("--scenario", choices=("corridors", "office"), default="corridors",

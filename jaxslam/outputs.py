@@ -72,7 +72,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
 
 
 SLAM_OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.txt", "trajectory_refined.txt",
-                     "summary.json", "slam.png")
+                     "summary.json", "slam.png", "steps.npz")
 """Every file :func:`write_slam_outputs` can write. Those of an earlier run that a new run does
 not write (e.g. ``trajectory_refined.txt`` without ``--refine``) are removed, never kept stale."""
 
@@ -83,7 +83,8 @@ class OutputError(ValueError):
 
 def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, world=None, refined=None,
                        refine_seconds: float | None = None) -> dict:
-    """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json`` and ``slam.png`` into ``out_dir``.
+    """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json``, ``slam.png`` and
+    ``steps.npz`` (the per-step record ``jaxslam diagnose`` reads: :mod:`jaxslam.diagnose`) into ``out_dir``.
 
     The map is the final best particle's, cropped to its known cells plus a margin of
     :data:`jaxslam.io.maps.DEFAULT_MARGIN_CELLS` cells (see :func:`jaxslam.io.maps.crop_to_known`;
@@ -111,6 +112,7 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from jaxslam.diagnose import STEPS_FILE, step_record, write_step_record
     from jaxslam.io.maps import crop_to_known, write_map
     from jaxslam.io.trajectory import write_trajectory
     from jaxslam.plotting import plot_slam_result
@@ -139,6 +141,7 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
         if refined is not None:
             write_trajectory(out / "trajectory_refined.txt", log.timestamps, refined.poses)
         (out / "summary.json").write_text(text)
+        write_step_record(out / STEPS_FILE, step_record(log, result))
 
     publish_folder(out_dir, write, replaces=SLAM_OUTPUT_NAMES)
     return summary

@@ -1,0 +1,224 @@
+"""What happened in a run, step by step: for finding where and why a map failed.
+
+``jaxslam map`` writes ``steps.npz`` beside the map (:func:`step_record`: the filter's per-step
+diagnostics and the processed scans' odometry and best path). :func:`diagnose` turns it, with
+the run's ``trajectory.txt`` and optionally a relations file, into per-step series:
+
+* ``ess_fraction``: the effective sample size over N before resampling; ``resampled``.
+* ``distinct_ancestors``: how many particles the step's resampling kept (N where it did not
+  resample). A long run of small values is particle depletion.
+* ``surviving_lineages``: how many of the step's particles have descendants among the final
+  particles. It falls to 1 at the final set's common ancestor: the filter cannot revise its
+  path before that step (``coalescence_step``). A closure that needed a hypothesis dropped
+  before it has no way back.
+* ``correction_trans`` (m), ``correction_rot`` (rad): how far the best path's motion between
+  two processed scans differs from the odometry's (in the earlier pose's frame): the filter's
+  corrections; a wrong closure shows as a large one.
+* ``spread`` (m): the particles' proposed positions' standard deviation (root of the trace).
+* ``fallbacks``: particles whose scan match failed (SMP) or whose localizers lost all weight
+  (LP); ``log_evidence``: the step's log p(z_t | z_1:t-1) estimate.
+* with relations: every relation's translational and rotational error at the time of its later
+  scan, and where on the best path that was.
+
+``events`` lists the largest corrections and the worst relations with their step, time and
+place, ranked (no threshold): where to look in the map first. :func:`plot_diagnosis` draws it
+all; ``jaxslam diagnose RUN_DIR [RELATIONS]`` writes ``diagnosis.json`` and ``diagnosis.png``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxslam.geometry import between_np
+
+STEPS_FILE = "steps.npz"
+"""The per-step record ``jaxslam map`` writes into its output folder."""
+
+NUM_EVENTS = 5
+"""How many of the largest corrections and worst relations ``events`` lists."""
+
+
+def step_record(log, result) -> dict[str, np.ndarray]:
+    """The per-step record of a run (what ``steps.npz`` holds), world frame:
+
+    ``scan_index`` (S,) the processed scans; ``timestamp`` (S,) s; ``odometry`` (S, 3) and
+    ``best_path`` (S, 3) at them; for the S - 1 steps: ``ess``, ``resampled``, ``ancestors``
+    (S-1, N), ``proposed_poses`` (S-1, N, 3) float32, ``log_evidence``, ``num_fallbacks``,
+    ``best_particle``; ``num_particles`` ().
+    """
+    info = result.info
+    index = np.asarray(result.selection.indices)
+    return {
+        "scan_index": index.astype(np.int64),
+        "timestamp": np.asarray(log.timestamps, np.float64)[index],
+        "odometry": np.asarray(log.odometry, np.float64)[index],
+        "best_path": np.asarray(result.best_path, np.float64),
+        "ess": np.asarray(info.ess, np.float32),
+        "resampled": np.asarray(info.resampled, bool),
+        "ancestors": np.asarray(info.ancestors, np.int32),
+        "proposed_poses": result.to_world(info.proposed_poses).astype(np.float32),
+        "log_evidence": np.asarray(info.log_evidence, np.float32),
+        "num_fallbacks": np.asarray(info.num_fallbacks, np.int32),
+        "best_particle": np.asarray(info.best_particle, np.int32),
+        "num_particles": np.int64(result.config.num_particles),
+    }
+
+
+def write_step_record(path, record: dict[str, np.ndarray]) -> None:
+    """Write a :func:`step_record` as a compressed ``.npz``."""
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **record)
+
+
+def read_step_record(run_dir) -> dict[str, np.ndarray]:
+    """The ``steps.npz`` of a ``jaxslam map`` output folder; ``FileNotFoundError`` naming what to do."""
+    path = Path(run_dir) / STEPS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} does not exist: diagnose reads the {STEPS_FILE} that `jaxslam map` writes "
+                                f"into its output folder (runs made before it did must be run again)")
+    with np.load(path) as z:
+        return {name: z[name] for name in z.files}
+
+
+def surviving_lineages(ancestors: np.ndarray) -> np.ndarray:
+    """(S-1,) int: at each step, how many of the particles it produced have descendants among
+    the final particles (``ancestors`` (S-1, N): ``ancestors[t, i]`` is the index, among step
+    t's proposed particles, of the particle final-of-step-t number i took its past from)."""
+    steps, n = ancestors.shape
+    out = np.empty(steps, np.int64)
+    alive = np.ones(n, bool)  # after the last step: every final particle
+    for t in range(steps - 1, -1, -1):
+        kept = np.zeros(n, bool)
+        kept[ancestors[t][alive]] = True
+        out[t] = int(kept.sum())
+        alive = kept
+    return out
+
+
+def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray] | None = None,
+             relations=None) -> dict:
+    """Per-step series and ranked events of a run (see the module's docstring); JSON-ready.
+
+    Args:
+      record: :func:`step_record` (or :func:`read_step_record`).
+      trajectory: ``(timestamps (T,), poses (T, 3))`` a pose per scan (``trajectory.txt``);
+        needed with ``relations``.
+      relations: a :class:`~jaxslam.io.relations.Relations`, or None.
+    """
+    n = int(record["num_particles"])
+    ancestors = np.asarray(record["ancestors"])
+    steps = ancestors.shape[0]
+    best, odo = np.asarray(record["best_path"]), np.asarray(record["odometry"])
+    step_times = np.asarray(record["timestamp"])[1:]
+    difference = between_np(between_np(odo[:-1], odo[1:]), between_np(best[:-1], best[1:]))
+    correction_trans = np.hypot(difference[:, 0], difference[:, 1])
+    correction_rot = np.abs(difference[:, 2])
+    proposed = np.asarray(record["proposed_poses"], np.float64)
+    spread = np.sqrt(np.var(proposed[..., 0], axis=1) + np.var(proposed[..., 1], axis=1))
+    lineages = surviving_lineages(ancestors)
+    distinct = np.array([np.unique(a).size for a in ancestors], np.int64)
+    single = np.flatnonzero(lineages == 1)
+    series = {
+        "step": np.arange(1, steps + 1), "time": step_times,
+        "ess_fraction": np.asarray(record["ess"], np.float64) / n,
+        "resampled": np.asarray(record["resampled"]),
+        "distinct_ancestors": distinct, "surviving_lineages": lineages,
+        "correction_trans": correction_trans, "correction_rot": correction_rot, "spread": spread,
+        "fallbacks": np.asarray(record["num_fallbacks"]), "log_evidence": np.asarray(record["log_evidence"]),
+    }
+
+    start = float(np.asarray(record["timestamp"])[0])
+
+    def place(step_index: int) -> dict:  # where on the best path, and when (seconds since the first scan)
+        return {"step": int(step_index + 1), "elapsed_s": float(step_times[step_index] - start),
+                "x": float(best[step_index + 1, 0]), "y": float(best[step_index + 1, 1])}
+
+    order = np.argsort(-correction_trans, kind="stable")[:NUM_EVENTS]
+    events = {"largest_corrections": [dict(place(i), trans=float(correction_trans[i]), rot=float(correction_rot[i]))
+                                      for i in order]}
+    summary = {
+        "steps": steps, "num_particles": n,
+        "resampling_steps": int(np.sum(series["resampled"])),
+        "mean_ess_fraction": float(np.mean(series["ess_fraction"])) if steps else None,
+        "mean_distinct_ancestors_when_resampling": (float(np.mean(distinct[series["resampled"]]))
+                                                    if np.any(series["resampled"]) else None),
+        "coalescence_step": int(single[-1] + 1) if single.size else None,
+        "fallbacks": int(np.sum(series["fallbacks"])),
+    }
+    out = {"summary": summary, "series": {k: np.asarray(v).tolist() for k, v in series.items()}, "events": events}
+    if relations is not None:
+        from jaxslam.metrics import relation_error
+
+        if trajectory is None:
+            raise ValueError("diagnose: relations need the run's trajectory (a pose per scan)")
+        # A run of part of a log (--max-scans) is judged on the relations inside its time span.
+        times = np.asarray(trajectory[0])
+        inside = ((np.minimum(relations.t1, relations.t2) >= times[0] - 1e-4)
+                  & (np.maximum(relations.t1, relations.t2) <= times[-1] + 1e-4))
+        if not np.any(inside):
+            raise ValueError(f"diagnose: none of the {relations.count} relations lies within the run's time span "
+                             f"({times[0]:.3f} to {times[-1]:.3f} s): are they the log's?")
+        relations = type(relations)(relations.t1[inside], relations.t2[inside], relations.motion[inside])
+        err = relation_error(trajectory[0], trajectory[1], relations)
+        later = np.maximum(relations.t1, relations.t2)
+        at_step = np.clip(np.searchsorted(step_times, later), 0, max(steps - 1, 0))
+        out["relations"] = {"time": later.tolist(), "trans": err.trans.tolist(), "rot": err.rot.tolist(),
+                            "step": (at_step + 1).tolist()}
+        summary["relation_error"] = {"trans_mean": err.trans_mean, "rot_mean": err.rot_mean, "count": err.count,
+                                     "relations_outside_the_run": int(np.sum(~inside))}
+        worst = np.argsort(-err.trans, kind="stable")[:NUM_EVENTS]
+        events["worst_relations"] = [dict(place(int(at_step[i])), relation_elapsed_s=float(later[i] - start),
+                                          trans=float(err.trans[i]), rot=float(err.rot[i])) for i in worst]
+    return out
+
+
+def plot_diagnosis(diagnosis: dict, record: dict[str, np.ndarray], title: str = ""):
+    """A figure of :func:`diagnose`'s series against time, and the best path with the events."""
+    import matplotlib.pyplot as plt
+
+    s = {k: np.asarray(v) for k, v in diagnosis["series"].items()}
+    t = s["time"] - (s["time"][0] if s["time"].size else 0.0)
+    fig = plt.figure(figsize=(13, 11), constrained_layout=True)
+    grid = fig.add_gridspec(5, 2, width_ratios=(2.2, 1))
+    axes = [fig.add_subplot(grid[i, 0]) for i in range(5)]
+    axes[0].plot(t, s["ess_fraction"], lw=0.8)
+    axes[0].plot(t[s["resampled"]], s["ess_fraction"][s["resampled"]], "r.", ms=2, label="resampled")
+    axes[0].set_ylabel("ESS / N")
+    axes[0].legend(loc="upper right", fontsize=8)
+    panels = (  # (y label, ((series, legend label), ...))
+        ("particles", ((s["distinct_ancestors"], "particles kept by the step's resampling"),
+                       (s["surviving_lineages"], "the step's particles with final descendants"))),
+        ("correction of odometry", ((s["correction_trans"], "translation (m)"),
+                                    (np.degrees(s["correction_rot"]) / 10.0, "rotation (10 deg)"))),
+        ("spread, fallbacks", ((s["spread"], "particle spread (m)"), (s["fallbacks"], "fallbacks"))),
+    )
+    for ax, (ylabel, lines) in zip(axes[1:4], panels):
+        for values, label in lines:
+            ax.plot(t, values, lw=0.8, label=label)
+        ax.set_ylabel(ylabel)
+        ax.legend(loc="upper left", fontsize=8)
+    relations = diagnosis.get("relations")
+    if relations:
+        axes[4].plot(np.asarray(relations["time"]) - (s["time"][0] if s["time"].size else 0.0),
+                     relations["trans"], ".", ms=2)
+        axes[4].set_ylabel("relation error (m)")
+        axes[4].set_yscale("log")
+    else:
+        axes[4].plot(t, s["log_evidence"], lw=0.8)
+        axes[4].set_ylabel("log evidence")
+    axes[4].set_xlabel("time since the first scan (s)")
+    path_ax = fig.add_subplot(grid[:, 1])
+    best = np.asarray(record["best_path"])
+    path_ax.plot(best[:, 0], best[:, 1], lw=0.6, color="k")
+    for name, marker, color in (("largest_corrections", "o", "tab:red"), ("worst_relations", "s", "tab:blue")):
+        for rank, event in enumerate(diagnosis["events"].get(name, ())):
+            path_ax.plot(event["x"], event["y"], marker, mfc="none", color=color, ms=8,
+                         label=name.replace("_", " ") if rank == 0 else None)
+            path_ax.annotate(str(rank + 1), (event["x"], event["y"]), color=color, fontsize=8)
+    path_ax.set_aspect("equal")
+    path_ax.set_title("best path (m)")
+    path_ax.legend(loc="best", fontsize=8)
+    fig.suptitle(title)
+    return fig

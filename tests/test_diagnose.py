@@ -1,0 +1,112 @@
+"""The per-step diagnosis of a run: lineages against a slow backtracking reference, corrections
+against a known injected jump, relation errors over time, and the command end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxslam.cli import main
+from jaxslam.diagnose import diagnose, read_step_record, surviving_lineages
+from jaxslam.geometry import between_np
+
+
+def lineages_by_backtracking(ancestors: np.ndarray) -> np.ndarray:
+    """Slow reference: follow every final particle's index back step by step, count the distinct."""
+    steps, n = ancestors.shape
+    chains = np.empty((steps, n), np.int64)
+    for final in range(n):
+        index = final
+        for t in range(steps - 1, -1, -1):
+            index = ancestors[t, index]
+            chains[t, final] = index
+    return np.array([np.unique(chains[t]).size for t in range(steps)])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_surviving_lineages_match_backtracking(seed):
+    rng = np.random.default_rng(seed)
+    n, steps = 7, 40
+    # Resample (draw ancestors) on a third of the steps, keep the particles elsewhere.
+    ancestors = np.where(rng.random((steps, 1)) < 0.33, rng.integers(0, n, (steps, n)), np.arange(n))
+    got = surviving_lineages(ancestors)
+    np.testing.assert_array_equal(got, lineages_by_backtracking(ancestors))
+    assert got[-1] == np.unique(ancestors[-1]).size and np.all(np.diff(got) >= 0)
+
+
+def synthetic_record(steps=30, n=5, jump_at=17, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(steps + 1, dtype=float)
+    odometry = np.stack([0.5 * t, np.zeros_like(t), np.zeros_like(t)], axis=1)
+    best = odometry.copy()
+    best[jump_at + 1:, 1] += 0.3  # the filter moved the path 0.3 m sideways between scans jump_at and jump_at + 1
+    ancestors = np.tile(np.arange(n), (steps, 1))
+    ancestors[10] = 0  # one resampling keeps only particle 0
+    return {
+        "scan_index": np.arange(steps + 1), "timestamp": 100.0 + t, "odometry": odometry, "best_path": best,
+        "ess": np.full(steps, n / 2.0, np.float32), "resampled": np.arange(steps) == 10,
+        "ancestors": ancestors.astype(np.int32),
+        "proposed_poses": (best[1:, None, :] + rng.normal(0, 0.1, (steps, n, 3))).astype(np.float32),
+        "log_evidence": np.zeros(steps, np.float32), "num_fallbacks": np.zeros(steps, np.int32),
+        "best_particle": np.zeros(steps, np.int32), "num_particles": np.int64(n),
+    }
+
+
+def test_the_injected_jump_is_the_largest_correction_and_lineages_coalesce():
+    record = synthetic_record()
+    out = diagnose(record)
+    largest = out["events"]["largest_corrections"][0]
+    assert largest["step"] == 18 and largest["trans"] == pytest.approx(0.3, abs=1e-9)
+    assert largest["elapsed_s"] == pytest.approx(18.0) and largest["y"] == pytest.approx(0.3)
+    series = out["series"]
+    assert max(series["correction_trans"][:17] + series["correction_trans"][18:]) < 1e-9
+    assert series["distinct_ancestors"][10] == 1 and series["distinct_ancestors"][11] == 5
+    assert out["summary"]["coalescence_step"] == 11  # the step whose resampling kept one particle
+    assert series["ess_fraction"][0] == pytest.approx(0.5)
+
+
+def test_relation_errors_over_time_are_the_trajectorys():
+    from jaxslam.io.relations import Relations
+
+    record = synthetic_record()
+    times = record["timestamp"]
+    poses = record["best_path"]
+    pairs = np.array([[0, 5], [3, 20], [16, 19], [25, 30]])
+    truth = between_np(poses[pairs[:, 0]], poses[pairs[:, 1]])
+    truth[1, 0] += 0.25  # one relation 0.25 m off
+    relations = Relations(times[pairs[:, 0]], times[pairs[:, 1]], truth)
+    out = diagnose(record, (times, poses), relations)
+    np.testing.assert_allclose(out["relations"]["trans"], [0.0, 0.25, 0.0, 0.0], atol=1e-9)
+    assert out["relations"]["step"] == [5, 20, 19, 30]
+    worst = out["events"]["worst_relations"][0]
+    assert worst["trans"] == pytest.approx(0.25) and worst["step"] == 20
+    outside = Relations(np.array([500.0]), np.array([501.0]), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="none of the 1 relations lies within"):
+        diagnose(record, (times, poses), outside)
+
+
+def test_diagnose_command_reads_a_map_run(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--scans", "60", "--particles", "4", "--no-progress", "--out", str(out)]) == 0
+    record = read_step_record(out)
+    steps = record["ancestors"].shape[0]
+    assert record["proposed_poses"].shape == (steps, 4, 3) and record["best_path"].shape == (steps + 1, 3)
+    # Relations from the run's own trajectory, one of them 0.1 m off: the diagnosis finds it.
+    traj = np.loadtxt(out / "trajectory.txt")
+    i, j = np.array([2, 10, 30]), np.array([8, 40, 59])
+    motion = between_np(traj[i, 1:], traj[j, 1:])
+    motion[2, 1] += 0.1
+    rel = tmp_path / "rel.txt"
+    rel.write_text("".join(f"{traj[a, 0]:.6f} {traj[b, 0]:.6f} {m[0]:.9f} {m[1]:.9f} 0 0 0 {m[2]:.9f}\n"
+                           for a, b, m in zip(i, j, motion)))
+    assert main(["diagnose", str(out), str(rel), "--out", str(tmp_path / "d")]) == 0
+    diagnosis = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    assert (tmp_path / "d" / "diagnosis.png").is_file()
+    np.testing.assert_allclose(diagnosis["relations"]["trans"], [0, 0, 0.1], atol=2e-6)
+    assert diagnosis["summary"]["steps"] == steps
+    assert "largest corrections" in capsys.readouterr().out
+    # A folder without the record: one clear line, exit 2, before any work.
+    assert main(["diagnose", str(tmp_path / "d")]) == 2
+    assert "steps.npz does not exist" in capsys.readouterr().err
