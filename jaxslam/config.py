@@ -62,7 +62,9 @@ class SlamConfig:
     tile_size: int = 64
     """Cells per side of a map tile: the unit particles share and copy on write."""
     max_insert_range: float = 15.0
-    """Beams are inserted into the map up to this range (m); sets samples per beam."""
+    """Beams are inserted into the map up to this range (m); sets samples per beam. A match's
+    score (which decides whether it failed, ``scan_match.min_score``) counts only beams shorter
+    than it (GMapping's usable range): the map registers no endpoint farther from a pose."""
     field_radius: int = 4
     """Radius (cells) of the likelihood field around each registered endpoint."""
     likelihood_lookup: str = "nearest"

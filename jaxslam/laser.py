@@ -53,6 +53,15 @@ def subsample_beams(sensor: SensorSpec, ranges: Float[Array, "... B"], stride: i
     return sensor._replace(beam_angles=sensor.beam_angles[::stride]), ranges[..., ::stride]
 
 
+def within_usable_range(ranges: Float[Array, "... B"], usable_range: float) -> Float[Array, "... B"]:
+    """``ranges`` with every reading at or beyond ``usable_range`` (m) made invalid (-1, below any
+    ``range_min``): the beams a match score counts against a map that registers endpoints only up
+    to that range (GMapping's usable range). A longer beam's endpoint lies where the map can only
+    know it from a closer pose; counted, it mostly scores nothing and dilutes the score, so with a
+    long-range laser in large rooms most matches fail."""
+    return jnp.where(ranges < usable_range, ranges, -1.0)
+
+
 def laser_rays(pose: Float[Array, "3"], sensor: SensorSpec) -> tuple[Float[Array, "2"], Float[Array, "B"]]:
     """Where the beams of a scan taken at robot ``pose`` start: the laser's world position
     (2,) in metres and the world angle (B,) of every beam in radians."""

@@ -100,7 +100,7 @@ def refine_trajectory(
     def chunk_fn(_, xs, valid):
         chunk_poses, chunk_ranges = xs
         return None, _match_chunk(spec, hit_dist2, jnp.asarray(chunk_poses), jnp.asarray(chunk_ranges), lik_sensor,
-                                  params, config.match_iterations, config.match_lookup)
+                                  params, config.match_iterations, config.match_lookup, config.max_insert_range)
 
     matched_pose, scores, covariances = run_in_chunks(
         chunk_fn, (poses.astype(np.float32), lik_ranges), num, chunk_size).outputs
@@ -115,13 +115,13 @@ def refine_trajectory(
     return RefinedTrajectory(refined, ok, scores, matched_pose, covariances)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6, 7))
-def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations, lookup):
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8))
+def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations, lookup, usable_range):
     sm = params.scan_match
 
     def one(pose, scan):
         result = match(spec, hit_dist2, pose, scan, sensor, params.likelihood, sm.linear_step, sm.angular_step,
-                       iterations, lookup)
+                       iterations, lookup, usable_range)
         # The match's covariance: the tempered likelihood (the gain that makes the beams'
         # evidence honest) normalised over the stencil, plus the proposal's floor.
         candidates, _, spacing = stencil_poses(result.pose, sm)

@@ -26,7 +26,7 @@ from jaxtyping import Array, Bool, Float, UInt8
 from jaxslam import motion
 from jaxslam.geometry import compose, wrap_angle
 from jaxslam.grid import GridSpec
-from jaxslam.laser import SensorSpec
+from jaxslam.laser import SensorSpec, within_usable_range
 from jaxslam.likelihood_field import (LikelihoodParams, endpoint_cell_distances, endpoint_log_likelihood,
                                       endpoint_log_likelihoods)
 from jaxslam.motion import LOG_2PI
@@ -59,9 +59,12 @@ def match(
     angular_step: Float[Array, ""],
     iterations: int,
     lookup: str = "nearest",
+    usable_range: float | None = None,
 ) -> MatchResult:
     """Hill-climb from ``initial_pose`` for ``iterations`` (static) rounds of six moves, on the
-    endpoint likelihood read from the field by ``lookup`` (static, ``sensor.FIELD_LOOKUPS``)."""
+    endpoint likelihood read from the field by ``lookup`` (static, ``sensor.FIELD_LOOKUPS``).
+    The match's ``score`` counts only beams shorter than ``usable_range`` (m; static; None: all),
+    the range up to which the map registers endpoints (``SlamConfig.max_insert_range``)."""
     log_lik = lambda pose: endpoint_log_likelihood(spec, hit_dist2, pose, ranges, sensor, likelihood, lookup)
     step_scale = jnp.stack([linear_step, linear_step, angular_step])
 
@@ -79,7 +82,8 @@ def match(
 
     (pose, best, _), _ = jax.lax.scan(body, (initial_pose, log_lik(initial_pose), jnp.float32(1.0)),
                                       None, length=iterations)
-    score = match_score(spec, hit_dist2, pose, ranges, sensor, likelihood.sigma)
+    scored = ranges if usable_range is None else within_usable_range(ranges, usable_range)
+    score = match_score(spec, hit_dist2, pose, scored, sensor, likelihood.sigma)
     return MatchResult(pose, best, score)
 
 
@@ -150,7 +154,8 @@ def matched_gaussian(pose, field, inputs, sensor, params, config, fit_gain,
         start_std = motion.noise_std(inputs.motion, params.motion) * sm.start_noise
         predicted = compose(pose, inputs.motion + jax.random.normal(start_key, (3,), pose.dtype) * start_std)
     result = match(spec, field, predicted, inputs.ranges, sensor, params.likelihood,
-                   sm.linear_step, sm.angular_step, config.match_iterations, config.match_lookup)
+                   sm.linear_step, sm.angular_step, config.match_iterations, config.match_lookup,
+                   usable_range=config.max_insert_range)
     candidates, offsets, spacing = stencil_poses(result.pose, sm)
     untempered = params.likelihood._replace(gain=jnp.float32(1.0))
     raw_log_lik = endpoint_log_likelihoods(spec, field, candidates, inputs.ranges, sensor, untempered,

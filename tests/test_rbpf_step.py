@@ -14,7 +14,8 @@ from rooms import ROOM_EXTENT, SENSOR, build_room_map, paged_field, paged_maps, 
 
 from jaxslam import rbpf
 from jaxslam.config import SlamConfig, default_params
-from jaxslam.geometry import between
+from jaxslam.geometry import between, compose
+from jaxslam.laser import within_usable_range
 from jaxslam.laserlog import LaserLog, select_updates
 from jaxslam.proposals import odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
@@ -166,3 +167,31 @@ def test_build_inputs_at_the_end_of_the_log():
                 np.testing.assert_array_equal(inputs.future_ranges[s, k], ranges[-1])
     assert not inputs.future_valid[-1].any()
     assert rbpf.build_inputs(log, selection, 0).future_ranges.shape == (steps, 0, num_beams)
+
+
+def test_beams_beyond_the_usable_range_do_not_dilute_the_match_score(room_map):
+    """A match's score counts only beams shorter than ``max_insert_range`` (GMapping's usable
+    range): the map registers no endpoint farther from a pose. Here 60 % of the beams read 6 m
+    (> 5 m, < the laser's 8 m): counted, they pull the score under ``min_score = 0.4``; the SMP
+    leaves them out and every particle of a step matches."""
+    from jaxslam.scan_matching import match_score
+
+    config = dataclasses.replace(CONFIG, max_insert_range=5.0)
+    inputs, pose = _inputs()
+    params = default_params(**{"scan_match.min_score": 0.4, "resample_threshold": 0.0})
+    ranges = np.asarray(inputs.ranges).copy()
+    long = np.arange(ranges.size) % 5 < 3
+    assert np.mean(ranges[~long] < 5.0) > 0.8  # the others are mostly usable
+    ranges[long] = 6.0
+    field = paged_field(room_map, config)
+    true_pose = compose(pose, inputs.motion)
+    sigma = params.likelihood.sigma
+    diluted = float(match_score(config.grid, field, true_pose, jnp.asarray(ranges), SENSOR, sigma))
+    usable = float(match_score(config.grid, field, true_pose, within_usable_range(jnp.asarray(ranges), 5.0), SENSOR,
+                               sigma))
+    assert diluted < 0.4 < usable
+    _, info = step(jax.random.key(3), _state(room_map, pose, np.full(N, -math.log(N))),
+                   inputs._replace(ranges=jnp.asarray(ranges)), SENSOR, params, config)
+    assert int(info.num_fallbacks) == 0
+    np.testing.assert_array_equal(np.asarray(within_usable_range(jnp.asarray(ranges), 5.0)),
+                                  np.where(ranges < 5.0, ranges, -1.0))
