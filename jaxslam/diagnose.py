@@ -118,7 +118,7 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
     proposed = np.asarray(record["proposed_poses"], np.float64)
     spread = np.sqrt(np.var(proposed[..., 0], axis=1) + np.var(proposed[..., 1], axis=1))
     lineages = surviving_lineages(ancestors)
-    distinct = np.array([np.unique(a).size for a in ancestors], np.int64)
+    distinct = (np.count_nonzero(np.diff(np.sort(ancestors, axis=1), axis=1), axis=1) + 1).astype(np.int64)
     single = np.flatnonzero(lineages == 1)
     series = {
         "step": np.arange(1, steps + 1), "time": step_times,

@@ -432,9 +432,9 @@ def insert_scans(
         maps.directory, block_rows, block_cols).reshape(n, kbb)
     blocks_now = jnp.where(in_directory, blocks_now, UNWRITTEN)
     block_owned = (blocks_now >= 0) & (maps.block_refcount[jnp.maximum(blocks_now, 0)] == 1)
-    flat_blocks = maps.blocks.reshape(block_capacity, s * s)
+    blocks_before = maps.blocks.reshape(block_capacity, s * s)
     block_of_tile = jnp.take_along_axis(blocks_now, tile_block, axis=1)
-    slots = jnp.where(block_of_tile >= 0, flat_blocks[jnp.maximum(block_of_tile, 0), in_block], UNWRITTEN)
+    slots = jnp.where(block_of_tile >= 0, blocks_before[jnp.maximum(block_of_tile, 0), in_block], UNWRITTEN)
     # A tile is the particle's own when its block is (no other particle's directory points at it)
     # and no other block points at the tile.
     owned = (jnp.take_along_axis(block_owned, tile_block, axis=1) & (slots >= 0)
@@ -464,16 +464,16 @@ def insert_scans(
     block_requests = jnp.nonzero(placed_block, size=mb, fill_value=n * kbb)[0]
     block_source = jnp.concatenate([old_blocks, jnp.full((1,), UNWRITTEN, old_blocks.dtype)])[block_requests]
     block_target = jnp.where(block_requests < n * kbb, maps.free_blocks, block_capacity)
-    copied = jnp.where((block_source >= 0)[:, None], flat_blocks[jnp.maximum(block_source, 0)], UNWRITTEN)
-    flat_blocks = flat_blocks.at[block_target].set(copied, mode="drop")
+    copied = jnp.where((block_source >= 0)[:, None], blocks_before[jnp.maximum(block_source, 0)], UNWRITTEN)
+    flat_blocks = blocks_before.at[block_target].set(copied, mode="drop")
     refcount = maps.refcount.at[jnp.where((block_target < block_capacity)[:, None] & (copied >= 0), copied,
                                           capacity)].add(1, mode="drop")
     block_refcount = (maps.block_refcount.at[jnp.where(placed_block & (old_blocks >= 0), old_blocks, block_capacity)]
                       .add(-1, mode="drop").at[granted_block].add(1, mode="drop"))
     # A shared block every holder of which made its own copy is free now: its tiles lose its reference.
     freed = (maps.block_refcount > 0) & (block_refcount == 0)
-    refcount = refcount.at[jnp.where(freed[:, None] & (maps.blocks.reshape(block_capacity, s * s) >= 0),
-                                     maps.blocks.reshape(block_capacity, s * s), capacity)].add(-1, mode="drop")
+    refcount = refcount.at[jnp.where(freed[:, None] & (blocks_before >= 0), blocks_before, capacity)].add(
+        -1, mode="drop")
     new_blocks = jnp.where(placed_block, granted_block, old_blocks).reshape(n, kbb)
     particle = jnp.arange(n)[:, None, None]
     directory = maps.directory.at[particle, jnp.where(block_rows < dy, block_rows, dy)[:, :, None],

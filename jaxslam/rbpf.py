@@ -84,8 +84,8 @@ class SlamInfo(NamedTuple):
     tiles_in_use: Int[Array, ""]
     """Pool tiles some particle's map references after the step."""
     pool_overflow: Bool[Array, ""]
-    """The maps' pool could not hold this step's new tiles: the step was not taken (the state
-    is the one it was given, with ``maps.overflow`` set). Grow the pool
+    """The maps' pools could not hold this step's new tiles or blocks: the step was not taken (the
+    state is the one it was given, with ``maps.overflow`` set). Grow the pools
     (:func:`jaxslam.paged_map.grow`) and take it again; ``run`` does."""
 
 

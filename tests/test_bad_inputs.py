@@ -432,8 +432,6 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
     monkeypatch.setattr(jaxslam.rbpf, "available_memory_bytes", lambda: 8 * 10**9)
-    from jaxslam.io import read_log
-
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
             "--no-progress", "--out", str(tmp_path / "out")]
     config, _, _ = build_setup({"num_particles": 30000})
