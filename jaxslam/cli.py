@@ -361,7 +361,7 @@ def _fmt(value) -> str:
 DEMO_DEFAULTS = {"proposal": "smp", "num_particles": 20, "linear_update": 0.25, "angular_update": 0.25,
                  "max_insert_range": 10.0, "beam_stride": 1}
 """``jaxslam demo``'s defaults: the simulated office is small, so scans are processed more often
-than GMapping's 1 m / 0.5 rad, and every beam is used (its 10 m laser sees little along the
+than the library's 0.5 m / 0.25 rad, and every beam is used (its 10 m laser sees little along the
 20 m corridor)."""
 
 

@@ -196,10 +196,43 @@ def test_datasets_uses_the_store(tmp_path, monkeypatch, capsys):
     assert datasets.main(base[:-1] + ["smp", "--seeds", "1"]) == 0  # an earlier call's runs stay
     data = json.loads((out / "results.json").read_text())
     assert {(r["proposal"], r["seed"]) for r in data["runs"]} == {("op", 0), ("op", 1), ("smp", 0)}
-    assert set(data) == {"settings", "runs", "summary", "gmapping_this_machine", "published"}
+    assert set(data) == {"settings", "runs", "summary", "failed_runs", "gmapping_this_machine", "published"}
     capsys.readouterr()
     assert datasets.main(base + ["--seeds", "1", "--set", "beam_stride=1"]) == 2
     assert "other settings" in capsys.readouterr().err
+
+
+def _record(dataset, proposal, seed, error):
+    return {"dataset": dataset, "proposal": proposal, "seed": seed, "trans_mean": error, "trans_std": 0.0,
+            "rot_mean_deg": 1.0, "rot_std_deg": 0.0, "wall_s": 10.0, "real_time_factor": 2.0, "peak_memory_mb": 100}
+
+
+def test_datasets_failed_runs_and_seed_order(tmp_path, monkeypatch):
+    """A run fails above twice its log's best run (any method) or where a look at its map found a
+    doubled structure; the jobs go seed by seed over the logs."""
+    errors = {("intel", "smp", 0): 0.05, ("intel", "lp", 0): 0.099, ("intel", "smp", 1): 0.101,
+              ("intel", "lp", 1): 0.06, ("aces", "smp", 0): 1.0, ("aces", "lp", 0): 1.5,
+              ("aces", "smp", 1): 2.5, ("aces", "lp", 1): 1.9}
+    calls = []
+
+    def run_one(dataset, proposal, seed, out, data, settings):
+        calls.append((dataset, proposal, seed))
+        return _record(dataset, proposal, seed, errors[(dataset, proposal, seed)])
+
+    monkeypatch.setattr(datasets, "run_one", run_one)
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / datasets.JUDGED_FILE).write_text(json.dumps({"intel/lp-seed1": "a corridor doubled"}))
+    assert datasets.main(["--data", str(tmp_path), "--out", str(out), "--datasets", "intel", "aces",
+                          "--proposals", "smp", "lp", "--seeds", "2"]) == 0
+    assert [c[2] for c in calls] == [0, 0, 0, 0, 1, 1, 1, 1]
+    failed = json.loads((out / "results.json").read_text())["failed_runs"]
+    assert [f["seed"] for f in failed["intel/smp"]] == [1]  # 0.101 > 2 x 0.05; 0.099 is not
+    assert [f["reason"] for f in failed["intel/lp"]] == ["a corridor doubled"]
+    assert [f["seed"] for f in failed["aces/smp"]] == [1] and failed["aces/lp"] == []
+    table = (out / "robustness.md").read_text()
+    assert "| intel | SMP | 2 | 0.076 ± 0.026 | 1 (seeds 1) | 10 | 2.0 | 100 |" in table
+    assert "| aces | LP | 2 | 1.700 ± 0.200 | 0 |" in table
 
 
 @pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
