@@ -35,7 +35,7 @@ from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
 from jaxslam.motion import MotionParams
 from jaxslam.occupancy import InsertionParams
 from jaxslam.paged_map import PagedGridSpec
-from jaxslam.resampling import RESAMPLERS
+from jaxslam.resampling import RESAMPLERS, RESAMPLING_GRADIENTS
 
 PROPOSALS = ("op", "smp", "lp")
 
@@ -82,6 +82,11 @@ class SlamConfig:
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     resampler: str = "systematic"
     """Resampling scheme: systematic, stratified, multinomial or residual."""
+    resampling_gradient: str = "score"
+    """What autodiff sees of a resampling; the forward pass is the same bit for bit.
+    "score": the gradient of the log-likelihood estimate is the particle estimate of the score
+    (Scibior & Wood 2021); "none": resampling stops the gradient of the weights (biased). See
+    :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
     match_iterations: int = 24
     """Fixed iteration budget of the hill-climbing scan matcher."""
     num_localizers: int = 100
@@ -114,6 +119,8 @@ class SlamConfig:
              f"match_lookup must be one of {FIELD_LOOKUPS}, got {self.match_lookup!r}"),
             (self.beam_stride >= 1, f"beam_stride must be >= 1, got {self.beam_stride}"),
             (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}, got {self.resampler!r}"),
+            (self.resampling_gradient in RESAMPLING_GRADIENTS,
+             f"resampling_gradient must be one of {RESAMPLING_GRADIENTS}, got {self.resampling_gradient!r}"),
             (self.match_iterations >= 0, f"match_iterations must be >= 0, got {self.match_iterations}"),
             (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
             (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),

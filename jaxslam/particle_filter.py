@@ -52,9 +52,11 @@ def reweight_and_resample(
     log_increments: Float[Array, "N"],
     resample_threshold: Float[Array, ""],
     resampler: str,
+    gradient: str = "score",
 ) -> WeightUpdate:
     """Multiply the weights by ``exp(log_increments)``, normalise, and resample when
-    ESS < ``resample_threshold`` * N with the named scheme (:data:`resampling.RESAMPLERS`).
+    ESS < ``resample_threshold`` * N with the named scheme (:data:`resampling.RESAMPLERS`);
+    ``gradient`` says what autodiff sees of the resampling (:data:`resampling.RESAMPLING_GRADIENTS`).
 
     A NaN weight counts as zero; when every weight is zero the weights become uniform and
     ``degenerate`` says so. ``poses`` only feed the weighted mean and covariance; the caller
@@ -65,7 +67,7 @@ def reweight_and_resample(
     normalized, log_evidence = resampling.normalize_log_weights(updated)
     mean, cov = weighted_mean_and_covariance(poses, jnp.exp(normalized))
     ancestors, new_log_weights, resampled = resampling.resample_if_needed(
-        key, normalized, resample_threshold, resampling.RESAMPLERS[resampler])
+        key, normalized, resample_threshold, resampling.RESAMPLERS[resampler], gradient)
     return WeightUpdate(normalized, log_evidence, ~jnp.isfinite(log_evidence), resampling.ess(normalized),
                         mean, cov, ancestors, resampled, new_log_weights)
 

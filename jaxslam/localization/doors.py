@@ -119,6 +119,9 @@ class DoorConfig:
     """Use every ``beam_stride``-th beam of a scan."""
     resampler: str = "systematic"
     """Resampling scheme: one of :data:`jaxslam.resampling.RESAMPLERS`."""
+    resampling_gradient: str = "score"
+    """What autodiff sees of a resampling (the forward pass is the same bit for bit): one of
+    :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
     memory: bool = True
     """False: the memoryless baseline, every door 50% open before every update (the
     stored beliefs and the transition model are ignored)."""
@@ -130,10 +133,12 @@ class DoorConfig:
             raise ValueError("DoorConfig: beam_stride must be >= 1")
         if self.resampler not in resampling.RESAMPLERS:
             raise ValueError(f"DoorConfig: resampler must be one of {sorted(resampling.RESAMPLERS)}")
+        if self.resampling_gradient not in resampling.RESAMPLING_GRADIENTS:
+            raise ValueError(f"DoorConfig: resampling_gradient must be one of {resampling.RESAMPLING_GRADIENTS}")
 
     def mcl_config(self) -> mcl.MclConfig:
         """The same settings for static MCL."""
-        return mcl.MclConfig(self.num_particles, self.beam_stride, self.resampler)
+        return mcl.MclConfig(self.num_particles, self.beam_stride, self.resampler, self.resampling_gradient)
 
 
 class DoorParams(NamedTuple):
@@ -306,7 +311,8 @@ def step(key: PRNGKeyArray, state: DoorState, inputs: ScanInputs, door_map: Door
                                                    config.beam_stride))(poses)
     posterior, log_lik = jax.vmap(door_update)(predicted, lik)
     update = particle_filter.reweight_and_resample(k_resample, poses, state.log_weights, log_lik,
-                                                   params.resample_threshold, config.resampler)
+                                                   params.resample_threshold, config.resampler,
+                                                   config.resampling_gradient)
     w = jnp.exp(update.log_weights)  # after the update, before resampling (uniform when degenerate)
     door_info = DoorInfo(MclInfo.of(update), w @ posterior, w @ (lik.num_beams > 0).astype(jnp.float32),
                          w @ lik.num_beams)

@@ -46,6 +46,9 @@ class MclConfig:
     """Use every ``beam_stride``-th beam of a scan in the likelihood."""
     resampler: str = "systematic"
     """Resampling scheme: one of :data:`jaxslam.resampling.RESAMPLERS`."""
+    resampling_gradient: str = "score"
+    """What autodiff sees of a resampling (the forward pass is the same bit for bit): one of
+    :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
 
     def __post_init__(self):
         if self.num_particles < 1:
@@ -54,6 +57,8 @@ class MclConfig:
             raise ValueError("MclConfig: beam_stride must be >= 1")
         if self.resampler not in resampling.RESAMPLERS:
             raise ValueError(f"MclConfig: resampler must be one of {sorted(resampling.RESAMPLERS)}")
+        if self.resampling_gradient not in resampling.RESAMPLING_GRADIENTS:
+            raise ValueError(f"MclConfig: resampling_gradient must be one of {resampling.RESAMPLING_GRADIENTS}")
 
 
 class MclParams(NamedTuple):
@@ -204,7 +209,8 @@ def step(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float
     log_lik = jax.vmap(lambda p: scan_log_likelihood(segments, p, inputs.ranges, sensor, params, active,
                                                      config.beam_stride))(poses)
     update = particle_filter.reweight_and_resample(k_resample, poses, state.log_weights, log_lik,
-                                                   params.resample_threshold, config.resampler)
+                                                   params.resample_threshold, config.resampler,
+                                                   config.resampling_gradient)
     return MclState(poses[update.ancestors], update.new_log_weights, state.step + 1), MclInfo.of(update)
 
 
