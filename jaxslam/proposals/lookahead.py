@@ -231,11 +231,38 @@ def selection_log_probs(
     fallback = ~jnp.isfinite(total_v)
     v_share = jnp.where(fallback, -jnp.inf, log_v - jnp.where(fallback, 0.0, total_v))
     g_share, _ = resampling.normalize_log_weights(log_lik_t)
-    # log(0) = -inf is intended for alpha = 0 (the paper's form); logaddexp handles it.
-    log_alpha = jnp.where(fallback, 0.0, jnp.log(alpha))
-    log_one_minus_alpha = jnp.log1p(-alpha)
-    log_p = jnp.logaddexp(log_one_minus_alpha + v_share, log_alpha + g_share)
+    # Defensive share alone when every V is zero: alpha = 1 there.
+    log_p = _log_mixture(jnp.where(fallback, 1.0, alpha), v_share, g_share)
     return log_p, fallback
+
+
+@jax.custom_jvp
+def _log_mixture(alpha, log_a, log_b):
+    """log[(1 - alpha) exp(log_a) + alpha exp(log_b)] for alpha in [0, 1] and shares <= 0.
+
+    The value is ``logaddexp(log1p(-alpha) + log_a, log(alpha) + log_b)``, with log(0) = -inf
+    at alpha = 0 (the paper's form) and at alpha = 1. Its derivative is written out because
+    autodiff of that expression is NaN at both ends (the derivative of log(alpha) is infinite
+    at 0 and meets a zero from logaddexp); the mixture itself is smooth in alpha on [0, 1]."""
+    log_alpha = jnp.where(alpha > 0.0, jnp.log(jnp.where(alpha > 0.0, alpha, 1.0)), -jnp.inf)
+    log_rest = jnp.where(alpha < 1.0, jnp.log1p(-jnp.where(alpha < 1.0, alpha, 0.0)), -jnp.inf)
+    return jnp.logaddexp(log_rest + log_a, log_alpha + log_b)
+
+
+@_log_mixture.defjvp
+def _log_mixture_jvp(primals, tangents):
+    alpha, log_a, log_b = primals
+    d_alpha, d_a, d_b = tangents
+    log_p = _log_mixture(alpha, log_a, log_b)
+    ok = jnp.isfinite(log_p)
+    safe_log_p = jnp.where(ok, log_p, 0.0)
+
+    def ratio(x):  # exp(x - log p): a component over the mixture, 0 where it is 0 or p is
+        return jnp.where(ok & jnp.isfinite(x), jnp.exp(jnp.where(jnp.isfinite(x), x, 0.0) - safe_log_p), 0.0)
+
+    a_over_p, b_over_p = ratio(log_a), ratio(log_b)
+    d_log_p = ((b_over_p - a_over_p) * d_alpha + (1.0 - alpha) * a_over_p * d_a + alpha * b_over_p * d_b)
+    return log_p, d_log_p
 
 
 def select(
