@@ -299,6 +299,85 @@ def build_inputs(log: LaserLog, selection: UpdateSelection, lookahead_steps: int
     )
 
 
+class PreparedLog(NamedTuple):
+    """A log as :func:`filter` consumes it: arrays only, in the filter's local frame (built by
+    :func:`prepare`). Logs with the same number of processed scans and beams can be stacked
+    (``jax.tree.map(jnp.stack, ...)``) and vmapped over."""
+
+    first_ranges: Float[Array, "B"]
+    """The first processed scan (m): the map every particle starts with."""
+    initial_pose: Float[Array, "3"]
+    """The robot's pose at the first processed scan (local frame; m, m, rad)."""
+    inputs: StepInputs
+    """The stacked (S - 1, ...) inputs of the steps after it (:func:`build_inputs`)."""
+    sensor: SensorSpec
+    """The laser."""
+
+
+class FilterOutput(NamedTuple):
+    """What :func:`filter` returns."""
+
+    state: SlamState
+    """The particles after the last step."""
+    info: SlamInfo
+    """Every step's diagnostics, stacked (S - 1, ...)."""
+    marginal_loglik: Float[Array, ""]
+    """The filter's estimate of log p(z_2:S | z_1, u, params): the sum of the steps'
+    ``log_evidence`` (tempered by ``likelihood.gain`` like the weights). Its gradient is the
+    score estimate of :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
+
+
+def prepare(log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettings()
+            ) -> tuple[PreparedLog, UpdateSelection, np.ndarray]:
+    """Host side of a run: check the log against the grid, move it to the local frame
+    (:func:`local_frame_offset`), select the scans to process and stack their inputs.
+
+    Returns ``(prepared, selection, frame_offset)``: the arrays :func:`filter` takes, which scans
+    of ``log`` it processes, and the (2,) translation (m) to add to local x, y for the world's.
+    """
+    check_extent(log, config)
+    frame_offset = local_frame_offset(log)
+    local = _local_log(log, frame_offset)
+    selection = select_updates(local, settings.linear_update, settings.angular_update)
+    prepared = PreparedLog(  # NumPy on the host: run() slices it into chunks; jit takes it as it is
+        first_ranges=np.asarray(local.ranges[selection.indices[0]], np.float32),
+        initial_pose=np.asarray(local.odometry[selection.indices[0]], np.float32),
+        inputs=build_inputs(local, selection, config.lookahead_steps),
+        sensor=local.sensor,
+    )
+    return prepared, selection, frame_offset
+
+
+def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config: SlamConfig,
+           pool: PoolSize | None = None) -> FilterOutput:  # noqa: A001 (the module's filter, as dynamax's)
+    """The whole filter as one pure function: :func:`init`, then a ``lax.scan`` of :func:`step`.
+
+    Jittable (``config`` and ``pool`` static), vmappable over keys, params and stacked
+    ``prepared`` logs, differentiable in ``params``. The per-step keys are derived from ``key``
+    as in :func:`run`, so both give the same particles. Unlike ``run`` it cannot grow the map
+    pools: a step whose tiles do not fit inserts nothing and sets ``state.maps.overflow``
+    (check it, and pass a larger ``pool``; :func:`pool_size` is the default).
+
+    Args:
+      key: the run's key.
+      prepared: :func:`prepare`'s arrays.
+      params: traced parameters.
+      config: static settings.
+      pool: static sizes of the map pools (default :func:`pool_size`).
+    """
+    key_init, key_steps = jax.random.split(key)
+    state = init(key_init, prepared.first_ranges, prepared.sensor, params, config, prepared.initial_pose, pool=pool)
+    num_steps = prepared.inputs.motion.shape[0]
+
+    def body(state, xs):
+        step_key, inputs = xs
+        return step(step_key, state, inputs, prepared.sensor, params, config)
+
+    state, info = jax.lax.scan(body, state, (jax.random.split(key_steps, max(num_steps, 1))[:num_steps],
+                                             prepared.inputs))
+    return FilterOutput(state, info, jnp.sum(info.log_evidence))
+
+
 @jax.jit(static_argnames=("config",), donate_argnames=("state",))
 def _run_chunk(state, keys, inputs, valid, sensor, params, config):
     def body(carry, xs):
@@ -528,16 +607,14 @@ def run(
 
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
-    check_extent(log, config)
     t_start = time.perf_counter()
-    frame_offset = local_frame_offset(log)
+    prepared, selection, frame_offset = prepare(log, config, settings)
     log = _local_log(log, frame_offset)  # from here on, the local frame
-    selection = select_updates(log, settings.linear_update, settings.angular_update)
     sensor = log.sensor
-    initial_pose = jnp.asarray(log.odometry[0], jnp.float32)
+    initial_pose = jnp.asarray(prepared.initial_pose)
     key_init, key_steps = jax.random.split(key)
 
-    inputs = build_inputs(log, selection, config.lookahead_steps)
+    inputs = prepared.inputs
     num_steps = selection.indices.size - 1
     step_keys = jax.random.split(key_steps, max(num_steps, 1))
     done = 0
@@ -545,7 +622,7 @@ def run(
     if resume is None:
         pool = pool_size(config) if initial_pool is None else PoolSize(*(int(v) for v in initial_pool))
         while True:  # the first scan alone may not fit a pool given too small
-            state = init(key_init, jnp.asarray(log.ranges[0]), sensor, params, config, initial_pose, pool=pool)
+            state = init(key_init, jnp.asarray(prepared.first_ranges), sensor, params, config, initial_pose, pool=pool)
             if not bool(state.maps.overflow):
                 break
             pool = _larger_pool(state.maps)

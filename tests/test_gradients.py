@@ -173,28 +173,50 @@ def test_lookahead_at_alpha_zero_has_finite_gradients():
     """The paper's Eq. 10 (lookahead.alpha = 0): the log-likelihood estimate of a short LP run
     and its gradient in every parameter are finite (they were NaN for the sensor, alpha and
     the localizer gain)."""
-    from jaxslam.laserlog import select_updates
-
     log = office_scenario(jax.random.key(3)).log.subset(np.arange(30))
     config = SlamConfig(num_particles=3, proposal="lp", num_localizers=8, horizon=2, max_insert_range=10.0,
                         beam_stride=4, map_extent=128.0)
-    selection = select_updates(log, 0.3, 0.25)
-    inputs = rbpf.build_inputs(log, selection, config.lookahead_steps)
-    num_steps = selection.indices.size - 1
+    prepared, _, _ = rbpf.prepare(log, config, RunSettings(linear_update=0.3, angular_update=0.25))
 
     def log_likelihood(params):
-        state = rbpf.init(jax.random.key(0), jnp.asarray(log.ranges[0]), log.sensor, params, config,
-                          jnp.asarray(log.odometry[0], jnp.float32))
-
-        def body(state, xs):
-            state, info = rbpf.step(xs[0], state, xs[1], log.sensor, params, config)
-            return state, info.log_evidence
-
-        _, log_evidence = jax.lax.scan(body, state, (jax.random.split(jax.random.key(1), num_steps), inputs))
-        return log_evidence.sum()
+        return rbpf.filter(jax.random.key(1), prepared, params, config).marginal_loglik
 
     value, grads = jax.jit(jax.value_and_grad(log_likelihood))(default_params(**{"lookahead.alpha": 0.0}))
     assert np.isfinite(float(value))
     bad = [jax.tree_util.keystr(path) for path, g in jax.tree_util.tree_flatten_with_path(grads)[0]
            if not np.isfinite(float(g))]
     assert not bad, bad
+
+
+def test_the_pure_filter_is_run_bit_for_bit_compiles_once_and_vmaps():
+    """``rbpf.filter`` (init + lax.scan of the step, one jitted function) gives ``rbpf.run``'s
+    particles bit for bit, compiles once for new parameter values and keys, and vmaps over keys."""
+    import chex
+
+    log = office_scenario(jax.random.key(3)).log.subset(np.arange(60))
+    settings = RunSettings(linear_update=0.3, angular_update=0.25)
+    config = SlamConfig(num_particles=6, proposal="smp", max_insert_range=10.0, beam_stride=1, map_extent=128.0)
+    params = default_params()
+    result = rbpf.run(jax.random.key(1), log, config, params, settings, progress=False)
+    prepared, selection, _ = rbpf.prepare(log, config, settings)
+    np.testing.assert_array_equal(selection.indices, result.selection.indices)
+
+    chex.clear_trace_counter()
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def filter_fn(key, params):
+        return rbpf.filter(key, prepared, params, config)
+
+    out = filter_fn(jax.random.key(1), params)
+    np.testing.assert_array_equal(np.asarray(out.info.proposed_poses), np.asarray(result.info.proposed_poses))
+    np.testing.assert_array_equal(np.asarray(out.state.log_weights), np.asarray(result.state.log_weights))
+    assert float(out.marginal_loglik) == float(np.sum(np.asarray(result.info.log_evidence)))
+    assert not bool(out.state.maps.overflow)
+    other = filter_fn(jax.random.key(2), default_params(**{"motion.srr": 0.2}))  # no retrace
+    assert np.isfinite(float(other.marginal_loglik))
+
+    keys = jax.random.split(jax.random.key(7), 2)
+    batched = jax.jit(jax.vmap(lambda k: rbpf.filter(k, prepared, params, config).marginal_loglik))(keys)
+    singles = [float(filter_fn(k, params).marginal_loglik) for k in keys]
+    np.testing.assert_allclose(np.asarray(batched), singles, rtol=1e-5)
