@@ -1,0 +1,180 @@
+"""Fitting a filter's parameters to data: Adam on the log-likelihood, in plain JAX.
+
+The filters return an estimate of log p(data | params) whose gradient is the score estimate
+(:data:`jaxslam.resampling.RESAMPLING_GRADIENTS`): :func:`fit` climbs it with Adam (Kingma &
+Ba 2015; written here, the design card has no optax) over *unconstrained* coordinates, so
+that a noise stays positive (log) and a probability inside (0, 1) (logit). Parameters are
+addressed by their dotted names (``"motion.srr"``, as ``--set`` and ``default_params`` do);
+any of them can be frozen. The optimiser is a ``NamedTuple(init, step)`` of pure functions,
+as in optax and blackjax.
+
+    from jaxslam.learning import fit
+    result = fit(jax.random.key(0), lambda key, p: rbpf.filter(key, prepared, p, config).marginal_loglik,
+                 params, num_steps=50, learning_rate=0.05, trainable=["motion.srr", "likelihood.sigma"])
+    result.params, result.history["objective"]
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int, PRNGKeyArray
+
+
+class Transform(NamedTuple):
+    """A bijection between an unconstrained real and a parameter's domain."""
+
+    to_constrained_fn: Callable[[Array], Array]
+    to_unconstrained_fn: Callable[[Array], Array]
+    domain: str
+    """What the parameter's value must be, for error messages."""
+    contains_fn: Callable[[float], bool]
+
+
+POSITIVE = Transform(jnp.exp, jnp.log, "> 0", lambda v: v > 0.0)
+"""Noise, sigma, gains: log / exp."""
+UNIT_INTERVAL = Transform(jax.nn.sigmoid, lambda p: jnp.log(p) - jnp.log1p(-p), "in (0, 1)", lambda v: 0.0 < v < 1.0)
+"""Probabilities and shares: logit / sigmoid."""
+REAL = Transform(lambda x: x, lambda x: x, "finite", lambda v: bool(np.isfinite(v)))
+"""Any real (log-odds, offsets)."""
+
+
+class AdamState(NamedTuple):
+    """Adam's moments of every trained coordinate."""
+
+    step: Int[Array, ""]
+    """Updates done."""
+    mean: Any
+    """First-moment estimate (the coordinates' pytree)."""
+    second_moment: Any
+    """Second-moment estimate."""
+
+
+class Optimizer(NamedTuple):
+    """``init(coords) -> state`` and ``step(state, coords, grads) -> (coords, state)``."""
+
+    init: Callable[[Any], AdamState]
+    step: Callable[[AdamState, Any, Any], tuple[Any, AdamState]]
+
+
+def adam(learning_rate: float, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8) -> Optimizer:
+    """Adam for *ascent*: ``step`` moves the coordinates along ``grads`` (of an objective to maximise)."""
+
+    def init(coords) -> AdamState:
+        zeros = jax.tree.map(jnp.zeros_like, coords)
+        return AdamState(jnp.int32(0), zeros, zeros)
+
+    def step(state: AdamState, coords, grads):
+        t = state.step + 1
+        mean = jax.tree.map(lambda m, g: b1 * m + (1.0 - b1) * g, state.mean, grads)
+        second = jax.tree.map(lambda v, g: b2 * v + (1.0 - b2) * g * g, state.second_moment, grads)
+        correction1, correction2 = 1.0 - b1 ** t, 1.0 - b2 ** t
+        coords = jax.tree.map(
+            lambda x, m, v: x + learning_rate * (m / correction1) / (jnp.sqrt(v / correction2) + eps),
+            coords, mean, second)
+        return coords, AdamState(t, mean, second)
+
+    return Optimizer(init, step)
+
+
+def param_names(params) -> list[str]:
+    """Dotted names of a parameter pytree's leaves (``"motion.srr"``), in leaf order."""
+    return [jax.tree_util.keystr(path, simple=True, separator=".")
+            for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]]
+
+
+class FitResult(NamedTuple):
+    """What :func:`fit` returns."""
+
+    params: Any
+    """The parameters after the last step (the input's pytree type)."""
+    history: dict[str, np.ndarray]
+    """``"objective"``: (num_steps,) the objective at each step's parameters (before its
+    update); one (num_steps,) array per trained name: its value at that step."""
+    optimizer_state: AdamState
+    """Pass back as ``initial_state`` (with ``params``) to continue where this fit stopped."""
+
+
+def fit(
+    key: PRNGKeyArray,
+    objective_fn: Callable[[PRNGKeyArray, Any], Float[Array, ""]],
+    params,
+    *,
+    num_steps: int,
+    learning_rate: float = 0.05,
+    trainable: Sequence[str] | None = None,
+    transforms: dict[str, Transform] | None = None,
+    initial_state: AdamState | None = None,
+    progress: bool = True,
+) -> FitResult:
+    """Maximise ``objective_fn(key, params)`` (a log-likelihood estimate) with Adam.
+
+    Each step draws a new key, evaluates the objective and its gradient in one jitted call
+    (compiled once) and updates the trained parameters in their unconstrained coordinates.
+
+    Args:
+      key: the fit's key (split into one key per step).
+      objective_fn: ``(key, params) -> scalar`` to maximise, differentiable in ``params``.
+      params: the starting parameters (any pytree of scalar arrays: ``SlamParams``,
+        ``MclParams``, ``DoorParams``...).
+      num_steps: updates to make (>= 1).
+      learning_rate: Adam's step in unconstrained coordinates (0.05: about 5 % of a positive
+        parameter per step at most).
+      trainable: dotted names to fit (default every leaf); the others stay frozen.
+      transforms: name -> :data:`POSITIVE`, :data:`UNIT_INTERVAL` or :data:`REAL`; a name not
+        given is POSITIVE.
+      initial_state: an earlier fit's ``optimizer_state`` to resume it.
+      progress: show a tqdm bar with the objective.
+
+    Raises:
+      ValueError: before any work, for an unknown trainable name, a starting value outside its
+        transform's domain (a zero noise under log), or ``num_steps < 1``.
+    """
+    if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
+        raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
+    names = param_names(params)
+    leaves, treedef = jax.tree.flatten(params)
+    trainable = list(names) if trainable is None else list(trainable)
+    unknown = sorted(set(trainable) - set(names)) + sorted(set(transforms or {}) - set(names))
+    if unknown:
+        raise ValueError(f"unknown parameter names {unknown}; the parameters are {names}")
+    transforms = {name: (transforms or {}).get(name, POSITIVE) for name in trainable}
+    for name in trainable:
+        value = float(np.asarray(leaves[names.index(name)]))
+        if not transforms[name].contains_fn(value):
+            raise ValueError(f"{name} = {value} is outside its transform's domain ({transforms[name].domain}): "
+                             "start it inside, choose another transform, or leave it out of trainable")
+    index = {name: names.index(name) for name in trainable}
+
+    def to_params(coords: dict) -> Any:
+        new = list(leaves)
+        for name, i in index.items():
+            new[i] = transforms[name].to_constrained_fn(coords[name]).astype(jnp.asarray(leaves[i]).dtype)
+        return jax.tree.unflatten(treedef, new)
+
+    coords = {name: transforms[name].to_unconstrained_fn(jnp.asarray(leaves[i], jnp.float32))
+              for name, i in index.items()}
+    optimizer = adam(learning_rate)
+    state = optimizer.init(coords) if initial_state is None else initial_state
+
+    @jax.jit
+    def update(step_key, coords, state):
+        value, grads = jax.value_and_grad(lambda c: objective_fn(step_key, to_params(c)))(coords)
+        grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)  # a NaN step moves nothing
+        new_coords, new_state = optimizer.step(state, coords, grads)
+        return value, new_coords, new_state
+
+    from tqdm.auto import tqdm
+
+    history: dict[str, list] = {"objective": [], **{name: [] for name in trainable}}
+    bar = tqdm(jax.random.split(key, num_steps), desc="fit", unit="step", disable=not progress)
+    for step_key in bar:
+        for name in trainable:
+            history[name].append(float(transforms[name].to_constrained_fn(coords[name])))
+        value, coords, state = update(step_key, coords, state)
+        history["objective"].append(float(value))
+        bar.set_postfix(objective=f"{float(value):.3f}")
+    return FitResult(to_params(coords), {k: np.asarray(v) for k, v in history.items()}, state)

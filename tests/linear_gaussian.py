@@ -1,0 +1,62 @@
+"""A 1-D linear-Gaussian state-space model for the gradient and learning tests: its exact
+log-likelihood (Kalman filter) and a bootstrap particle filter's estimate of it, built on the
+package's ``particle_filter.reweight_and_resample``."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.stats import norm
+
+from jaxslam.particle_filter import reweight_and_resample
+
+THETA = jnp.array([0.9, 0.5, 0.3])  # a, q, r: x_t = a x_{t-1} + N(0, q), y_t = x_t + N(0, r), x_0 ~ N(0, 1)
+
+
+def simulate(key, theta, num_steps):
+    a, q, r = theta
+    k0, k1 = jax.random.split(key)
+
+    def step(x, k):
+        ka, kb = jax.random.split(k)
+        x = a * x + jnp.sqrt(q) * jax.random.normal(ka)
+        return x, x + jnp.sqrt(r) * jax.random.normal(kb)
+
+    _, ys = jax.lax.scan(step, jax.random.normal(k0), jax.random.split(k1, num_steps))
+    return ys
+
+
+def kalman_log_likelihood(theta, ys):
+    """Exact log p(y_1:T | theta) (the slow, obviously right reference)."""
+    a, q, r = theta
+
+    def step(carry, y):
+        mean, var = carry
+        mean, var = a * mean, a * a * var + q
+        innovation_var = var + r
+        gain = var / innovation_var
+        return (mean + gain * (y - mean), (1.0 - gain) * var), norm.logpdf(y, mean, jnp.sqrt(innovation_var))
+
+    _, terms = jax.lax.scan(step, (0.0, 1.0), ys)
+    return terms.sum()
+
+
+def particle_log_likelihood(theta, key, ys, num_particles, resampler, gradient, resample_threshold=1.0):
+    """The bootstrap filter's estimate of log p(y_1:T | theta) (sum of the steps' log-evidence)."""
+    a, q, r = theta
+    k0, k1 = jax.random.split(key)
+    x = jax.random.normal(k0, (num_particles,))
+    log_weights = jnp.full((num_particles,), -jnp.log(num_particles))
+
+    def step(carry, inputs):
+        x, log_weights = carry
+        k, y = inputs
+        k_move, k_resample = jax.random.split(k)
+        x = a * x + jnp.sqrt(q) * jax.random.normal(k_move, (num_particles,))  # reparameterised
+        poses = jnp.stack([x, jnp.zeros_like(x), jnp.zeros_like(x)], axis=-1)
+        update = reweight_and_resample(k_resample, poses, log_weights, norm.logpdf(y, x, jnp.sqrt(r)),
+                                       jnp.float32(resample_threshold), resampler, gradient)
+        return (x[update.ancestors], update.new_log_weights), update.log_evidence
+
+    _, log_evidence = jax.lax.scan(step, (x, log_weights), (jax.random.split(k1, ys.shape[0]), ys))
+    return log_evidence.sum()
