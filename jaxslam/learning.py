@@ -16,6 +16,7 @@ as in optax and blackjax.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Callable, NamedTuple, Sequence
 
 import jax
@@ -178,3 +179,65 @@ def fit(
         history["objective"].append(float(value))
         bar.set_postfix(objective=f"{float(value):.3f}")
     return FitResult(to_params(coords), {k: np.asarray(v) for k, v in history.items()}, state)
+
+
+MOTION_NOISE_TERMS = ("motion.srr", "motion.srt", "motion.str", "motion.stt")
+"""The odometry model's proportional terms (the floors stay as given)."""
+
+
+OUTLIER_SHARE = 0.05
+"""Share of a path's steps :func:`fit_motion_noise` allows to be outliers (a closed loop, a switch
+of lineage): they are explained by a flat density instead of widening the model."""
+OUTLIER_SPAN = (2.0, 2.0, 2.0 * np.pi)
+"""Width (m, m, rad) of the flat outlier density of each residual component."""
+
+
+def fit_motion_noise(key: PRNGKeyArray, poses, odometry, params, *, num_steps: int = 300,
+                     learning_rate: float = 0.05, progress: bool = False) -> FitResult:
+    """The odometry noise that explains a path: fit the motion model's proportional terms
+    (:data:`MOTION_NOISE_TERMS`) to the differences between a path's steps and the odometry's.
+
+    Each step's residual ``between(x_{t-1}, x_t) - between(o_{t-1}, o_t)`` (per component) is
+    modelled as the motion model's Gaussian (std :func:`jaxslam.motion.noise_std` of the
+    odometry motion) mixed with a flat density of share :data:`OUTLIER_SHARE`: a path from a
+    filter has a few large corrections (a closed loop, a switch of lineage) that a Gaussian fit
+    would turn into a wide model. The path can be the filter's own best path over the first
+    minutes of a log: no ground truth is needed.
+
+    Args:
+      key: seeds :func:`fit` (the objective is deterministic).
+      poses: (S, 3) the path at S consecutive processed scans (m, m, rad).
+      odometry: (S, 3) the odometry at the same scans.
+      params: ``SlamParams`` to start from (the default model); the result keeps its other fields.
+      num_steps, learning_rate, progress: of :func:`fit`.
+
+    Returns:
+      :class:`FitResult` whose ``params`` hold the fitted terms.
+
+    Raises:
+      ValueError: poses and odometry of other shapes, fewer than 10 steps, or a non-finite value.
+    """
+    from jax.scipy.stats import norm
+
+    from jaxslam.geometry import between_np, wrap_angle
+    from jaxslam.motion import noise_std
+
+    poses, odometry = np.asarray(poses, np.float64), np.asarray(odometry, np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 3 or poses.shape != odometry.shape:
+        raise ValueError(f"poses and odometry must both be (S, 3), got {poses.shape} and {odometry.shape}")
+    if poses.shape[0] < 11:
+        raise ValueError(f"at least 10 steps are needed to fit the noise, got {poses.shape[0] - 1}")
+    if not (np.all(np.isfinite(poses)) and np.all(np.isfinite(odometry))):
+        raise ValueError("poses and odometry must be finite")
+    # Relative motions in float64 on the host (poses may be far from the origin), then float32.
+    motions = jnp.asarray(between_np(odometry[:-1], odometry[1:]), jnp.float32)
+    residuals = jnp.asarray(between_np(poses[:-1], poses[1:]), jnp.float32) - motions
+    residuals = residuals.at[:, 2].set(wrap_angle(residuals[:, 2]))
+    log_outlier = math.log(OUTLIER_SHARE) - jnp.log(jnp.asarray(OUTLIER_SPAN, jnp.float32))
+
+    def objective(_, p):
+        inlier = math.log1p(-OUTLIER_SHARE) + norm.logpdf(residuals, 0.0, noise_std(motions, p.motion))
+        return jnp.sum(jnp.logaddexp(inlier, log_outlier))
+
+    return fit(key, objective, params, num_steps=num_steps, learning_rate=learning_rate,
+               trainable=list(MOTION_NOISE_TERMS), progress=progress)
