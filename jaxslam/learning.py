@@ -241,3 +241,46 @@ def fit_motion_noise(key: PRNGKeyArray, poses, odometry, params, *, num_steps: i
 
     return fit(key, objective, params, num_steps=num_steps, learning_rate=learning_rate,
                trainable=list(MOTION_NOISE_TERMS), progress=progress)
+
+
+def calibrate_motion(key: PRNGKeyArray, log, config, params, settings=None, *, num_updates: int = 300,
+                     progress: bool = False) -> tuple[Any, dict]:
+    """Self-calibration of the odometry model from the log itself (no ground truth): map the
+    first ``num_updates`` processed scans with the SMP (``config`` with ``proposal="smp"``),
+    then fit the motion model's terms to its best path (:func:`fit_motion_noise`).
+
+    The default model (GMapping's) describes no particular robot: FR-clinic's odometry turns
+    about ten times more precisely than it says, and with a model that wide the SMP and the
+    LP do not hold the heading along long corridors (docs/notes/2026-11-23-motion-model-width.md).
+
+    Args:
+      key: the calibration run's key.
+      log: the ``LaserLog``; only its first scans up to the ``num_updates``-th processed one are read.
+      config, params, settings: the run's (``settings`` default ``RunSettings()``).
+      num_updates: updates to calibrate on (>= 10): the first scan and the next ``num_updates`` processed ones.
+      progress: show the calibration run's progress bar.
+
+    Returns:
+      ``(params, record)``: ``params`` with the fitted motion terms, and ``record`` (for a
+      summary): the fitted terms by name, the scans and updates used.
+    """
+    import dataclasses
+
+    from jaxslam import rbpf
+    from jaxslam.config import RunSettings
+    from jaxslam.laserlog import select_updates
+
+    if isinstance(num_updates, bool) or not isinstance(num_updates, (int, np.integer)) or num_updates < 10:
+        raise ValueError(f"num_updates must be an integer >= 10, got {num_updates!r}")
+    settings = RunSettings() if settings is None else settings
+    selection = select_updates(log, settings.linear_update, settings.angular_update)
+    last = int(selection.indices[min(num_updates, selection.indices.size - 1)])
+    head = log.subset(np.arange(last + 1))
+    result = rbpf.run(key, head, dataclasses.replace(config, proposal="smp"), params, settings, progress=progress)
+    used = result.selection.indices
+    if used.size < 11:
+        raise ValueError(f"the log has {used.size} processed scans, at least 11 are needed to calibrate the motion")
+    fitted = fit_motion_noise(key, result.trajectory[used], np.asarray(head.odometry, np.float64)[used], params)
+    record = {name: float(fitted.history[name][-1]) for name in MOTION_NOISE_TERMS}
+    record.update(updates=int(used.size), scans=int(head.num_scans))
+    return fitted.params, record
