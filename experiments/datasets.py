@@ -84,8 +84,6 @@ def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path, setti
            "--particles", str(settings["particles"]), "--seed", str(seed), "--out", str(run_dir), "--no-progress"]
     if settings["refine"]:
         cmd += ["--refine"]
-    if settings.get("calibrate_motion") is not None:  # the odometry model fitted to the log's first updates
-        cmd += ["--calibrate-motion", str(settings["calibrate_motion"])]
     if cli_proposal == "lp":
         cmd += ["--localizers", str(settings["localizers"]), "--horizon", str(settings["horizon"])]
     if proposal.endswith("-c0"):  # the SLAM weight is the evidence estimate alone (no selection correction)
@@ -275,9 +273,6 @@ def main(argv=None) -> int:
                              "-c0: with lookahead.selection_correction=0 (the evidence alone weighs the particles)")
     parser.add_argument("--refine", action="store_true",
                         help="also localise every scan in each final map (jaxslam map --refine): a refined row")
-    parser.add_argument("--calibrate-motion", type=int, default=None, metavar="UPDATES",
-                        help="jaxslam map --calibrate-motion UPDATES: each run first fits the odometry model to "
-                             "its own SMP path on the log's first UPDATES processed scans")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="change one of the table's settings for every run (after them, so it wins), "
                              "e.g. num_particles=100; use a new --out (runs are cached there)")
@@ -287,8 +282,6 @@ def main(argv=None) -> int:
         print(f"datasets not found at {data}", file=sys.stderr)
         return 2
     settings = {**SETTINGS, "refine": args.refine, "set": SETTINGS["set"] + args.set}
-    if args.calibrate_motion is not None:  # only then: folders of the plain defaults stay resumable
-        settings["calibrate_motion"] = args.calibrate_motion
     try:  # results.json describes every run in the folder: an earlier call's runs stay in it
         store = ResultStore(out / "results.json", settings, key=lambda r: (r["dataset"], r["proposal"], r["seed"]))
     except SettingsMismatch as err:

@@ -52,7 +52,6 @@ def _check_filter_args(args: argparse.Namespace) -> None:
     """The flags every filter command shares, before any work."""
     check_seed(args.seed)
     _check_at_least("--chunk-size", args.chunk_size, 1, "steps per compiled chunk")
-    _check_at_least("--calibrate-motion", args.calibrate_motion, 10, "processed scans to calibrate on")
     _check_at_least("--particles", args.particles, 1, "SLAM particles")
     _check_at_least("--localizers", args.localizers, 1, "localizer particles per SLAM particle")
     _check_at_least("--horizon", args.horizon, 0, "look-ahead scans")
@@ -132,10 +131,6 @@ def _add_filter_options(p: argparse.ArgumentParser, default_proposal: str, defau
     p.add_argument("--chunk-size", type=int, default=32, help="steps per compiled chunk (progress granularity), >= 1")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.add_argument("--out", default="out", help="output folder (replaced atomically; stale outputs removed)")
-    p.add_argument("--calibrate-motion", type=int, default=None, metavar="UPDATES",
-                   help="first map the log's first UPDATES processed scans with the SMP and fit the odometry "
-                        "model's terms (motion.srr, srt, str, stt) to that path; the run uses them "
-                        "(jaxslam.learning.calibrate_motion; no ground truth)")
     p.add_argument("--refine", action="store_true",
                    help="also localise every scan in the final map: trajectory_refined.txt (jaxslam.refine)")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
@@ -307,19 +302,6 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     check_extent(log, config)
     _check_memory(log, config, settings)
     _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
-    if getattr(args, "calibrate_motion", None) is not None:
-        import jax
-
-        from jaxslam.learning import calibrate_motion
-
-        config, settings, params = setup
-        # Its own key: the mapping run's draws stay those of --seed.
-        params, record = calibrate_motion(jax.random.fold_in(jax.random.key(args.seed), 1), log, config, params,
-                                          settings, num_updates=args.calibrate_motion, progress=not args.no_progress)
-        setup = (config, settings, params)
-        terms = ", ".join(f"{name} {record[name]:.4g}" for name in ("motion.srr", "motion.srt", "motion.str",
-                                                                      "motion.stt"))
-        print(f"calibrated on the first {record['updates']} processed scans: {terms}", file=sys.stderr)
     ckpt = checkpoint_path(args.out)
     identity = _run_identity(args, log, setup, source)
     resume = _load_resume(ckpt, identity) if getattr(args, "resume", False) else None

@@ -53,25 +53,6 @@ def test_map_refine_writes_a_refined_trajectory(tmp_path, small_log):
     assert summary["refinement"]["seconds"] > 0.0
 
 
-def test_map_calibrates_the_motion_model_first(tmp_path, small_log, capsys):
-    """--calibrate-motion: the odometry terms in summary.json are those fitted to the SMP's path
-    on the first processed scans (not the defaults), and they are printed."""
-    log_path = tmp_path / "office.clf"
-    write_flaser_log(log_path, small_log)
-    out = tmp_path / "out"
-    assert main(["map", str(log_path), "--particles", "3", "--proposal", "op", "--no-progress",
-                 "--calibrate-motion", "12", "--set", "linear_update=0.2", "--set", "max_insert_range=8",
-                 "--out", str(out)]) == 0
-    err = capsys.readouterr().err
-    assert "calibrated on the first 13 processed scans: motion.srr" in err
-    params = json.loads((out / "summary.json").read_text())["params"]
-    printed = float(err.split("motion.stt ")[1].split()[0].rstrip(","))
-    assert params["motion.stt"] == pytest.approx(printed, rel=1e-3)
-    assert params["motion.stt"] != pytest.approx(0.2, rel=0.05)  # moved from the default
-    assert main(["map", str(log_path), "--no-progress", "--calibrate-motion", "5", "--out", str(tmp_path / "o")]) == 2
-    assert "--calibrate-motion must be an integer >= 10" in capsys.readouterr().err
-
-
 def test_config_file_and_flags(tmp_path, small_log):
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=20)
