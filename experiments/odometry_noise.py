@@ -22,14 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-LOGS = {
-    "intel": ("intel.sort.bag", "intel.relations"),
-    "aces": ("aces.sort.bag", "aces.relations"),
-    "mit-csail": ("mit-csail.clf", "mit-csail.relations"),
-    "fr-clinic": ("fr-clinic.bag", "fr-clinic.relations"),
-}
+from datasets import DATA, DATASETS as LOGS  # experiments/datasets.py (this folder comes first on sys.path)
+
 LENGTHS = [(0.0, 0.7), (0.7, 2.0), (2.0, 5.0)]
 """Odometry motion lengths (m) the relations are grouped by."""
 
