@@ -38,6 +38,8 @@ import dataclasses
 import math
 from typing import NamedTuple
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -307,7 +309,16 @@ def computed_once(fn, first, *rest):
     materialised, by vectorised code, once; so ``fn`` runs in a ``while_loop`` whose trip count
     depends on the data (1, or 2 if ``first``'s first element is +inf: the same result).
     ``jax.lax.optimization_barrier`` does not do this: XLA's CPU pipeline drops it before fusion.
+    Reverse-mode autodiff cannot go through a ``while_loop``, so the derivative is ``fn``'s own
+    (a custom JVP): the forward values are the loop's, gradients flow as if ``fn`` were called.
     """
+    # closure_convert: the custom JVP must not close over traced values (fn often does).
+    converted, consts = jax.closure_convert(fn, first, *rest)
+    return _computed_once(converted, first, *rest, *consts)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _computed_once(fn, first, *rest):
     shapes = jax.eval_shape(fn, first, *rest)
     init = jax.tree.map(lambda shape: jnp.zeros(shape.shape, shape.dtype), shapes)
     probe = first.reshape(-1)[0].astype(jnp.float32)
@@ -315,6 +326,12 @@ def computed_once(fn, first, *rest):
     _, out = jax.lax.while_loop(lambda c: c[0] < trips, lambda c: (c[0] + 1, fn(first, *rest)),
                                 (jnp.int32(0), init))
     return out
+
+
+@_computed_once.defjvp
+def _computed_once_jvp(fn, primals, tangents):
+    _, tangents_out = jax.jvp(fn, primals, tangents)
+    return _computed_once(fn, *primals), tangents_out
 
 
 def insert_scans(

@@ -167,3 +167,28 @@ def test_the_pure_filter_is_run_bit_for_bit_compiles_once_and_vmaps():
     batched = jax.jit(jax.vmap(lambda k: rbpf.filter(k, prepared, params, config).marginal_loglik))(keys)
     singles = [float(filter_fn(k, params).marginal_loglik) for k in keys]
     np.testing.assert_allclose(np.asarray(batched), singles, rtol=1e-5)
+
+
+@pytest.mark.slow  # whole-filter gradients of three proposals, six compilations (python3 -m pytest -m slow)
+@pytest.mark.parametrize("proposal", ["op", "smp", "lp"])
+def test_motion_gradients_need_the_bilinear_likelihood(proposal):
+    """Which configurations give motion-noise gradients: with the nearest-cell likelihood the
+    weights are piecewise constant in the pose, so the OP's and the LP's gradient in the motion
+    noise is exactly 0 (the SMP's is not: its matched Gaussian carries the motion prior); with
+    likelihood_lookup="bilinear" every proposal's is finite and nonzero. Reverse-mode autodiff
+    goes through the whole filter (the maps' computed-once loops included)."""
+    log = office_scenario(jax.random.key(3)).log.subset(np.arange(40))
+    grads = {}
+    for lookup in ("nearest", "bilinear"):
+        config = SlamConfig(num_particles=4, proposal=proposal, num_localizers=8, horizon=2, max_insert_range=10.0,
+                            beam_stride=4, map_extent=128.0, likelihood_lookup=lookup)
+        prepared, _, _ = rbpf.prepare(log, config, RunSettings(linear_update=0.3, angular_update=0.25))
+        grads[lookup] = jax.jit(jax.grad(
+            lambda p: rbpf.filter(jax.random.key(1), prepared, p, config).marginal_loglik))(default_params())
+    nearest, bilinear = (np.array([float(getattr(grads[k].motion, n)) for n in ("srr", "srt", "str", "stt")])
+                         for k in ("nearest", "bilinear"))
+    assert np.all(np.isfinite(bilinear)) and np.all(bilinear[[0, 3]] != 0.0)
+    if proposal == "smp":
+        assert np.any(nearest != 0.0)
+    else:
+        np.testing.assert_array_equal(nearest, 0.0)

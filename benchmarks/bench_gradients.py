@@ -1,0 +1,80 @@
+"""What a gradient costs: ``rbpf.filter``'s log-likelihood and its gradient in every parameter,
+against the forward pass alone, on the same run.
+
+The simulated office of ``jaxslam demo`` (its settings), one proposal per call; both functions are
+compiled first, then timed alternately (``--repeats`` times each, the median kept), so the ratio
+comes from one session on one machine.
+
+    python benchmarks/bench_gradients.py --proposal smp --out docs/results/bench_gradients.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--proposal", nargs="+", default=["op", "smp", "lp"], choices=["op", "smp", "lp"])
+    parser.add_argument("--particles", type=int, default=20)
+    parser.add_argument("--scans", type=int, default=200, help="scans of the simulated office")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default="results/bench_gradients.json")
+    args = parser.parse_args(argv)
+
+    import dataclasses
+
+    import jax
+    import numpy as np
+
+    from jaxslam import rbpf
+    from jaxslam.cli import DEMO_DEFAULTS
+    from jaxslam.config import build_setup
+    from jaxslam.sim import office_scenario
+
+    log = office_scenario(jax.random.key(0)).log
+    log = log.subset(np.arange(min(args.scans, log.num_scans)))
+    rows = {}
+    for proposal in args.proposal:
+        config, settings, params = build_setup({**DEMO_DEFAULTS, "proposal": proposal,
+                                                "num_particles": args.particles})
+        config = dataclasses.replace(config, likelihood_lookup="bilinear")  # motion gradients need it
+        prepared, selection, _ = rbpf.prepare(log, config, settings)
+
+        def log_likelihood(p, key):
+            return rbpf.filter(key, prepared, p, config).marginal_loglik
+
+        forward = jax.jit(log_likelihood)
+        gradient = jax.jit(jax.value_and_grad(log_likelihood))
+        key = jax.random.key(1)
+        t0 = time.perf_counter()
+        jax.block_until_ready(forward(params, key))
+        compile_forward = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        jax.block_until_ready(gradient(params, key))
+        compile_gradient = time.perf_counter() - t0
+        times = {"forward": [], "gradient": []}
+        for r in range(args.repeats):
+            for name, fn in (("forward", forward), ("gradient", gradient)):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn(params, jax.random.key(2 + r)))
+                times[name].append(time.perf_counter() - t0)
+        f, g = float(np.median(times["forward"])), float(np.median(times["gradient"]))
+        rows[proposal] = {"steps": int(selection.indices.size - 1), "forward_s": f, "gradient_s": g,
+                          "ratio": g / f, "compile_forward_s": compile_forward, "compile_gradient_s": compile_gradient}
+        print(f"{proposal}: {rows[proposal]['steps']} steps, forward {f:.2f} s, value and gradient {g:.2f} s, "
+              f"ratio {g / f:.2f} (compile {compile_forward:.1f} / {compile_gradient:.1f} s)", flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"machine": platform.platform(), "particles": args.particles, "scans": args.scans,
+                               "likelihood_lookup": "bilinear", "proposals": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
