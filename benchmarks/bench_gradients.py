@@ -3,9 +3,14 @@ against the forward pass alone, on the same run.
 
 The simulated office of ``jaxslam demo`` (its settings), one proposal per call; both functions are
 compiled first, then timed alternately (``--repeats`` times each, the median kept), so the ratio
-comes from one session on one machine.
+comes from one session on one machine. Each row is merged into ``--out`` as it is measured
+(keyed by proposal and scans), so calls with other settings add rows.
 
-    python benchmarks/bench_gradients.py --proposal smp --out docs/results/bench_gradients.json
+Reverse mode keeps every step's residuals, the maps' included: memory grows with the steps. The
+LP (L = 100, k = 5, N = 20) ran out of 23 GB at 200 scans; give it fewer ``--scans``.
+
+    python benchmarks/bench_gradients.py --proposal op smp --out docs/results/bench_gradients.json
+    python benchmarks/bench_gradients.py --proposal lp --scans 60 --out docs/results/bench_gradients.json
 """
 
 from __future__ import annotations
@@ -39,7 +44,9 @@ def main(argv=None) -> int:
 
     log = office_scenario(jax.random.key(0)).log
     log = log.subset(np.arange(min(args.scans, log.num_scans)))
-    rows = {}
+    out = Path(args.out)
+    table = json.loads(out.read_text()) if out.is_file() else {"machine": platform.platform(),
+                                                               "likelihood_lookup": "bilinear", "rows": {}}
     for proposal in args.proposal:
         config, settings, params = build_setup({**DEMO_DEFAULTS, "proposal": proposal,
                                                 "num_particles": args.particles})
@@ -65,14 +72,14 @@ def main(argv=None) -> int:
                 jax.block_until_ready(fn(params, jax.random.key(2 + r)))
                 times[name].append(time.perf_counter() - t0)
         f, g = float(np.median(times["forward"])), float(np.median(times["gradient"]))
-        rows[proposal] = {"steps": int(selection.indices.size - 1), "forward_s": f, "gradient_s": g,
-                          "ratio": g / f, "compile_forward_s": compile_forward, "compile_gradient_s": compile_gradient}
-        print(f"{proposal}: {rows[proposal]['steps']} steps, forward {f:.2f} s, value and gradient {g:.2f} s, "
+        row = {"proposal": proposal, "particles": args.particles, "scans": args.scans,
+               "steps": int(selection.indices.size - 1), "forward_s": f, "gradient_s": g, "ratio": g / f,
+               "compile_forward_s": compile_forward, "compile_gradient_s": compile_gradient}
+        table["rows"][f"{proposal}_{args.particles}particles_{args.scans}scans"] = row
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(table, indent=2))
+        print(f"{proposal}: {row['steps']} steps, forward {f:.2f} s, value and gradient {g:.2f} s, "
               f"ratio {g / f:.2f} (compile {compile_forward:.1f} / {compile_gradient:.1f} s)", flush=True)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": platform.platform(), "particles": args.particles, "scans": args.scans,
-                               "likelihood_lookup": "bilinear", "proposals": rows}, indent=2))
     return 0
 
 
