@@ -356,7 +356,10 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
     ``prepared`` logs, differentiable in ``params``. The per-step keys are derived from ``key``
     as in :func:`run`, so both give the same particles. Unlike ``run`` it cannot grow the map
     pools: a step whose tiles do not fit inserts nothing and sets ``state.maps.overflow``
-    (check it, and pass a larger ``pool``; :func:`pool_size` is the default).
+    (check it, and pass a larger ``pool``; :func:`pool_size` is the default). Reverse-mode
+    autodiff keeps every step's residuals, the maps included, so its memory grows with the
+    steps (benchmarks/bench_gradients.py); motion-noise gradients need
+    ``likelihood_lookup="bilinear"`` (the nearest-cell weights are piecewise constant in the pose).
 
     Args:
       key: the run's key.
