@@ -335,6 +335,12 @@ def prepare(log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettin
     Returns ``(prepared, selection, frame_offset)``: the arrays :func:`filter` takes, which scans
     of ``log`` it processes, and the (2,) translation (m) to add to local x, y for the world's.
     """
+    prepared, selection, frame_offset, _ = _prepare(log, config, settings)
+    return prepared, selection, frame_offset
+
+
+def _prepare(log: LaserLog, config: SlamConfig, settings: RunSettings):
+    """:func:`prepare`, and the log moved to the local frame (``run`` goes on with it)."""
     check_extent(log, config)
     frame_offset = local_frame_offset(log)
     local = _local_log(log, frame_offset)
@@ -345,7 +351,7 @@ def prepare(log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettin
         inputs=build_inputs(local, selection, config.lookahead_steps),
         sensor=local.sensor,
     )
-    return prepared, selection, frame_offset
+    return prepared, selection, frame_offset, local
 
 
 def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config: SlamConfig,
@@ -611,8 +617,7 @@ def run(
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
     t_start = time.perf_counter()
-    prepared, selection, frame_offset = prepare(log, config, settings)
-    log = _local_log(log, frame_offset)  # from here on, the local frame
+    prepared, selection, frame_offset, log = _prepare(log, config, settings)  # log: from here on, the local frame
     sensor = log.sensor
     initial_pose = jnp.asarray(prepared.initial_pose)
     key_init, key_steps = jax.random.split(key)

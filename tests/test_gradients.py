@@ -63,14 +63,21 @@ def test_without_resampling_autodiff_is_the_derivative_of_the_estimate():
 
 
 def test_score_resampling_gradient_is_finite_with_zero_weights():
-    """A particle of weight zero is never drawn: no -inf - -inf NaN reaches the gradient."""
-    def f(shift):
+    """The package's resamplers never draw a particle of weight zero; a resampler that does
+    (here one that always draws particle 1, of weight zero) must not turn its -inf - -inf into
+    NaN weights or gradients."""
+    def f(shift, resample_fn):
         log_w = jnp.array([0.0, -jnp.inf, shift, -jnp.inf, 0.5 * shift])
-        _, new_log_weights, resampled = resample_if_needed(jax.random.key(0), log_w, jnp.float32(1.0))
-        return jax.scipy.special.logsumexp(new_log_weights + jnp.arange(5.0)), resampled
+        _, new_log_weights, resampled = resample_if_needed(jax.random.key(0), log_w, jnp.float32(1.0), resample_fn)
+        return jax.scipy.special.logsumexp(new_log_weights + jnp.arange(5.0)), (resampled, new_log_weights)
 
-    (value, resampled), grad = jax.value_and_grad(f, has_aux=True)(jnp.float32(0.3))
-    assert bool(resampled) and np.isfinite(float(value)) and np.isfinite(float(grad))
+    def draws_a_dead_particle(key, log_weights, num_samples):
+        return jnp.ones((num_samples,), jnp.int32)
+
+    for resample_fn in (RESAMPLERS["systematic"], draws_a_dead_particle):
+        (value, (resampled, weights)), grad = jax.value_and_grad(f, has_aux=True)(jnp.float32(0.3), resample_fn)
+        assert bool(resampled) and np.isfinite(float(value)) and np.isfinite(float(grad))
+        np.testing.assert_array_equal(np.asarray(weights), np.full(5, -np.log(5.0), np.float32))
 
 
 def test_rbpf_forward_is_the_same_for_either_resampling_gradient():
