@@ -544,9 +544,10 @@ def make_parser() -> argparse.ArgumentParser:
     p_diag.set_defaults(func=_cmd_diagnose)
 
     p_doors = sub.add_parser("doors", help="localization with door-state estimation (Avots et al. 2002)")
-    p_doors.add_argument("--scenario", choices=("corridors", "office"), default="corridors",
+    p_doors.add_argument("--scenario", choices=("corridors", "office", "patrol"), default="corridors",
                          help="corridors: two corridors told apart only by their doors (Fig. 2); "
-                              "office: doors closed on the way out, opened, then the return pass (Fig. 1)")
+                              "office: doors closed on the way out, opened, then the return pass (Fig. 1); "
+                              "patrol: ten round trips while the doors open and close at random")
     p_doors.add_argument("--particles", type=int, default=1000)
     p_doors.add_argument("--seed", type=int, default=0, help="seed of the simulated log and of the filter")
     p_doors.add_argument("--filter", dest="filter_kind", choices=("hybrid", "static", "memoryless"),

@@ -8,6 +8,11 @@ addressed by their dotted names (``"motion.srr"``, as ``--set`` and ``default_pa
 any of them can be frozen. The optimiser is a ``NamedTuple(init, step)`` of pure functions,
 as in optax and blackjax.
 
+Fit with the untempered likelihood (``likelihood.gain`` 1 for the RBPF, ``likelihood_gain`` 1
+for MCL and the doors) and leave the gain out of ``trainable``: a gain below 1 makes the
+objective a tempered pseudo-likelihood whose maximum is not at the true noise
+(docs/design.md, "Tempering and learning").
+
     from jaxslam.learning import fit
     result = fit(jax.random.key(0), lambda key, p: rbpf.filter(key, prepared, p, config).marginal_loglik,
                  params, num_steps=50, learning_rate=0.05, trainable=["motion.srr", "likelihood.sigma"])

@@ -10,8 +10,9 @@ that once for all of them, with the same names for the same quantities (``log_ev
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
@@ -70,6 +71,37 @@ def reweight_and_resample(
         key, normalized, resample_threshold, resampling.RESAMPLERS[resampler], gradient)
     return WeightUpdate(normalized, log_evidence, ~jnp.isfinite(log_evidence), resampling.ess(normalized),
                         mean, cov, ancestors, resampled, new_log_weights)
+
+
+class FilterOutput(NamedTuple):
+    """What a whole-log filter function returns (``rbpf.filter``, ``mcl.filter``, ``doors.filter``)."""
+
+    state: Any
+    """The particles after the last step."""
+    info: Any
+    """Every step's diagnostics, stacked over the steps."""
+    marginal_loglik: Float[Array, ""]
+    """The filter's estimate of the log-likelihood of the observations given the parameters: the
+    sum of the steps' ``log_evidence`` (tempered by the likelihood gain like the weights; -inf
+    after a degenerate step). Its gradient is the score estimate of
+    :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
+
+
+def scan_filter(step_fn: Callable, key: PRNGKeyArray, state, inputs, log_evidence_fn: Callable,
+                checkpoint: bool = True) -> FilterOutput:
+    """``step_fn(key, state, inputs_t) -> (state, info)`` over the leading axis of ``inputs`` in
+    one ``lax.scan`` (one key per step, split from ``key``), and the summed log-evidence
+    ``log_evidence_fn(stacked_info)``.
+
+    ``checkpoint``: rematerialise each step under reverse-mode differentiation
+    (``jax.checkpoint``), so that a gradient over T steps keeps T particle sets, not T steps'
+    intermediates (for a localization filter, its N x B x M ray casts); it changes no value.
+    """
+    num_steps = jax.tree.leaves(inputs)[0].shape[0]
+    body = jax.checkpoint(step_fn) if checkpoint else step_fn
+    final, info = jax.lax.scan(lambda carry, xs: body(xs[0], carry, xs[1]), state,
+                               (jax.random.split(key, num_steps), inputs))
+    return FilterOutput(final, info, jnp.sum(log_evidence_fn(info)))
 
 
 def best_particle(log_weights) -> int:

@@ -314,17 +314,9 @@ class PreparedLog(NamedTuple):
     """The laser."""
 
 
-class FilterOutput(NamedTuple):
-    """What :func:`filter` returns."""
-
-    state: SlamState
-    """The particles after the last step."""
-    info: SlamInfo
-    """Every step's diagnostics, stacked (S - 1, ...)."""
-    marginal_loglik: Float[Array, ""]
-    """The filter's estimate of log p(z_2:S | z_1, u, params): the sum of the steps'
-    ``log_evidence`` (tempered by ``likelihood.gain`` like the weights). Its gradient is the
-    score estimate of :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
+FilterOutput = particle_filter.FilterOutput
+"""What :func:`filter` returns: the final :class:`SlamState`, the (S - 1, ...) stacked
+:class:`SlamInfo` and ``marginal_loglik``, the estimate of log p(z_2:S | z_1, u, params)."""
 
 
 def prepare(log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettings()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from typing import NamedTuple
 
 import chex
 import jax
@@ -65,15 +66,28 @@ def _brute_force(walls, door_segments, poses, scans, sensor, beam, gain, initial
     return np.asarray(marginals), log_evidence
 
 
-def test_factored_posterior_matches_brute_force_enumeration():
+class _Changing(NamedTuple):
+    """A fixed path in the three-door room, scans from a world whose doors change (door 0 closed
+    then open, 1 open, 2 closed), and the exact answers of :func:`_brute_force`."""
+
+    walls: np.ndarray
+    door_segments: np.ndarray
+    sensor: object
+    beam: object
+    gain: float
+    initial: np.ndarray
+    p_oo: np.ndarray
+    p_oc: np.ndarray
+    poses: np.ndarray
+    scans: list
+
+
+def _changing_doors() -> _Changing:
     walls, door_segments = _room_with_three_doors()
     sensor = make_sensor(uniform_beams(90, 2 * np.pi * 89 / 90), 0.0, 15.0)
     beam = make_beam_model_params(0.8, 0.1, 0.05, 0.05, sigma_hit=0.3, lambda_short=0.5)
     gain, initial = 0.3, np.array([0.3, 0.5, 0.8])
     p_oo, p_oc = np.array([0.9, 0.8, 0.95]), np.array([0.1, 0.3, 0.02])
-    door_map = doors.make_door_map(walls, door_segments, initial, p_oo, p_oc)
-    # A fixed path in the room and scans from a world whose doors change: 0 closed then open,
-    # 1 open, 2 closed.
     poses = np.array([[3, 2, 0.3], [5, 2.5, 0.0], [7, 3, 0.5], [7.5, 3.5, 1.2], [6, 4, 2.5], [3, 4, 3.0]], np.float32)
     truth_open = np.array([[0, 1, 0]] * 3 + [[1, 1, 0]] * 3, bool)
     segments = np.concatenate([walls, door_segments])
@@ -83,23 +97,71 @@ def test_factored_posterior_matches_brute_force_enumeration():
         active = np.concatenate([np.ones(walls.shape[0], bool), ~open_now])
         r, _ = raycast(segments, pose[:2], pose[2] + sensor.beam_angles, sensor.range_max, active)
         scans.append(np.clip(np.asarray(r) + rng.normal(0, 0.05, r.shape), 0, 15).astype(np.float32))
-    want_marginals, want_evidence = _brute_force(walls, door_segments, poses, scans, sensor, beam, gain, initial,
-                                                 p_oo, p_oc)
+    return _Changing(walls, door_segments, sensor, beam, gain, initial, p_oo, p_oc, poses, scans)
 
-    params = doors.make_params(door_map, motion=ZERO_MOTION, beam=beam, likelihood_gain=gain, resample_threshold=0.0)
+
+def _single_particle_filter(case: _Changing):
+    """Door map, params, config (one particle, no motion noise, no resampling), initial state and
+    stacked inputs of :func:`_changing_doors`: the filter then is the exact forward filter."""
+    door_map = doors.make_door_map(case.walls, case.door_segments, case.initial, case.p_oo, case.p_oc)
+    params = doors.make_params(door_map, motion=ZERO_MOTION, beam=case.beam, likelihood_gain=case.gain,
+                               resample_threshold=0.0)
     config = doors.DoorConfig(num_particles=1)
-    state = doors.init(mcl.MclState(jnp.asarray(poses[:1]), jnp.zeros(1), jnp.zeros((), jnp.int32)), door_map)
+    state = doors.init(mcl.MclState(jnp.asarray(case.poses[:1]), jnp.zeros(1), jnp.zeros((), jnp.int32)), door_map)
+    motions = np.concatenate([np.zeros((1, 3)), np.asarray(between(case.poses[:-1], case.poses[1:]))])
+    inputs = mcl.ScanInputs(jnp.asarray(motions, jnp.float32), jnp.asarray(np.stack(case.scans)))
+    return door_map, params, config, state, inputs
+
+
+def test_factored_posterior_matches_brute_force_enumeration():
+    case = _changing_doors()
+    want_marginals, want_evidence = _brute_force(case.walls, case.door_segments, case.poses, case.scans, case.sensor,
+                                                 case.beam, case.gain, case.initial, case.p_oo, case.p_oc)
+    door_map, params, config, state, inputs = _single_particle_filter(case)
     evidence = 0.0
-    for t in range(len(poses)):
-        motion = between(poses[t - 1], poses[t]) if t else jnp.zeros(3)
-        state, info = doors.step_jit(jax.random.key(t), state, mcl.ScanInputs(motion, jnp.asarray(scans[t])),
-                                     door_map, sensor, params, config)
-        np.testing.assert_allclose(np.asarray(state.poses[0]), poses[t], atol=1e-5)
+    for t in range(len(case.poses)):
+        state, info = doors.step_jit(jax.random.key(t), state, mcl.ScanInputs(inputs.motion[t], inputs.ranges[t]),
+                                     door_map, case.sensor, params, config)
+        np.testing.assert_allclose(np.asarray(state.poses[0]), case.poses[t], atol=1e-5)
         np.testing.assert_allclose(np.asarray(state.door_open[0]), want_marginals[t], atol=2e-4)
         evidence += float(info.mcl.log_evidence)
     np.testing.assert_allclose(evidence, want_evidence, rtol=1e-5, atol=1e-3)
     # The test has teeth: each door was seen, and changed its belief.
-    assert np.all(np.abs(want_marginals[-1] - initial) > 0.1)
+    assert np.all(np.abs(want_marginals[-1] - case.initial) > 0.1)
+
+
+def test_filter_loglik_and_transition_gradient_match_brute_force():
+    """``doors.filter``'s log-likelihood is the exact log-evidence, and its gradient in the
+    transition probabilities is the exact one (central differences of the float64 enumeration)."""
+    case = _changing_doors()
+    door_map, params, config, state, inputs = _single_particle_filter(case)
+
+    def loglik(p_oo, p_oc):
+        return doors.filter(jax.random.key(0), state, inputs, door_map, case.sensor,
+                            params._replace(p_open_open=p_oo, p_open_closed=p_oc), config).marginal_loglik
+
+    value, (grad_oo, grad_oc) = jax.value_and_grad(loglik, argnums=(0, 1))(params.p_open_open, params.p_open_closed)
+    _, want = _brute_force(case.walls, case.door_segments, case.poses, case.scans, case.sensor, case.beam, case.gain,
+                           case.initial, case.p_oo, case.p_oc)
+    np.testing.assert_allclose(float(value), want, rtol=1e-5, atol=1e-3)
+    h = 1e-5
+    for name, got in (("p_oo", grad_oo), ("p_oc", grad_oc)):
+        for k in range(3):
+            plus, minus = {"p_oo": case.p_oo.copy(), "p_oc": case.p_oc.copy()}, {"p_oo": case.p_oo.copy(),
+                                                                                 "p_oc": case.p_oc.copy()}
+            plus[name][k] += h
+            minus[name][k] -= h
+            f = lambda p: _brute_force(case.walls, case.door_segments, case.poses, case.scans, case.sensor,  # noqa: E731
+                                       case.beam, case.gain, case.initial, p["p_oo"], p["p_oc"])[1]
+            numeric = (f(plus) - f(minus)) / (2 * h)
+            np.testing.assert_allclose(float(got[k]), numeric, rtol=2e-3, atol=2e-2, err_msg=f"{name}[{k}]")
+    # Teeth: the transitions matter to this log (door 0 changed while the robot watched).
+    assert np.max(np.abs(np.asarray(grad_oc))) > 1.0
+    # run is the filter without its log-likelihood.
+    final, info = doors.run(jax.random.key(0), state, inputs, door_map, case.sensor, params, config)
+    out = doors.filter(jax.random.key(0), state, inputs, door_map, case.sensor, params, config)
+    chex.assert_trees_all_equal((final, info), (out.state, out.info))
+    np.testing.assert_allclose(float(out.marginal_loglik), float(np.sum(np.asarray(info.mcl.log_evidence))), rtol=1e-6)
 
 
 def test_unobserved_door_decays_to_closed_form():

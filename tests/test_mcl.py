@@ -149,3 +149,26 @@ def test_mcl_step_compiles_once(office):
         params = mcl.make_params(likelihood_gain=0.1 + 0.1 * t, resample_threshold=0.3 + 0.1 * t)
         state, _ = stepper(jax.random.key(t), state, mcl.ScanInputs(inputs.motion[t], inputs.ranges[t]), params)
     chex.clear_trace_counter()
+
+
+def test_filter_is_the_stepwise_loop_and_sums_the_evidence(office):
+    """``mcl.filter`` (one scan, each step rematerialised) gives the particles of a Python loop
+    of ``step_jit`` and the sum of its log-evidence increments; ``run`` is the filter without it."""
+    segments = jnp.asarray(office.world.segments)
+    config = mcl.MclConfig(num_particles=32, beam_stride=4)
+    params = mcl.make_params(likelihood_gain=0.3, resample_threshold=0.9)  # resamples often
+    inputs = _outbound(office, 6)
+    state = mcl.init_tracked(jax.random.key(0), jnp.asarray(office.true_poses[0], jnp.float32), jnp.full(3, 0.1),
+                             config)
+    out = mcl.filter(jax.random.key(4), state, inputs, segments, office.log.sensor, params, config)
+    loop, total, resampled = state, 0.0, []
+    for t, step_key in enumerate(jax.random.split(jax.random.key(4), 6)):
+        loop, info = mcl.step_jit(step_key, loop, mcl.ScanInputs(inputs.motion[t], inputs.ranges[t]), segments,
+                                  office.log.sensor, params, config)
+        total += float(info.log_evidence)
+        resampled.append(bool(info.resampled))
+    assert any(resampled)  # the resampling path is part of the comparison
+    np.testing.assert_allclose(np.asarray(out.state.poses), np.asarray(loop.poses), atol=1e-5)
+    np.testing.assert_allclose(float(out.marginal_loglik), total, rtol=1e-5)
+    final, infos = mcl.run(jax.random.key(4), state, inputs, segments, office.log.sensor, params, config)
+    chex.assert_trees_all_equal((final, infos), (out.state, out.info))

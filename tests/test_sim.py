@@ -524,3 +524,29 @@ def test_box_world_field_of_view():
     assert np.any(wide.log.ranges[0][behind] < range_max)
     assert np.max(np.abs(np.asarray(narrow.log.sensor.beam_angles))) <= np.pi / 2 + 1e-6
 
+
+
+def test_markov_door_states_follow_their_chain():
+    from jaxslam.sim.door_worlds import markov_door_states
+
+    p_open_closed, p_closed_open = 0.05, 0.02
+    states = markov_door_states(jax.random.key(0), 20_000, 3, p_open_closed, p_closed_open)
+    before, after = states[:-1], states[1:]
+    closed, opened = (~before).sum(), before.sum()
+    # Binomial counts: the estimates lie within 4 standard errors of the chain's probabilities.
+    for got, p, n in (((~before & after).sum() / closed, p_open_closed, closed),
+                      ((before & ~after).sum() / opened, p_closed_open, opened)):
+        assert abs(got - p) < 4 * np.sqrt(p * (1 - p) / n), (got, p)
+    with pytest.raises(ValueError, match="transition probabilities"):
+        markov_door_states(jax.random.key(0), 10, 3, 0.0, 0.5)
+
+
+def test_patrol_scenario_doors_change_and_are_seen():
+    from jaxslam.sim.door_worlds import patrol_doors_scenario
+
+    scenario = patrol_doors_scenario(jax.random.key(1), num_round_trips=2)
+    assert scenario.true_door_open.shape == (scenario.num_scans, 6)
+    assert (scenario.true_door_open[1:] != scenario.true_door_open[:-1]).sum() > 0
+    assert scenario.observed_doors.any(axis=0).all()  # every door is seen on a pass
+    with pytest.raises(ValueError, match="num_round_trips"):
+        patrol_doors_scenario(jax.random.key(1), num_round_trips=0)

@@ -325,19 +325,27 @@ step_jit = jax.jit(step, static_argnames=("config",))
 """:func:`step`, jitted (``config`` static)."""
 
 
+def _filter(key, state, inputs, door_map, sensor, params, config) -> particle_filter.FilterOutput:
+    return particle_filter.scan_filter(lambda k, s, inp: step(k, s, inp, door_map, sensor, params, config),
+                                       key, state, inputs, lambda info: info.mcl.log_evidence)
+
+
+filter = jax.jit(_filter, static_argnames=("config",))
+"""``filter(key, state, inputs, door_map, sensor, params, config) -> FilterOutput(state, info,
+marginal_loglik)``: the door filter over a whole log as one pure function, :func:`step` over
+(T, ...) stacked ``inputs`` in one ``lax.scan`` (per-step keys split from ``key``), with the sum
+of the steps' log-evidence. Jittable, vmappable, differentiable in ``params`` (the transition
+probabilities included; each step rematerialised under reverse mode)."""
+
+
 def _run(key, state, inputs, door_map, sensor, params, config):
-    keys = jax.random.split(key, inputs.motion.shape[0])
-
-    def body(carry, xs):
-        k, inp = xs
-        return step(k, carry, inp, door_map, sensor, params, config)
-
-    return jax.lax.scan(body, state, (keys, inputs))
+    out = _filter(key, state, inputs, door_map, sensor, params, config)
+    return out.state, out.info
 
 
 run = jax.jit(_run, static_argnames=("config",))
 """``run(key, state, inputs, door_map, sensor, params, config) -> (final DoorState, (T, ...) DoorInfo)``:
-:func:`step` over (T, ...) stacked ``inputs`` in one ``lax.scan``, per-step keys as scan inputs."""
+:func:`filter` without the log-likelihood."""
 
 
 # --------------------------------------------------------------------------------------------

@@ -219,20 +219,30 @@ step_jit = jax.jit(step, static_argnames=("config",))
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
+def filter(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float[Array, "M 4"],
+           sensor: SensorSpec, params: MclParams, config: MclConfig,
+           active: Bool[Array, "M"] | None = None) -> particle_filter.FilterOutput:
+    """MCL over a whole log as one pure function: :func:`step` over (T, ...) stacked ``inputs``
+    in one ``lax.scan`` (per-step keys split from ``key``). Jittable, vmappable over keys,
+    params and same-length logs; differentiable (score gradients through resampling, each step
+    rematerialised under reverse mode).
+
+    Returns:
+      ``FilterOutput(state, info, marginal_loglik)``: the final particles, the (T, ...) stacked
+      :class:`MclInfo` and the sum of the steps' ``log_evidence``.
+    """
+    return particle_filter.scan_filter(
+        lambda k, s, inp: step(k, s, inp, segments, sensor, params, config, active), key, state, inputs,
+        lambda info: info.log_evidence)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
 def run(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float[Array, "M 4"],
         sensor: SensorSpec, params: MclParams, config: MclConfig,
         active: Bool[Array, "M"] | None = None) -> tuple[MclState, MclInfo]:
-    """:func:`step` over (T, ...) stacked ``inputs`` in one ``lax.scan``; per-step keys are scan inputs.
-
-    Returns the final state and the (T, ...) stacked infos.
-    """
-    keys = jax.random.split(key, inputs.motion.shape[0])
-
-    def body(carry, xs):
-        k, inp = xs
-        return step(k, carry, inp, segments, sensor, params, config, active)
-
-    return jax.lax.scan(body, state, (keys, inputs))
+    """:func:`filter` without the log-likelihood: ``(final state, (T, ...) stacked infos)``."""
+    out = filter(key, state, inputs, segments, sensor, params, config, active)
+    return out.state, out.info
 
 
 def log_inputs(log: LaserLog) -> ScanInputs:

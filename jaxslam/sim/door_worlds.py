@@ -33,7 +33,10 @@
    door closed; at the far end, while it turns, four doors open; it drives back.
    The filter starts tracked (uniform within 0.3 m and 0.15 rad of the true start).
 
-Both return a :class:`DoorScenario`: the true world (and door states per step),
+(c) :func:`patrol_doors_scenario`, for learning the doors' transition model: the corridor of
+   (b) driven out and back many times while the doors open and close at random.
+
+All return a :class:`DoorScenario`: the true world (and door states per step),
 the :class:`~jaxslam.localization.doors.DoorMap` given to the filter, the true path and a
 :class:`~jaxslam.laserlog.LaserLog` (noisy odometry and ranges), deterministic
 given the key.
@@ -234,5 +237,55 @@ def office_doors_scenario(key, step_length: float = 0.2, num_beams: int = 61, ra
                   (-0.15, 0.15), (0.1, 0.1, 0.05), tuple(f"D{i}" for i in range(1, 7)), range_noise_std)
 
 
-SCENARIOS = {"corridors": corridors_scenario, "office": office_doors_scenario}
+def markov_door_states(key, num_scans: int, num_doors: int, p_open_closed: float, p_closed_open: float
+                       ) -> np.ndarray:
+    """(num_scans, num_doors) bool door states from a two-state Markov chain per door: a closed
+    door opens with probability ``p_open_closed`` at each scan, an open one closes with
+    ``p_closed_open``; the first scan's states are drawn from the chain's stationary law."""
+    if not (0.0 < p_open_closed < 1.0 and 0.0 < p_closed_open < 1.0):
+        raise ValueError(f"markov_door_states: transition probabilities must be in (0, 1), got "
+                         f"p_open_closed={p_open_closed}, p_closed_open={p_closed_open}")
+    uniforms = np.asarray(jax.random.uniform(key, (num_scans, num_doors)), np.float64)
+    stationary_open = p_open_closed / (p_open_closed + p_closed_open)
+    states = np.empty((num_scans, num_doors), bool)
+    states[0] = uniforms[0] < stationary_open
+    for t in range(1, num_scans):  # host-side simulation of the truth, once per scenario
+        p_open = np.where(states[t - 1], 1.0 - p_closed_open, p_open_closed)
+        states[t] = uniforms[t] < p_open
+    return states
+
+
+def patrol_doors_scenario(key, num_round_trips: int = 10, step_length: float = 0.2, num_beams: int = 61,
+                          range_noise_std: float = 0.03, p_open_closed: float = 0.01,
+                          p_closed_open: float = 0.01) -> DoorScenario:
+    """Scenario (c), for learning the doors' transition model: the office corridor of (b), driven
+    out and back ``num_round_trips`` times, while every door opens and closes at random as a
+    Markov chain (:func:`markov_door_states`; per scan, a closed door opens with
+    ``p_open_closed``, an open one closes with ``p_closed_open``; 0.01 each: a door keeps its
+    state for 100 scans on average, about half a round trip). The map's transition model is
+    the truth; the filter starts tracked as in (b). About 190 scans per round trip.
+    """
+    if num_round_trips < 1:
+        raise ValueError(f"patrol_doors_scenario: num_round_trips must be >= 1, got {num_round_trips}")
+    length = 20.0
+    walls, doors = _corridor(0.0, length, north_doors=(4.0, 9.0, 14.0), south_doors=(6.5, 11.5, 16.5))
+    west, east = (1.5, 1.0), (18.5, 1.0)
+    out = waypoint_path([west, east], step_length, 0.3)
+    poses = np.concatenate([np.array([[*west, 0.0]]), out], axis=0)
+    for trip in range(num_round_trips):
+        back = waypoint_path([east, west], step_length, 0.3, start_heading=0.0)
+        poses = concat_paths(poses, np.concatenate([poses[-1:], back], axis=0))
+        if trip < num_round_trips - 1:
+            again = waypoint_path([west, east], step_length, 0.3, start_heading=np.pi)
+            poses = concat_paths(poses, np.concatenate([poses[-1:], again], axis=0))
+    k_doors, k_log = jax.random.split(key)
+    true_open = markov_door_states(k_doors, poses.shape[0], doors.shape[0], p_open_closed, p_closed_open)
+    door_map = make_door_map(walls, doors, 0.5, 1.0 - p_closed_open, p_open_closed)
+    x0, y0 = poses[0, :2]
+    regions = [(x0 - 0.3, y0 - 0.3, x0 + 0.3, y0 + 0.3)]
+    return _build(k_log, "patrol", walls, doors, true_open, poses, door_sensor(num_beams), door_map, regions,
+                  (-0.15, 0.15), (0.1, 0.1, 0.05), tuple(f"D{i}" for i in range(1, 7)), range_noise_std)
+
+
+SCENARIOS = {"corridors": corridors_scenario, "office": office_doors_scenario, "patrol": patrol_doors_scenario}
 """Scenario builders by name (the CLI's ``--scenario``)."""

@@ -1,0 +1,44 @@
+"""experiments/learn_doors.py and experiments/learn_intel.py: their helpers, bad input, and a
+tiny end-to-end fit (the figures come from full runs, docs/results.md)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+sys.path.insert(0, str(EXPERIMENTS))
+
+import learn_doors  # noqa: E402
+import learn_intel  # noqa: E402
+
+
+def test_complete_data_estimate_counts_transitions():
+    states = np.array([[0, 1], [1, 1], [1, 0], [0, 0], [0, 0]], bool)  # door 0: c o o c c; door 1: o o c c c
+    got = learn_doors.complete_data_estimate(states)
+    # closed -> open once out of 4 closed predecessors; open -> closed twice out of 4 open predecessors.
+    assert got == {"p_open_closed": 0.25, "p_closed_open": 0.5, "transitions": 3}
+
+
+def test_learn_doors_refuses_a_probability_outside_the_unit_interval(capsys):
+    with pytest.raises(SystemExit):
+        learn_doors.main(["--start", "0.0", "0.01"])
+    assert "(0, 1)" in capsys.readouterr().err
+
+
+def test_learn_intel_refuses_a_missing_log(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        learn_intel.main(["--data", str(tmp_path)])
+    assert "log not found" in capsys.readouterr().err
+
+
+def test_learn_doors_runs_end_to_end(tmp_path):
+    out = tmp_path / "doors.json"
+    assert learn_doors.main(["--round-trips", "1", "--particles", "8", "--steps", "2", "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert len(record["history"]["objective"]) == 2 and np.all(np.isfinite(record["history"]["objective"]))
+    assert 0.0 < record["learned_tail_mean"]["p_open_closed"] < 1.0
