@@ -1,10 +1,12 @@
-"""Learning the odometry noise and the sensor sigma on the first minutes of a real log (Intel by
-default), then mapping the whole log with them.
+"""Learning the odometry noise on the first minutes of a real log (Intel by default), then mapping
+the whole log with it.
 
 The fit climbs ``rbpf.filter``'s log-likelihood estimate over the scans of the first
 ``--seconds`` of the log (Adam, :func:`jaxslam.learning.fit`), with the untempered likelihood
-(gain 1) and the bilinear lookup (the nearest-cell weights give the OP no motion gradient),
-starting from the library's defaults. It writes the history and the learned values as JSON and
+(gain 1) and the bilinear lookup (as on the simulated office),
+starting from the library's defaults. The sensor's sigma is frozen unless ``--trainable`` names
+it: at the default 5 cm cells the normalised log-likelihood keeps rising as sigma falls
+(docs/design.md, "Endpoint model"), so the data do not identify it. It writes the history and the learned values as JSON and
 prints the ``--set`` arguments that map with them: the comparison with the defaults is then the
 datasets experiment, run twice:
 
@@ -37,7 +39,7 @@ def main(argv=None) -> int:
     parser.add_argument("--particles", type=int, default=50)
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--learning-rate", type=float, default=0.05)
-    parser.add_argument("--trainable", nargs="+", default=list(TERMS), choices=list(TERMS))
+    parser.add_argument("--trainable", nargs="+", default=list(TERMS[:4]), choices=list(TERMS))
     parser.add_argument("--out", default="results/learn_intel.json")
     args = parser.parse_args(argv)
     path = Path(args.data) / LOGS[args.dataset]
@@ -76,7 +78,7 @@ def main(argv=None) -> int:
     tail = max(1, args.steps // 4)  # Adam's iterates jitter about the maximum: average the last quarter
     defaults = params_to_dict(params)
     learned = {name: float(np.mean(result.history[name][-tail:])) for name in args.trainable}
-    record = {"args": vars(args), "updates": int(prepared.inputs.motion.shape[0]),
+    record = {"args": {**vars(args), "data": "(the --data folder)"},  # no machine's path in a result "updates": int(prepared.inputs.motion.shape[0]),
               "default": {name: float(defaults[name]) for name in args.trainable}, "learned_tail_mean": learned,
               "history": {k: v.tolist() for k, v in result.history.items()}}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -1,20 +1,29 @@
-"""Learning the odometry noise from a simulated office log with the RBPF's log-likelihood.
+"""Learning the odometry noise and the sensor's sigma from a simulated office log with the RBPF's
+log-likelihood.
 
 The simulated office (:func:`jaxslam.sim.office_scenario`) draws its odometry with known terms
-(srr 0.05, srt 0.02, str 0.05, stt 0.05 per 0.18 m step). Starting from twice them, Adam
+(srr 0.05, srt 0.02, str 0.05, stt 0.05 per 0.18 m step). Every scan is an update and the
+minimum stds are the simulator's, so that the truth is a point of the filter's motion model
+(docs/design.md, "Tempering and learning"). Starting from twice the truth, Adam
 (:func:`jaxslam.learning.fit`) climbs ``rbpf.filter``'s log-likelihood estimate (score
-gradients through resampling) with the bilinear likelihood (the nearest-cell weights give the OP
-and LP no motion gradient) and, with ``--gain 1``, the untempered likelihood. Writes the history
-as JSON.
+gradients through resampling; the OP's motion terms by the score of its draws) with the
+bilinear likelihood and, with ``--gain 1``, the untempered likelihood. Writes the history as
+JSON.
 
-    python experiments/learn_office.py --steps 40 --out results/learn_office.json
+    python experiments/learn_office.py --proposal op --particles 50 --steps 80 --keys-per-step 4
+
+The sensor's sigma has no simulated value (the endpoint model measures the distance to the
+nearest earlier endpoint, in cells): its truth is where one noise-free particle on the true
+path scores best, found first on a grid of 0.1x to 3x the range noise. With the default 5 cm
+cells that is the grid's end (not identified); with ``--resolution 0.01`` it is interior, and
+``--trainable ... likelihood.sigma`` learns it.
 
 With ``--profile S [S ...]`` it fits nothing: it evaluates the log-likelihood estimate with
 the ``--vary`` terms (default all four odometry terms together) at S times the truth, the other
-odometry terms at the truth and ``likelihood.sigma`` at the demo's value, over ``--seeds`` keys (mean and standard error), to see where its maximum
-sits and how flat it is (the "truth" of ``likelihood.sigma`` is the simulated range noise):
+odometry terms at the truth and ``likelihood.sigma`` at the library's default unless varied,
+over ``--seeds`` keys (mean and standard error, and the paired difference to the truth):
 
-    python experiments/learn_office.py --proposal op --particles 50 --profile 0.25 0.5 1 2 --seeds 4
+    python experiments/learn_office.py --proposal op --particles 50 --profile 0.5 0.75 1 1.5 2 --seeds 8
     python experiments/learn_office.py --proposal op --particles 50 --profile 0.5 0.75 1 1.5 2 --vary motion.srr
 """
 
@@ -40,13 +49,21 @@ def main(argv=None) -> int:
     parser.add_argument("--gain", type=float, default=1.0, help="likelihood.gain during the fit")
     parser.add_argument("--start-scale", type=float, default=2.0, help="start at this times the true terms")
     parser.add_argument("--profile", type=float, nargs="+", help="scales of the true terms to evaluate (no fit)")
+    parser.add_argument("--keys-per-step", type=int, default=1,
+                        help="fit: runs averaged per Adam step (each with its own key)")
     parser.add_argument("--seeds", type=int, default=4, help="--profile: keys per scale")
     parser.add_argument("--vary", nargs="+", default=list(TERMS), choices=list(TERMS) + ["likelihood.sigma"],
                         help="--profile: the terms scaled together (the others stay at the truth)")
     parser.add_argument("--trainable", nargs="+", default=list(TERMS), choices=list(TERMS) + ["likelihood.sigma"],
                         help="the fitted terms, each started at --start-scale times its truth")
+    parser.add_argument("--resolution", type=float, default=0.05,
+                        help="map cells (m); the sensor's sigma is identified only with cells finer than the range noise")
     parser.add_argument("--out", default="results/learn_office.json")
     args = parser.parse_args(argv)
+    if min(args.particles, args.scans, args.steps, args.keys_per_step, args.seeds) < 1:
+        parser.error("--particles, --scans, --steps, --keys-per-step and --seeds must be positive")
+    if not args.resolution > 0:
+        parser.error("--resolution must be positive (m)")
 
     import dataclasses
 
@@ -54,27 +71,55 @@ def main(argv=None) -> int:
 
     from jaxslam import rbpf
     from jaxslam.cli import DEMO_DEFAULTS
-    from jaxslam.config import build_setup
+    from jaxslam.config import build_setup, params_from_dict, params_to_dict
     from jaxslam.learning import fit
     from jaxslam.sim import office_scenario
 
     scenario = office_scenario(jax.random.key(0))
     log = scenario.log.subset(np.arange(min(args.scans, scenario.log.num_scans)))
     truth = {f"motion.{k}": float(v) for k, v in scenario.metadata["motion_params"]._asdict().items()}
-    truth["likelihood.sigma"] = float(scenario.metadata["range_noise_std"])
-    start = {name: args.start_scale * truth[name] for name in args.trainable}
-    config, settings, params = build_setup({**DEMO_DEFAULTS, "proposal": args.proposal,
-                                            "num_particles": args.particles, "likelihood.gain": args.gain, **start})
+    range_noise = float(scenario.metadata["range_noise_std"])
+    # The filter's motion model must be the simulator's for the truth to be a point of it: the
+    # simulator draws each scan's odometry noise with stds linear in that one step, plus
+    # minimum stds of 1 mm and 1 mrad. So every scan is an update (over several steps the noise
+    # composes as a random walk, std ~ sqrt(steps), which no linear model matches), and the
+    # minimum stds are the simulator's (the library's defaults, 1 cm and 5 mrad, are not learned).
+    minimum_stds = {name: truth[name] for name in ("motion.min_translation_std", "motion.min_rotation_std")}
+    config, settings, params = build_setup({**DEMO_DEFAULTS, "linear_update": 0.0, "angular_update": 0.0,
+                                            "proposal": args.proposal, "num_particles": args.particles,
+                                            "likelihood.gain": args.gain, **minimum_stds})
     config = dataclasses.replace(config, likelihood_lookup="bilinear")
+    if args.resolution != config.resolution:  # the same field radius in metres (at most 11 cells)
+        radius = int(min(11, max(1, round(config.field_radius * config.resolution / args.resolution))))
+        config = dataclasses.replace(config, resolution=args.resolution, map_extent=64.0, field_radius=radius)
+    # The sensor's sigma has no simulated value: the endpoint model's distance is to the nearest
+    # earlier endpoint, in cells, not to the wall. Its truth is the model's own: where the
+    # log-likelihood of one noise-free particle on the true path peaks.
+    sigma_grid = np.geomspace(0.1, 3.0, 31) * range_noise
+    true_path = dataclasses.replace(log, odometry=np.asarray(log.ground_truth, log.odometry.dtype))
+    known_path_loglik = rbpf.known_path_loglik_fn(true_path, config, settings)
+    profile = np.array([float(known_path_loglik(params_from_dict({**params_to_dict(params), "likelihood.sigma": s})))
+                        for s in sigma_grid])
+    best = int(np.argmax(profile))
+    truth["likelihood.sigma"] = float(sigma_grid[best])
+    identified = 0 < best < sigma_grid.size - 1
+    print(f"likelihood.sigma on the true path: peak at {sigma_grid[best]:.4f} m ({args.resolution:g} m cells; "
+          f"range noise {range_noise:g} m)" + ("" if identified else ": at the end of the grid, not identified"))
+    start = {name: args.start_scale * truth[name] for name in args.trainable}
+    params = params_from_dict({**params_to_dict(params), **start})
     prepared, _, _ = rbpf.prepare(log, config, settings)
 
+    sigma_record = {"range_noise_std": range_noise, "sigma_identified": identified,
+                    "true_path_sigma_profile": {"sigma": sigma_grid.tolist(), "log_likelihood": profile.tolist()}}
+
     def objective(key, p):
-        return rbpf.filter(key, prepared, p, config).marginal_loglik
+        # The mean over --keys-per-step independent runs: a less noisy gradient per Adam step.
+        keys = jax.random.split(key, args.keys_per_step)
+        return jax.vmap(lambda k: rbpf.filter(k, prepared, p, config).marginal_loglik)(keys).mean()
 
     if args.profile:
-        from jaxslam.config import params_from_dict, params_to_dict
-
-        evaluate = jax.jit(jax.vmap(objective, in_axes=(0, None)))
+        evaluate = jax.jit(jax.vmap(lambda k, p: rbpf.filter(k, prepared, p, config).marginal_loglik,
+                                    in_axes=(0, None)))
         keys = jax.random.split(jax.random.key(5), args.seeds)
         rows = []
         at_truth = {n: truth[n] for n in TERMS}
@@ -98,7 +143,7 @@ def main(argv=None) -> int:
                       f"± {row['difference_standard_error']:.1f} (paired keys)", flush=True)
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps({"args": vars(args), "truth": {k: truth[k] for k in TERMS + ("likelihood.sigma",)},
-                                              "profile": rows}, indent=2))
+                                              **sigma_record, "profile": rows}, indent=2))
         return 0
 
     result = fit(jax.random.key(1), objective, params, num_steps=args.steps, learning_rate=args.learning_rate,
@@ -106,7 +151,8 @@ def main(argv=None) -> int:
     final = {name: float(result.history[name][-1]) for name in args.trainable}
     tail = max(1, args.steps // 4)  # Adam's iterates jitter about the maximum: average the last quarter
     learned = {name: float(np.mean(result.history[name][-tail:])) for name in args.trainable}
-    record = {"args": vars(args), "truth": {k: truth[k] for k in args.trainable}, "start": start, "final": final,
+    record = {"args": vars(args), "truth": {k: truth[k] for k in args.trainable}, **sigma_record,
+              "start": start, "final": final,
               "learned_tail_mean": learned, "history": {k: v.tolist() for k, v in result.history.items()}}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(record, indent=2))

@@ -11,6 +11,14 @@ the map). Beams without a return (r >= range_max) or shorter than range_min are
 skipped. The sum over beams is multiplied by the gain (``likelihood.gain``) (< 1 tempers the
 over-confidence of treating correlated beams as independent).
 
+The expression above is the Gaussian's shape without its normalisation, which every pose and
+map share; the particles' weights do not need it. A log-likelihood that is to be maximised in
+``sigma`` does: :func:`endpoint_log_normalizer` is the per-scan constant that makes each beam's
+term a density of d_b >= 0 (half-normal, per metre),
+``(z_hit * exp(-d_b^2 / (2 sigma^2)) + z_rand) * sqrt(2 / pi) / sigma``, so the random floor is
+a density ``z_rand`` times the Gaussian's peak. Without it the log-likelihood rises with sigma
+for every d_b and has no maximum.
+
 ``lookup`` (static, :data:`FIELD_LOOKUPS`) says how an endpoint reads the field: "nearest"
 takes the cell it falls in (one gather per beam; the likelihood is then constant while the
 endpoint stays in its cell, so a pose is only resolved to about a cell), "bilinear"
@@ -23,11 +31,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import math
+
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, UInt8
 
 from jaxslam.grid import GridSpec, cell_clip_bound, flat_index, world_to_cell
-from jaxslam.laser import SensorSpec, beam_endpoints
+from jaxslam.laser import SensorSpec, beam_endpoints, valid_returns
 from jaxslam.occupancy import FAR
 from jaxslam.paged_map import PagedField, PagedGridSpec, cell_values, computed_once
 
@@ -113,6 +123,19 @@ def endpoint_log_likelihoods(
                       * (frac[..., 0] if d_col else 1.0 - frac[..., 0]))
             per_beam = per_beam + weight * term
     return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+
+
+def endpoint_log_normalizer(ranges: Float[Array, "B"], sensor: SensorSpec, params: LikelihoodParams
+                            ) -> Float[Array, ""]:
+    """The log normalising constant of one scan's endpoint model (nats), the same at every pose.
+
+    ``gain * n * (log(sqrt(2 / pi)) - log(sigma))`` over the n beams that count: added to
+    :func:`endpoint_log_likelihood` it makes each beam's term the log of a half-normal density
+    of the endpoint distance (per metre; see the module docstring). The filters add it to their
+    log-evidence, not to the weights (a constant there changes nothing but rounding).
+    """
+    num_counted = jnp.sum(valid_returns(ranges, sensor)).astype(jnp.float32)
+    return params.gain * num_counted * (0.5 * math.log(2.0 / math.pi) - jnp.log(params.sigma))
 
 
 def _cells_of(spec: GridSpec | PagedGridSpec) -> GridSpec:

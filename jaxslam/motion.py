@@ -62,6 +62,32 @@ def sample(key: PRNGKeyArray, pose: Float[Array, "... 3"], motion: Float[Array, 
     return compose(pose, motion + noise)
 
 
+def sample_with_score(key: PRNGKeyArray, pose: Float[Array, "... 3"], motion: Float[Array, "3"],
+                      params: MotionParams) -> tuple[Float[Array, "... 3"], Float[Array, "..."]]:
+    """:func:`sample`'s draw (the same values for the same key) for learning the noise by the score.
+
+    Returns ``(new_pose, score_term)``: ``new_pose`` carries no gradient, and ``score_term`` is 0
+    in value with gradient ``grad_params log p(new_pose | pose, motion)``. Added to a particle's
+    log-weight it makes autodiff of the filter's log-likelihood the Fisher-identity (score)
+    estimate (Poyiadjis, Doucet & Singh 2011) instead of a pathwise one. A pathwise gradient
+    moves the pose against a map that does not move with it (the maps are not differentiable in
+    the poses that built them); on the simulated office its standard errors were 9 to 1,000 times
+    the score's and its mean pointed the wrong way (docs/results.md, "Learning from the
+    log-likelihood"). A zero std (no noise) gives a zero term.
+    """
+    std = noise_std(motion, params)
+    eps = jax.random.normal(key, pose.shape, pose.dtype)
+    drawn_std = jax.lax.stop_gradient(std)
+    new_pose = compose(jax.lax.stop_gradient(pose), motion + eps * drawn_std)
+    # log N(eps * s0; 0, s^2) up to a constant; its derivative at s = s0 is (eps^2 - 1) / s0.
+    # Double where: a zero std must give neither a NaN value nor a NaN gradient.
+    noisy = std > 0
+    safe_std = jnp.where(noisy, std, 1.0)
+    safe_drawn = jnp.where(noisy, drawn_std, 1.0)
+    log_p = jnp.where(noisy, -0.5 * (eps * safe_drawn / safe_std) ** 2 - jnp.log(safe_std), 0.0)
+    return new_pose, jnp.sum(log_p - jax.lax.stop_gradient(log_p), axis=-1)
+
+
 def log_density(new_pose: Float[Array, "... 3"], pose: Float[Array, "... 3"], motion: Float[Array, "3"],
                 params: MotionParams) -> Float[Array, "..."]:
     """log p(x_t = new_pose | x_{t-1} = pose, u = motion) (density in m^-2 rad^-1)."""

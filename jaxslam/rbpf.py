@@ -21,7 +21,7 @@ import dataclasses
 import math
 import sys
 import time
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +34,7 @@ from jaxslam.driver import pad_items, run_in_chunks
 from jaxslam import paged_map
 from jaxslam.grid import GridSpec, in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
+from jaxslam.likelihood_field import endpoint_log_normalizer
 from jaxslam.laserlog import LaserLog, UpdateSelection, select_updates
 from jaxslam.paged_map import PagedGridSpec, PagedMaps, PoolSize
 from jaxslam.proposals import lookahead, odometry, scan_match
@@ -68,7 +69,8 @@ class SlamInfo(NamedTuple):
     """Weighted covariance of the proposed poses."""
     log_evidence: Float[Array, ""]
     """log p(z_t | z_{1:t-1}, u_{1:t}) as estimated by the filter (the step's increment of the
-    log-likelihood; -inf when ``degenerate``)."""
+    log-likelihood, with the endpoint model normalised as a density:
+    :func:`jaxslam.likelihood_field.endpoint_log_normalizer`; -inf when ``degenerate``)."""
     degenerate: Bool[Array, ""]
     """Every particle got weight zero (-inf); the weights were reset to uniform."""
     proposed_poses: Float[Array, "N 3"]
@@ -165,9 +167,12 @@ def step(
     _, lik_future = subsample_beams(sensor, inputs.future_ranges, config.beam_stride)
     lik_inputs = inputs._replace(ranges=lik_ranges, future_ranges=lik_future)
     propose = _proposal_fn(config.proposal)
+    # No gradient reaches the previous poses: the maps they built do not move with them (the
+    # insertion is not differentiable), and a pose moved against a fixed map is a biased and
+    # very noisy motion gradient (motion.sample_with_score).
     out: ProposalOutput = jax.vmap(propose, in_axes=(0, 0, paged_map.FIELD_AXES, None, None, None, None))(
-        jax.random.split(key_prop, n), state.poses, paged_map.fields(state.maps), lik_inputs, lik_sensor, params,
-        config)
+        jax.random.split(key_prop, n), jax.lax.stop_gradient(state.poses), paged_map.fields(state.maps), lik_inputs,
+        lik_sensor, params, config)
 
     update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
                                                    params.resample_threshold, config.resampler,
@@ -186,7 +191,9 @@ def step(
         best_particle=jnp.argmax(update.log_weights).astype(jnp.int32),
         mean_pose=update.mean_pose,
         pose_covariance=update.pose_covariance,
-        log_evidence=update.log_evidence,
+        # The endpoint model's normalising constant, the same for every particle, so it is left
+        # out of the weights: with it the log-evidence is that of a density in likelihood.sigma.
+        log_evidence=update.log_evidence + endpoint_log_normalizer(lik_ranges, lik_sensor, params.likelihood),
         degenerate=update.degenerate,
         proposed_poses=out.pose,
         ancestors=ancestors,
@@ -356,8 +363,10 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
     pools: a step whose tiles do not fit inserts nothing and sets ``state.maps.overflow``
     (check it, and pass a larger ``pool``; :func:`pool_size` is the default). Reverse-mode
     autodiff keeps every step's residuals, the maps included, so its memory grows with the
-    steps (benchmarks/bench_gradients.py); motion-noise gradients need
-    ``likelihood_lookup="bilinear"`` (the nearest-cell weights are piecewise constant in the pose).
+    steps (benchmarks/bench_gradients.py). The OP's motion-noise gradients are score estimates
+    (:func:`jaxslam.motion.sample_with_score`), with either lookup; the SMP's and the LP's go
+    through the step's own draw and need ``likelihood_lookup="bilinear"`` (the nearest-cell
+    weights are piecewise constant in the pose).
 
     Args:
       key: the run's key.
@@ -377,6 +386,31 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
     state, info = jax.lax.scan(body, state, (jax.random.split(key_steps, max(num_steps, 1))[:num_steps],
                                              prepared.inputs))
     return FilterOutput(state, info, jnp.sum(info.log_evidence))
+
+
+def known_path_loglik_fn(path_log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettings(),
+                         pool: PoolSize | None = None) -> Callable[[SlamParams], Float[Array, ""]]:
+    """``params -> log p(scans | path, params)``: how well the sensor model explains a log whose
+    poses are known, for fitting it against ground truth.
+
+    ``path_log.odometry`` is taken as the true path (pass a log whose odometry is its ground
+    truth, or a corrected path). The function is :func:`filter` with one particle and every
+    motion noise zero: the map is built along the path and each processed scan is scored in the
+    map of the scans before it, so its value is exact, not an estimate, and differentiable in the
+    sensor's parameters (``params.motion`` is ignored). Jitted; compiled once. -inf where the
+    map's pool could not hold the path's tiles: pass a larger ``pool`` (default :func:`pool_size`
+    of one particle).
+    """
+    one = dataclasses.replace(config, num_particles=1)
+    prepared, _, _ = prepare(path_log, one, settings)
+
+    @jax.jit
+    def loglik_fn(params: SlamParams) -> Float[Array, ""]:
+        noise_free = params._replace(motion=jax.tree.map(jnp.zeros_like, params.motion))
+        out = filter(jax.random.key(0), prepared, noise_free, one, pool=pool)
+        return jnp.where(out.state.maps.overflow, -jnp.inf, out.marginal_loglik)
+
+    return loglik_fn
 
 
 @jax.jit(static_argnames=("config",), donate_argnames=("state",))

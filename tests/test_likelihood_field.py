@@ -278,3 +278,20 @@ def test_a_pose_far_outside_the_map_scores_the_floor(lookup):
                                            lookup)[0])
     num_valid = int(np.sum((ranges >= RANGE_MIN) & (ranges < RANGE_MAX)))
     assert got == pytest.approx(0.7 * num_valid * math.log(0.05), rel=1e-5)
+
+
+def test_normalizer_counts_the_scored_beams_and_makes_a_half_normal_density():
+    """``endpoint_log_normalizer``: gain * n * (log sqrt(2/pi) - log sigma) over the n beams with a
+    return (against NumPy), and with it a term with z_rand = 0 integrates to 1 over d >= 0."""
+    _, ranges, sensor = setup()
+    counted = np.sum((ranges >= RANGE_MIN) & (ranges < RANGE_MAX))
+    sigma, _, _, gain = (float(v) for v in PARAMS)
+    got = float(S.endpoint_log_normalizer(jnp.asarray(ranges), sensor, PARAMS))
+    assert got == pytest.approx(gain * counted * (0.5 * math.log(2 / math.pi) - math.log(sigma)), rel=1e-6)
+
+    one_beam = make_sensor(np.zeros(1, np.float32), RANGE_MIN, RANGE_MAX, LASER_POSE)
+    untempered = PARAMS._replace(gain=jnp.float32(1.0))
+    log_c = float(S.endpoint_log_normalizer(jnp.array([0.5], jnp.float32), one_beam, untempered))
+    d = np.linspace(0.0, 12 * sigma, 200_001)
+    density = np.exp(log_c - 0.5 * d**2 / sigma**2)
+    assert np.sum((density[1:] + density[:-1]) / 2 * np.diff(d)) == pytest.approx(1.0, rel=1e-5)

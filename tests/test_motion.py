@@ -189,3 +189,40 @@ def test_gradient_of_log_density_matches_numpy_finite_difference():
         fd = (np_log_density(np.asarray(new), POSE, MOTION, base + e)
               - np_log_density(np.asarray(new), POSE, MOTION, base - e)) / 2e-6
         assert float(g[i]) == pytest.approx(fd, rel=2e-3, abs=1e-2)
+
+
+def test_sample_with_score_draws_the_same_and_its_gradient_is_the_score():
+    """The same draw as ``sample``; the score term is 0 in value and its gradient in every motion
+    parameter is that of log p(draw | pose, u) with the draw held fixed (NumPy central
+    differences in float64); no gradient reaches the pose."""
+    keys = jax.random.split(jax.random.key(3), 5)
+    poses = np.repeat(POSE[None], 5, axis=0)
+    drawn, score = jax.vmap(M.sample_with_score, in_axes=(0, 0, None, None))(keys, poses, MOTION, PARAMS)
+    np.testing.assert_array_equal(np.asarray(drawn), np.asarray(jax.vmap(M.sample, in_axes=(0, 0, None, None))(
+        keys, poses, MOTION, PARAMS)))
+    np.testing.assert_array_equal(np.asarray(score), 0.0)
+
+    def total(p, pose):
+        return jnp.sum(jax.vmap(M.sample_with_score, in_axes=(0, 0, None, None))(keys, pose, MOTION, p)[1])
+
+    grads, pose_grad = jax.grad(total, argnums=(0, 1))(PARAMS, jnp.asarray(poses))
+    np.testing.assert_array_equal(np.asarray(pose_grad), 0.0)
+    new = np.asarray(drawn, np.float64)
+    base = np.array([float(v) for v in PARAMS])
+    for i, name in enumerate(M.MotionParams._fields):
+        step = 1e-6
+        up, down = base.copy(), base.copy()
+        up[i] += step
+        down[i] -= step
+        want = (np.sum(np_log_density(new, POSE, MOTION, up)) - np.sum(np_log_density(new, POSE, MOTION, down))) / (2 * step)
+        assert float(getattr(grads, name)) == pytest.approx(want, rel=1e-3, abs=1e-2), name
+
+
+def test_sample_with_score_is_finite_without_noise():
+    """Every std zero (a known path): the pose is the odometry's, the term and its gradient 0."""
+    zero = M.MotionParams(*(jnp.float32(0.0) for _ in range(6)))
+    new, score = M.sample_with_score(jax.random.key(0), jnp.asarray(POSE), MOTION, zero)
+    grads = jax.grad(lambda p: M.sample_with_score(jax.random.key(0), jnp.asarray(POSE), MOTION, p)[1])(zero)
+    assert float(score) == 0.0
+    assert all(float(g) == 0.0 for g in grads)
+    np.testing.assert_allclose(np.asarray(new), np.asarray(M.sample(jax.random.key(0), POSE, MOTION, zero)))
