@@ -377,15 +377,10 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
     """
     key_init, key_steps = jax.random.split(key)
     state = init(key_init, prepared.first_ranges, prepared.sensor, params, config, prepared.initial_pose, pool=pool)
-    num_steps = prepared.inputs.motion.shape[0]
-
-    def body(state, xs):
-        step_key, inputs = xs
-        return step(step_key, state, inputs, prepared.sensor, params, config)
-
-    state, info = jax.lax.scan(body, state, (jax.random.split(key_steps, max(num_steps, 1))[:num_steps],
-                                             prepared.inputs))
-    return FilterOutput(state, info, jnp.sum(info.log_evidence))
+    # Not rematerialised: the maps are in the scan's carry, so a checkpoint would save nothing.
+    return particle_filter.scan_filter(lambda k, s, inp: step(k, s, inp, prepared.sensor, params, config),
+                                       key_steps, state, prepared.inputs, lambda info: info.log_evidence,
+                                       checkpoint=False)
 
 
 def known_path_loglik_fn(path_log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettings(),

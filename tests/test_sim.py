@@ -525,7 +525,6 @@ def test_box_world_field_of_view():
     assert np.max(np.abs(np.asarray(narrow.log.sensor.beam_angles))) <= np.pi / 2 + 1e-6
 
 
-
 def test_markov_door_states_follow_their_chain():
     from jaxslam.sim.door_worlds import markov_door_states
 
