@@ -14,10 +14,12 @@ over-confidence of treating correlated beams as independent).
 The expression above is the Gaussian's shape without its normalisation, which every pose and
 map share; the particles' weights do not need it. A log-likelihood that is to be maximised in
 ``sigma`` does: :func:`endpoint_log_normalizer` is the per-scan constant that makes each beam's
-term a density of d_b >= 0 (half-normal, per metre),
-``(z_hit * exp(-d_b^2 / (2 sigma^2)) + z_rand) * sqrt(2 / pi) / sigma``, so the random floor is
-a density ``z_rand`` times the Gaussian's peak. Without it the log-likelihood rises with sigma
-for every d_b and has no maximum.
+term a density per metre of the endpoint's distance, ``(z_hit * exp(-d_b^2 / (2 sigma^2)) +
+z_rand) / Z``, so the random floor is a density ``z_rand`` times the Gaussian's peak. Z counts
+the distance in whole cells, as the field does (a registered cell has width, not a point at
+distance 0): without that, every endpoint inside a registered cell is worth ``log(1 / sigma)``
+and the log-likelihood rises without bound as sigma falls; without any normaliser it rises with
+sigma for every d_b.
 
 ``lookup`` (static, :data:`FIELD_LOOKUPS`) says how an endpoint reads the field: "nearest"
 takes the cell it falls in (one gather per beam; the likelihood is then constant while the
@@ -32,6 +34,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, UInt8
 
@@ -124,17 +127,45 @@ def endpoint_log_likelihoods(
     return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
 
 
-def endpoint_log_normalizer(ranges: Float[Array, "B"], sensor: SensorSpec, params: LikelihoodParams
-                            ) -> Float[Array, ""]:
+NORMALIZER_CELLS = 32
+"""Cells summed exactly by :func:`endpoint_log_normalizer`; the Gaussian's tail beyond them is
+integrated in closed form."""
+
+
+def endpoint_log_normalizer(ranges: Float[Array, "B"], sensor: SensorSpec, params: LikelihoodParams,
+                            resolution: float) -> Float[Array, ""]:
     """The log normalising constant of one scan's endpoint model (nats), the same at every pose.
 
-    ``gain * n * (log(sqrt(2 / pi)) - log(sigma))`` over the n beams that count: added to
-    :func:`endpoint_log_likelihood` it makes each beam's term the log of a half-normal density
-    of the endpoint distance (per metre; see the module docstring). The filters add it to their
-    log-evidence, not to the weights (a constant there changes nothing but rounding).
+    ``-gain * n * log(Z)`` over the n beams that count, with
+
+        Z = resolution * sum_{k=0}^{K-1} exp(-(k resolution)^2 / (2 sigma^2))
+            + sigma sqrt(pi / 2) erfc(K resolution / (sqrt(2) sigma))
+            + resolution / 2 * exp(-(K resolution)^2 / (2 sigma^2))
+
+    (K = :data:`NORMALIZER_CELLS`; metres; the last two terms are the cells from K on): the field knows an endpoint's distance only to
+    the cell, so each beam's term becomes a density per metre across a wall of cells of width
+    ``resolution`` at 0, 1, 2, ... cells from it. For sigma well above a cell, Z is the
+    half-normal's ``sigma sqrt(pi/2)`` plus half a cell; as sigma falls below a cell, Z tends to
+    one cell, not to 0, so an endpoint inside a registered cell (distance 0) is worth at most
+    ``-log(resolution)``. Exact for the nearest lookup; the bilinear lookup's log-linear
+    interpolation between cell centres integrates to nearly the same Z. The filters add it to
+    their log-evidence, not to the weights (a constant there changes nothing but rounding).
+
+    Args:
+      ranges: (B,) one scan's ranges (m); the beams with a return count.
+      sensor: the laser.
+      params: the endpoint model's sigma (m) and gain.
+      resolution: the map's cell size (m), static.
     """
     num_counted = jnp.sum(valid_returns(ranges, sensor)).astype(jnp.float32)
-    return params.gain * num_counted * (0.5 * math.log(2.0 / math.pi) - jnp.log(params.sigma))
+    sigma = params.sigma
+    cells = resolution * jnp.arange(NORMALIZER_CELLS, dtype=jnp.float32)
+    lattice = resolution * jnp.sum(jnp.exp(-0.5 * (cells / sigma) ** 2))
+    # The cells from K on by Euler-Maclaurin: the integral from K cells plus half the K-th cell.
+    reach = NORMALIZER_CELLS * resolution
+    tail = (sigma * math.sqrt(math.pi / 2.0) * jax.scipy.special.erfc(reach / (math.sqrt(2.0) * sigma))
+            + 0.5 * resolution * jnp.exp(-0.5 * (reach / sigma) ** 2))
+    return -params.gain * num_counted * jnp.log(lattice + tail)
 
 
 def _cells_of(spec: GridSpec | PagedGridSpec) -> GridSpec:

@@ -96,3 +96,17 @@ def log_density(new_pose: Float[Array, "... 3"], pose: Float[Array, "... 3"], mo
     residual = residual.at[..., 2].set(wrap_angle(residual[..., 2]))
     z = residual / std
     return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * LOG_2PI, axis=-1)
+
+
+def path_log_density(path: Float[Array, "T 3"], motions: Float[Array, "T-1 3"], params: MotionParams) -> Float[Array, ""]:
+    """log p(x_1..x_{T-1} | x_0, u): the motion model's log-density of a known path given the
+    odometry motions between its poses (``motions[t]`` from ``path[t]`` to ``path[t + 1]``).
+
+    Maximised over the noise terms (:func:`jaxslam.learning.fit`) on a log with ground truth, it
+    gives the motion model's own optimum for that log: what a filter that learns the noise from
+    the scans can at best recover. It need not be the simulator's values: the simulator takes
+    each step's std at the true motion, the model at the odometry reading, and on the simulated
+    office that alone moves the known-path optimum of ``str`` to about 0.8x and of ``stt`` to
+    about 1.3x (docs/notes/2026-11-25-the-models-own-optimum.md).
+    """
+    return jnp.sum(log_density(path[1:], path[:-1], motions, params))

@@ -193,7 +193,8 @@ def step(
         pose_covariance=update.pose_covariance,
         # The endpoint model's normalising constant, the same for every particle, so it is left
         # out of the weights: with it the log-evidence is that of a density in likelihood.sigma.
-        log_evidence=update.log_evidence + endpoint_log_normalizer(lik_ranges, lik_sensor, params.likelihood),
+        log_evidence=update.log_evidence + endpoint_log_normalizer(lik_ranges, lik_sensor, params.likelihood,
+                                                                   config.resolution),
         degenerate=update.degenerate,
         proposed_poses=out.pose,
         ancestors=ancestors,

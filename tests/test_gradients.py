@@ -210,27 +210,35 @@ def test_which_configurations_give_motion_gradients(proposal):
 def test_the_log_likelihood_has_a_maximum_in_sigma():
     """``known_path_loglik_fn`` on the true path of the simulated office, 1 cm cells: the
     normalised log-likelihood peaks at a finite sigma (below the 2 cm range noise: the field
-    measures the distance to the nearest earlier endpoint), while the sum of the weights' terms
-    alone, without ``endpoint_log_normalizer``, rises with sigma at every value."""
+    measures the distance to the nearest earlier endpoint) and is bounded as sigma falls below a
+    cell. Two normalisers that fail, shown: none (the weights' terms alone rise with sigma at
+    every value) and a half-normal's per beam, sqrt(2/pi)/sigma, which ignores that the distance is
+    known only to the cell: every endpoint in a registered cell is then worth log(1/sigma), and
+    the log-likelihood rises without bound as sigma falls."""
     log = office_scenario(jax.random.key(0)).log.subset(np.arange(80))
     true_log = dataclasses.replace(log, odometry=np.asarray(log.ground_truth, log.odometry.dtype))
+    cell = 0.01
     config = SlamConfig(num_particles=1, proposal="op", max_insert_range=10.0, beam_stride=1, map_extent=64.0,
-                        resolution=0.01, field_radius=11, likelihood_lookup="bilinear")
+                        resolution=cell, field_radius=11, likelihood_lookup="bilinear")
     every_scan = RunSettings(linear_update=0.0, angular_update=0.0)
     known_path_loglik = rbpf.known_path_loglik_fn(true_log, config, every_scan)
     ranges = log.ranges[1:]  # every scan after the first is scored
     counted = np.sum((ranges >= log.sensor.range_min) & (ranges < log.sensor.range_max))
-    sigmas = [0.003, 0.0075, 0.03]
-    normalised, shape_only = [], []
+    sigmas = [0.0005, 0.002, 0.012, 0.04]
+    normalised, shape_only, half_normal = [], [], []
     for sigma in sigmas:
         value = float(known_path_loglik(default_params(**{"likelihood.sigma": sigma, "likelihood.gain": 1.0})))
+        log_z = np.log(cell * np.sum(np.exp(-0.5 * (np.arange(1000) * cell / sigma) ** 2)))
         normalised.append(value)
-        shape_only.append(value - counted * (0.5 * np.log(2 / np.pi) - np.log(sigma)))
-    assert normalised[1] > max(normalised[0], normalised[2])
+        shape_only.append(value + counted * log_z)
+        half_normal.append(shape_only[-1] + counted * (0.5 * np.log(2 / np.pi) - np.log(sigma)))
+    assert normalised[2] > max(normalised[0], normalised[1], normalised[3])
+    assert normalised[0] == pytest.approx(normalised[1], rel=1e-3)  # flat below a cell, not rising
+    assert half_normal[0] > half_normal[1] > half_normal[2]
+    assert shape_only[0] < shape_only[1] < shape_only[2] < shape_only[3]
     # The poses are known: the motion noise plays no part.
-    wide = default_params(**{"likelihood.sigma": sigmas[1], "likelihood.gain": 1.0, "motion.srr": 0.3, "motion.stt": 0.4})
-    assert float(known_path_loglik(wide)) == normalised[1]
+    wide = default_params(**{"likelihood.sigma": sigmas[2], "likelihood.gain": 1.0, "motion.srr": 0.3, "motion.stt": 0.4})
+    assert float(known_path_loglik(wide)) == normalised[2]
     # A pool too small for the path's tiles gives -inf, not a log-likelihood of a partial map.
     tiny = rbpf.pool_size(config)._replace(capacity=64)  # the path needs hundreds of tiles
     assert float(rbpf.known_path_loglik_fn(true_log, config, every_scan, pool=tiny)(wide)) == -np.inf
-    assert shape_only[0] < shape_only[1] < shape_only[2]

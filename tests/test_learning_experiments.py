@@ -1,4 +1,4 @@
-"""experiments/learn_doors.py and experiments/learn_intel.py: their helpers, bad input, and a
+"""experiments/learn_doors.py, learn_intel.py and learn_office.py: their helpers, bad input, and a
 tiny end-to-end fit (the figures come from full runs, docs/results.md)."""
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ sys.path.insert(0, str(EXPERIMENTS))
 
 import learn_doors  # noqa: E402
 import learn_intel  # noqa: E402
+import learn_office  # noqa: E402
 
 
 def test_complete_data_estimate_counts_transitions():
@@ -42,3 +43,27 @@ def test_learn_doors_runs_end_to_end(tmp_path):
     record = json.loads(out.read_text())
     assert len(record["history"]["objective"]) == 2 and np.all(np.isfinite(record["history"]["objective"]))
     assert 0.0 < record["learned_tail_mean"]["p_open_closed"] < 1.0
+
+
+def test_learn_office_refuses_no_office(capsys):
+    with pytest.raises(SystemExit):
+        learn_office.main(["--score", "0"])
+    assert "--score" in capsys.readouterr().err
+
+
+def test_learn_office_score_puts_the_filter_beside_the_known_path(tmp_path):
+    """A tiny ``--score`` run: per office, the filter's score of every term over the keys, the
+    known path's score of the motion terms, and the motion residuals' mean squares along the
+    filter's paths and the true path."""
+    out = tmp_path / "score.json"
+    assert learn_office.main(["--proposal", "op", "--particles", "4", "--scans", "40", "--score", "1",
+                              "--seeds", "2", "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    office = record["offices"][0]
+    assert office["names"] == list(learn_office.TERMS) + ["likelihood.sigma"]
+    assert np.asarray(office["filter_score"]).shape == (2, 5)
+    assert np.all(np.isfinite(office["filter_score"]))
+    assert len(office["known_path_score"]) == 5 and np.all(np.isfinite(office["known_path_score"][:4]))
+    squares = office["residual_mean_squares"]
+    assert set(squares) == {"filter_straight", "filter_turning", "true_path_straight", "true_path_turning"}
+    assert all(len(v) == 3 and np.all(np.asarray(v) > 0) for v in squares.values())

@@ -280,18 +280,29 @@ def test_a_pose_far_outside_the_map_scores_the_floor(lookup):
     assert got == pytest.approx(0.7 * num_valid * math.log(0.05), rel=1e-5)
 
 
-def test_normalizer_counts_the_scored_beams_and_makes_a_half_normal_density():
-    """``endpoint_log_normalizer``: gain * n * (log sqrt(2/pi) - log sigma) over the n beams with a
-    return (against NumPy), and with it a term with z_rand = 0 integrates to 1 over d >= 0."""
+def test_normalizer_counts_the_scored_beams_and_makes_a_density_over_cells():
+    """``endpoint_log_normalizer``: -gain * n * log Z over the n beams with a return, Z the
+    Gaussian summed over cells of one width (against a NumPy sum to 10^5 cells); with it, a beam's
+    term with z_rand = 0 is a density per metre over the cells at 0, 1, 2, ... cells' distance
+    (sums to 1), from sigma well below a cell to sigma many cells wide. As sigma falls below a
+    cell the constant tends to -log(cell), where a half-normal's would grow without bound."""
     _, ranges, sensor = setup()
     counted = np.sum((ranges >= RANGE_MIN) & (ranges < RANGE_MAX))
     sigma, _, _, gain = (float(v) for v in PARAMS)
-    got = float(S.endpoint_log_normalizer(jnp.asarray(ranges), sensor, PARAMS))
-    assert got == pytest.approx(gain * counted * (0.5 * math.log(2 / math.pi) - math.log(sigma)), rel=1e-6)
+    cell = 0.05
+    k = np.arange(100_000)
+
+    def numpy_log_z(sigma):
+        return np.log(cell * np.sum(np.exp(-0.5 * (k * cell / sigma) ** 2)))
+
+    got = float(S.endpoint_log_normalizer(jnp.asarray(ranges), sensor, PARAMS, cell))
+    assert got == pytest.approx(-gain * counted * numpy_log_z(sigma), rel=1e-4)
 
     one_beam = make_sensor(np.zeros(1, np.float32), RANGE_MIN, RANGE_MAX, LASER_POSE)
-    untempered = PARAMS._replace(gain=jnp.float32(1.0))
-    log_c = float(S.endpoint_log_normalizer(jnp.array([0.5], jnp.float32), one_beam, untempered))
-    d = np.linspace(0.0, 12 * sigma, 200_001)
-    density = np.exp(log_c - 0.5 * d**2 / sigma**2)
-    assert np.sum((density[1:] + density[:-1]) / 2 * np.diff(d)) == pytest.approx(1.0, rel=1e-5)
+    for sigma, tolerance in ((0.3 * cell, 1e-5), (cell, 1e-5), (5 * cell, 1e-5), (20 * cell, 1e-4)):
+        untempered = PARAMS._replace(gain=jnp.float32(1.0), sigma=jnp.float32(sigma))
+        log_c = float(S.endpoint_log_normalizer(jnp.array([0.5], jnp.float32), one_beam, untempered, cell))
+        assert cell * np.sum(np.exp(log_c - 0.5 * (k * cell / sigma) ** 2)) == pytest.approx(1.0, rel=tolerance)
+    tiny = PARAMS._replace(gain=jnp.float32(1.0), sigma=jnp.float32(1e-4))
+    assert float(S.endpoint_log_normalizer(jnp.array([0.5], jnp.float32), one_beam, tiny, cell)) == pytest.approx(
+        -math.log(cell), rel=1e-6)

@@ -226,3 +226,37 @@ def test_sample_with_score_is_finite_without_noise():
     assert float(score) == 0.0
     assert all(float(g) == 0.0 for g in grads)
     np.testing.assert_allclose(np.asarray(new), np.asarray(M.sample(jax.random.key(0), POSE, MOTION, zero)))
+
+
+def test_path_log_density_is_the_numpy_sum_and_peaks_at_the_generating_terms():
+    """A path drawn from the model itself (each true motion = odometry + noise with the std at the
+    odometry reading): the path's log-density equals the NumPy sum, and its score at the
+    generating terms is zero within 3 Monte Carlo standard errors (the Fisher identity)."""
+    rng = np.random.default_rng(0)
+    num_steps = 4000
+    # Odometry readings of a wiggly drive: 0.1-0.3 m steps, turns up to 0.4 rad.
+    odometry_motion = np.stack([rng.uniform(0.1, 0.3, num_steps), rng.normal(0, 0.01, num_steps),
+                                rng.normal(0, 0.15, num_steps)], axis=1).astype(np.float32)
+    noise = np.stack([np_noise_std(u, PARAMS) for u in odometry_motion]) * rng.standard_normal((num_steps, 3))
+    path = [np.zeros(3)]
+    for u in (odometry_motion + noise).astype(np.float64):
+        c, s = np.cos(path[-1][2]), np.sin(path[-1][2])
+        path.append(path[-1] + np.array([c * u[0] - s * u[1], s * u[0] + c * u[1], u[2]]))
+    path = np.asarray(path, np.float32)
+    value = float(M.path_log_density(jnp.asarray(path), jnp.asarray(odometry_motion), PARAMS))
+    reference = sum(np_log_density(path[t + 1], path[t], odometry_motion[t], PARAMS) for t in range(num_steps))
+    assert value == pytest.approx(reference, rel=1e-4)
+
+    def per_step(log_terms):
+        p = PARAMS._replace(srr=jnp.exp(log_terms[0]), srt=jnp.exp(log_terms[1]), str=jnp.exp(log_terms[2]),
+                            stt=jnp.exp(log_terms[3]))
+        return M.log_density(jnp.asarray(path[1:]), jnp.asarray(path[:-1]), jnp.asarray(odometry_motion), p)
+
+    log_terms = jnp.log(jnp.stack([PARAMS.srr, PARAMS.srt, PARAMS.str, PARAMS.stt]))
+    scores = np.asarray(jax.jacrev(per_step)(log_terms), np.float64)  # (T, 4): each step's score
+    total = scores.sum(axis=0)
+    standard_error = scores.std(axis=0, ddof=1) * np.sqrt(num_steps)
+    assert np.all(np.abs(total) < 3 * standard_error), (total, standard_error)
+    # The test can fail: the same path scored with every term 20 % wider is off by far more.
+    wider = np.asarray(jax.grad(lambda x: jnp.sum(per_step(x)))(log_terms + np.log(1.2)), np.float64)
+    assert np.any(np.abs(wider) > 3 * standard_error)

@@ -98,11 +98,14 @@ def test_step_weight_recursion_matches_the_proposals_increments(room_map):
     unnormalised = np.asarray(state.log_weights, np.float64) + np.asarray(out.log_weight_increment, np.float64)
     log_evidence = np.logaddexp.reduce(unnormalised)
     np.testing.assert_allclose(np.asarray(new_state.log_weights), unnormalised - log_evidence, atol=1e-5)
-    # The evidence, not the weights, carries the half-normal's normalising constant per counted beam.
+    # The evidence, not the weights, carries the normalising constant per counted beam: a Gaussian
+    # over cells of the map's width at 0, 1, 2, ... cells from the wall.
     ranges = np.asarray(inputs.ranges, np.float64)
     counted = np.sum((ranges >= SENSOR.range_min) & (ranges < SENSOR.range_max))
     lik = params.likelihood
-    normalizer = float(lik.gain) * counted * (0.5 * np.log(2 / np.pi) - np.log(float(lik.sigma)))
+    cells = CONFIG.resolution * np.arange(10_000)
+    log_z = np.log(CONFIG.resolution * np.sum(np.exp(-0.5 * (cells / float(lik.sigma)) ** 2)))
+    normalizer = -float(lik.gain) * counted * log_z
     np.testing.assert_allclose(float(info.log_evidence), log_evidence + normalizer, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(new_state.poses), np.asarray(out.pose), atol=1e-6)
     assert not bool(info.resampled) and not bool(info.degenerate)

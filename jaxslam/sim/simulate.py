@@ -3,7 +3,8 @@
 Scans are exact ray casts (:func:`jaxslam.segment_map.expected_ranges`) plus Gaussian range
 noise. Odometry is the true path with GMapping-style noise
 (:func:`jaxslam.motion.noise_std`) added to every true relative motion, so it
-drifts like a real robot's and the filter's motion model is the generating model.
+drifts like a real robot's and the filter's motion model is nearly the generating model
+(:func:`noisy_odometry` says where they differ).
 """
 
 from __future__ import annotations
@@ -136,10 +137,12 @@ def noisy_odometry(key: PRNGKeyArray, true_poses, params: MotionParams) -> np.nd
 
     For each step i, the true motion ``u_i = between(x_i, x_{i+1})`` (robot frame of x_i) gets
     independent Gaussian noise with std ``motion.noise_std(u_i, params)`` on [dx, dy, dtheta],
-    and the noisy motions are composed from the first true pose. This is the generative form
-    of :func:`jaxslam.motion.sample` (which takes the std at the odometry reading rather than
-    at the true motion, a second-order difference), so a filter run with the same
-    ``params`` on every scan has the right motion model. A filter that composes k simulation
+    and the noisy motions are composed from the first true pose. This is nearly the generative
+    form of :func:`jaxslam.motion.sample`, which takes the std at the odometry reading rather
+    than at the true motion: on a nearly straight step the reading's sideways and turning parts
+    are pure noise, so the model's std is the wider, and on the simulated office the model's own
+    optimum for the known true path (:func:`jaxslam.motion.path_log_density`) is about 0.84x the
+    simulated ``str`` and 1.32x ``stt`` (docs/notes/2026-11-25-the-models-own-optimum.md). A filter that composes k simulation
     steps into one update (update selection) over-estimates the noise by about sqrt(k),
     since independent per-step errors add in variance while the model's std adds linearly.
 
