@@ -4,9 +4,10 @@ the whole log with it.
 The fit climbs ``rbpf.filter``'s log-likelihood estimate over the scans of the first
 ``--seconds`` of the log (Adam, :func:`jaxslam.learning.fit`), with the untempered likelihood
 (gain 1) and the bilinear lookup (as on the simulated office),
-starting from the library's defaults. The sensor's sigma is frozen unless ``--trainable`` names
-it: at the default 5 cm cells the normalised log-likelihood keeps rising as sigma falls
-(docs/design.md, "Endpoint model"), so the data do not identify it. It writes the history and the learned values as JSON and
+starting from the library's defaults. The sensor's sigma is learned with the motion terms (the
+normaliser counts the field's distance in whole cells, so sigma has a maximum at 5 cm cells;
+docs/design.md, "Endpoint model"; a sigma held wrong acts on the motion terms as tempering
+does). It writes the history and the learned values as JSON and
 prints the ``--set`` arguments that map with them: the comparison with the defaults is then the
 datasets experiment, run twice:
 
@@ -39,7 +40,7 @@ def main(argv=None) -> int:
     parser.add_argument("--particles", type=int, default=50)
     parser.add_argument("--steps", type=int, default=40)
     parser.add_argument("--learning-rate", type=float, default=0.05)
-    parser.add_argument("--trainable", nargs="+", default=list(TERMS[:4]), choices=list(TERMS))
+    parser.add_argument("--trainable", nargs="+", default=list(TERMS), choices=list(TERMS))
     parser.add_argument("--out", default="results/learn_intel.json")
     args = parser.parse_args(argv)
     path = Path(args.data) / LOGS[args.dataset]
