@@ -107,12 +107,13 @@ def setup_office(office: int, args) -> dict:
     known_path_motion = {n: float(np.mean(best_fit.history[n][-200:])) for n in TERMS}
     print(f"office {office}: motion terms' known-path optimum / simulated: "
           + ", ".join(f"{n.split('.')[1]} {known_path_motion[n] / truth[n]:.2f}" for n in TERMS))
-    prepared, _, _ = rbpf.prepare(log, config, settings)
+    prepared, _, frame_offset = rbpf.prepare(log, config, settings)
     record = {"range_noise_std": range_noise, "sigma_identified": identified,
               "true_path_sigma_profile": {"sigma": sigma_grid.tolist(), "log_likelihood": profile.tolist()},
               "known_path_motion_optimum": known_path_motion}
     return {"log": log, "truth": truth, "config": config, "params": params, "prepared": prepared,
-            "record": record, "known_path_motion": known_path_motion, "path": path, "motions": motions}
+            "record": record, "known_path_motion": known_path_motion, "path": path, "motions": motions,
+            "frame_offset": np.asarray(frame_offset, np.float64)}
 
 
 def score_at_truth(args) -> int:
@@ -124,60 +125,63 @@ def score_at_truth(args) -> int:
 
     from jaxslam import motion, rbpf
     from jaxslam.config import params_from_dict, params_to_dict
-    from jaxslam.geometry import between
+    from jaxslam.geometry import between_np, wrap_angle_np
     from jaxslam.learning import param_names
 
     names = list(TERMS) + ["likelihood.sigma"]  # the sensor's sigma at its known-path optimum too
-    rows = []
+    rows, filter_score = [], None
     for office in range(args.score):
         setup = setup_office(office, args)
         truth, prepared, config = setup["truth"], setup["prepared"], setup["config"]
         base = params_from_dict({**params_to_dict(setup["params"]), **{n: truth[n] for n in names}})
-        leaves, treedef = jax.tree.flatten(base)
         position = [param_names(base).index(n) for n in names]
 
-        def at(log_values):  # the parameters with the named terms at exp(log_values), traceable
-            new = list(leaves)
+        def at(log_values, base):  # ``base`` with the named terms at exp(log_values), traceable
+            leaves, treedef = jax.tree.flatten(base)
             for i, j in enumerate(position):
-                new[j] = jax.numpy.exp(log_values[i]).astype(leaves[j].dtype)
-            return jax.tree.unflatten(treedef, new)
+                leaves[j] = jax.numpy.exp(log_values[i]).astype(leaves[j].dtype)
+            return jax.tree.unflatten(treedef, leaves)
 
+        if filter_score is None:  # compiled once: every office's log has the same length and config
+            def loglik(k, x, base, prepared):  # the estimate, and what the residuals need
+                out = rbpf.filter(k, prepared, at(x, base), config)
+                return out.marginal_loglik, (out.info.proposed_poses, out.info.ancestors, out.state.log_weights)
+
+            filter_score = jax.jit(jax.grad(loglik, argnums=1, has_aux=True))
         log_truth = jax.numpy.log(jax.numpy.array([truth[n] for n in names]))
-
-        def loglik(k, x):  # the estimate, and what the residuals along the final paths need
-            out = rbpf.filter(k, prepared, at(x), config)
-            return out.marginal_loglik, (out.info.proposed_poses, out.info.ancestors, out.state.log_weights)
-
-        filter_score = jax.jit(jax.grad(loglik, argnums=1, has_aux=True))
         known_score = np.asarray(jax.grad(lambda x: motion.path_log_density(setup["path"], setup["motions"],
-                                                                             at(x).motion))(log_truth))
+                                                                             at(x, base).motion))(log_truth))
         # Where the filter puts the motion: each standardised residual's mean square (1 = the
         # model's own width) along the final particles' ancestral paths, weighted by the final
         # weights, against the true path's, on straight and on turning steps.
-        std = np.asarray(motion.noise_std(setup["motions"], base.motion))
-        turning = np.abs(np.asarray(setup["motions"])[:, 2]) > 0.02
+        motions = np.asarray(setup["motions"], np.float64)
+        std = np.asarray(motion.noise_std(setup["motions"], base.motion), np.float64)
+        turning = np.abs(motions[:, 2]) > 0.02
 
-        def residual_squares(paths):  # (..., T, 3) -> (..., T-1, 3)
-            steps = np.asarray(between(jax.numpy.asarray(paths[..., :-1, :]), jax.numpy.asarray(paths[..., 1:, :])))
-            residual = steps - np.asarray(setup["motions"])
-            residual[..., 2] = (residual[..., 2] + np.pi) % (2 * np.pi) - np.pi
+        def residual_squares(paths):  # (..., T, 3) -> (..., T-1, 3), in any one frame
+            residual = between_np(paths[..., :-1, :], paths[..., 1:, :]) - motions
+            residual[..., 2] = wrap_angle_np(residual[..., 2])
             return (residual / std) ** 2
 
+        # The filter runs in its local frame (rbpf.prepare): its first pose is the log's first
+        # odometry pose shifted by the frame offset.
+        start = np.asarray(setup["log"].odometry[0], np.float64) - np.append(setup["frame_offset"], 0.0)
         scores, along_filter = [], []
         for k in jax.random.split(jax.random.key(5), args.seeds):
-            grads, (proposed, ancestors, log_weights) = filter_score(k, log_truth)
+            grads, (proposed, ancestors, log_weights) = filter_score(k, log_truth, base, prepared)
             scores.append(np.asarray(grads))
-            paths = rbpf.particle_paths(proposed, ancestors, setup["path"][0])[:, -setup["path"].shape[0]:]
+            paths = rbpf.particle_paths(proposed, ancestors, start)[:, -motions.shape[0] - 1:]
             weights = np.exp(np.asarray(log_weights, np.float64) - np.max(log_weights))
             along_filter.append(np.einsum("n,nsc->sc", weights / weights.sum(), residual_squares(paths)))
         scores, along_filter = np.array(scores), np.mean(along_filter, axis=0)
-        along_truth = residual_squares(np.asarray(setup["path"]))
+        along_truth = residual_squares(np.asarray(setup["log"].ground_truth, np.float64))
         squares = {f"{which}_{kind}": z[mask].mean(axis=0).tolist()
                    for which, z in (("filter", along_filter), ("true_path", along_truth))
                    for kind, mask in (("straight", ~turning), ("turning", turning))}
         mean, se = scores.mean(0), scores.std(0, ddof=1) / np.sqrt(scores.shape[0])
-        rows.append({"office": office, "names": names, "filter_score": scores.tolist(), "known_path_score": known_score.tolist(),
-                     "known_path_motion_optimum": setup["known_path_motion"], "residual_mean_squares": squares})
+        rows.append({"office": office, "names": names, "filter_score": scores.tolist(),
+                     "known_path_score": known_score.tolist(), "known_path_motion_optimum": setup["known_path_motion"],
+                     "residual_mean_squares": squares})
         for i, n in enumerate(names):
             known = f"{known_score[i]:+.1f}" if n in TERMS else "-"
             print(f"office {office} {n}: filter {mean[i]:+.1f} ± {se[i]:.1f}, known path {known}", flush=True)
@@ -214,11 +218,12 @@ def main(argv=None) -> int:
                         choices=list(TERMS) + ["likelihood.sigma"],
                         help="the fitted terms, each started at --start-scale times its truth")
     parser.add_argument("--resolution", type=float, default=0.05,
-                        help="map cells (m); the sensor's sigma is identified only with cells finer than the range noise")
+                        help="map cells (m)")
     parser.add_argument("--range-noise", type=float, help="the simulated laser's range noise std (m; default "
                         "the office's 0.02): with less, the map's walls are thinner")
     parser.add_argument("--score", type=int, metavar="OFFICES",
-                        help="fit nothing: the score at the simulated terms on offices 0..OFFICES-1, over --seeds keys, "
+                        help="fit nothing: the score at the simulated terms on offices 0..OFFICES-1, "
+                             "over --seeds keys, "
                              "beside the known path's")
     parser.add_argument("--out", default="results/learn_office.json")
     args = parser.parse_args(argv)

@@ -98,7 +98,8 @@ def log_density(new_pose: Float[Array, "... 3"], pose: Float[Array, "... 3"], mo
     return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * LOG_2PI, axis=-1)
 
 
-def path_log_density(path: Float[Array, "T 3"], motions: Float[Array, "T-1 3"], params: MotionParams) -> Float[Array, ""]:
+def path_log_density(path: Float[Array, "T 3"], motions: Float[Array, "T-1 3"],
+                     params: MotionParams) -> Float[Array, ""]:
     """log p(x_1..x_{T-1} | x_0, u): the motion model's log-density of a known path given the
     odometry motions between its poses (``motions[t]`` from ``path[t]`` to ``path[t + 1]``).
 
