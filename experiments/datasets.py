@@ -9,8 +9,9 @@ as many seeds), scores the
 per-scan trajectory with the relation metric of Kuemmerle et al. 2009, and writes
 ``DIR/results.json``, ``DIR/results.md`` (the table, beside the published numbers and
 GMapping measured on this machine), ``DIR/robustness.md`` (per log and method: the error's
-mean ± standard error over seeds and the failed runs, :func:`failed_runs`), ``DIR/seeds.md``
-and each run's map PNG. With ``--refine`` each run also localises every scan in its final map
+mean ± standard error over seeds and the failed runs, :func:`failed_runs`), ``DIR/seeds.md``,
+each run's map PNG and ``DIR/failed_maps.png`` (the failed runs' maps side by side). With
+``--refine`` each run also localises every scan in its final map
 and fuses the matches with the odometry (``jaxslam map --refine``, :mod:`jaxslam.refine`); the
 table shows that trajectory's error on a row of its own.
 Finished runs are skipped on restart, so the script can be stopped and resumed, and a later
@@ -19,8 +20,10 @@ call into the same folder (same settings) adds its runs to ``results.json`` besi
 
     python experiments/datasets.py --out results/robustness --seeds 10 --proposals op smp lp
 
-Proposals: op, smp, lp (the paper's), lp-sm (localizers around the scan match) and lp-c0 /
-lp-sm-c0 (the same with ``lookahead.selection_correction = 0``).
+Proposals (:data:`PROPOSALS`): op, smp, lp (the library's LP: localizers drawn around each
+particle's scan match), lp-odometry (the paper's LP: localizers drawn from the motion model) and
+lp-c0 (the library's LP with ``lookahead.selection_correction = 0``). Folders written before
+2026-11-25 name the paper's LP "lp" and the library's "lp-sm" (the default changed then).
 """
 
 from __future__ import annotations
@@ -56,6 +59,15 @@ SETTINGS = {
     "set": [],
 }
 
+PROPOSALS = {
+    "op": [],
+    "smp": [],
+    "lp": [],  # the library's defaults: lookahead_initial=scan_match
+    "lp-odometry": ["lookahead_initial=odometry"],  # the paper's LP
+    "lp-c0": ["lookahead.selection_correction=0"],  # the SLAM weight is the evidence estimate alone
+}
+"""The table's proposals: ``jaxslam map --proposal`` (op, smp or lp) and the ``--set`` items each adds."""
+
 # Translational error (m), mean +- std.
 PUBLISHED = {  # Kuemmerle et al. 2009 as quoted in ../shared/data/README.md
     "intel": {"scan matching": (0.220, 0.296), "RBPF (GMapping, 50 particles)": (0.070, 0.083), "graph mapping": (0.031, 0.026)},
@@ -86,10 +98,8 @@ def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path, setti
         cmd += ["--refine"]
     if cli_proposal == "lp":
         cmd += ["--localizers", str(settings["localizers"]), "--horizon", str(settings["horizon"])]
-    if proposal.endswith("-c0"):  # the SLAM weight is the evidence estimate alone (no selection correction)
-        cmd += ["--set", "lookahead.selection_correction=0"]
-    if proposal.startswith("lp-sm"):  # not in the paper: localizers drawn around the scan-matched pose
-        cmd += ["--set", "lookahead_initial=scan_match"]
+    for item in PROPOSALS[proposal]:
+        cmd += ["--set", item]
     for item in settings["set"]:
         cmd += ["--set", item]
     t0 = time.perf_counter()
@@ -148,8 +158,9 @@ def aggregate(records: list[dict]) -> dict:
 
 
 def method_label(proposal: str) -> str:
-    """"lp-sm-c0" -> "LP-SM c=0" (c: lookahead.selection_correction)."""
-    return proposal.upper().replace("-C0", " c=0")
+    """The table's name of a proposal: "lp-c0" -> "LP c=0" (c: lookahead.selection_correction)."""
+    return {"lp-odometry": "LP, paper's (localizers from the odometry)"}.get(
+        proposal, proposal.upper().replace("-C0", " c=0"))
 
 
 def markdown(summary: dict) -> str:
@@ -236,7 +247,9 @@ def robustness_markdown(records: list[dict], judged: dict | None = None) -> str:
         if "failed" not in r:
             table.setdefault((r["dataset"], r["proposal"]), []).append(r)
     order = {d: i for i, d in enumerate(DATASETS)}
-    for (dataset, proposal), runs in sorted(table.items(), key=lambda kv: (order.get(kv[0][0], 99), kv[0][1])):
+    rank = {p: i for i, p in enumerate(PROPOSALS)}
+    for (dataset, proposal), runs in sorted(table.items(), key=lambda kv: (order.get(kv[0][0], 99),
+                                                                          rank.get(kv[0][1], 99), kv[0][1])):
         err = np.array([r["trans_mean"] for r in runs])
         se = err.std(ddof=1) / np.sqrt(err.size) if err.size > 1 else float("nan")
         failed = failures.get((dataset, proposal), [])
@@ -246,6 +259,54 @@ def robustness_markdown(records: list[dict], judged: dict | None = None) -> str:
                      f"| {np.mean([r['wall_s'] for r in runs]):.0f} | {np.mean([r['real_time_factor'] for r in runs]):.1f} "
                      f"| {np.mean([r['peak_memory_mb'] for r in runs]):.0f} |")
     return "\n".join(lines) + "\n"
+
+
+FAILED_MAPS_FILE = "failed_maps.png"
+"""In the output folder: every failed run's map (:func:`failed_runs`, OP's left out unless
+asked), one panel each, titled with its log, method, seed, error and reason."""
+
+
+def failed_maps_figure(records: list[dict], out: Path, judged: dict | None = None,
+                       proposals: tuple[str, ...] = ("smp", "lp", "lp-odometry", "lp-c0"),
+                       panel_pixels: int = 400) -> Path | None:
+    """Draw the maps (``DATASET/PROPOSAL-seedS/map.png`` under ``out``) of the failed runs of
+    ``proposals`` into ``out / FAILED_MAPS_FILE``, each shrunk to at most ``panel_pixels`` a
+    side. Returns the file, or None when no such run failed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    order = {d: i for i, d in enumerate(DATASETS)}
+    panels = []
+    for (dataset, proposal), failures in sorted(failed_runs(records, judged).items(),
+                                                key=lambda kv: (order.get(kv[0][0], 99), kv[0][1])):
+        if proposal not in proposals:
+            continue
+        errors = {r["seed"]: r["trans_mean"] for r in records
+                  if r.get("dataset") == dataset and r.get("proposal") == proposal and "failed" not in r}
+        for seed, why in sorted(failures):
+            png = out / dataset / f"{proposal}-seed{seed}" / "map.png"
+            if png.is_file():
+                panels.append((png, f"{dataset} {method_label(proposal)}\nseed {seed}: {errors[seed]:.3f} m"))
+    if not panels:
+        return None
+    cols = min(4, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 4.3 * rows), squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (png, title) in zip(axes.ravel(), panels):
+        image = Image.open(png)
+        image.thumbnail((panel_pixels, panel_pixels))
+        ax.imshow(np.asarray(image.convert("L")), cmap="gray", vmin=0, vmax=255)
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    path = out / FAILED_MAPS_FILE
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
 
 
 def write_tables(store: ResultStore):
@@ -268,18 +329,25 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--datasets", nargs="+", default=list(DATASETS), choices=list(DATASETS))
     parser.add_argument("--proposals", nargs="+", default=["op", "smp", "lp"],
-                        choices=["op", "smp", "lp", "lp-sm", "lp-c0", "lp-sm-c0"],
-                        help="lp-sm: the LP with scan-matched localizers (lookahead_initial=scan_match); "
-                             "-c0: with lookahead.selection_correction=0 (the evidence alone weighs the particles)")
+                        choices=list(PROPOSALS),
+                        help="lp: the library's LP (localizers around the scan match); lp-odometry: the "
+                             "paper's (localizers from the motion model); lp-c0: the library's with "
+                             "lookahead.selection_correction=0 (the evidence alone weighs the particles)")
     parser.add_argument("--refine", action="store_true",
                         help="also localise every scan in each final map (jaxslam map --refine): a refined row")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="change one of the table's settings for every run (after them, so it wins), "
                              "e.g. num_particles=100; use a new --out (runs are cached there)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="runs at a time, each its own process (a machine with many cores or a GPU); "
+                             "runs that share a machine slow each other: the wall times say so")
     args = parser.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     if not data.is_dir():
         print(f"datasets not found at {data}", file=sys.stderr)
+        return 2
+    if args.jobs < 1:
+        print(f"--jobs must be at least 1, got {args.jobs}", file=sys.stderr)
         return 2
     settings = {**SETTINGS, "refine": args.refine, "set": SETTINGS["set"] + args.set}
     try:  # results.json describes every run in the folder: an earlier call's runs stay in it
@@ -288,17 +356,25 @@ def main(argv=None) -> int:
         print(err, file=sys.stderr)
         return 2
     out.mkdir(parents=True, exist_ok=True)
+    from concurrent.futures import ThreadPoolExecutor, as_completed
+
     from tqdm import tqdm
 
-    # Seed by seed over the logs: a run stopped part way leaves every log and method with as many seeds.
+    # Seed by seed over the logs: a run stopped part way leaves every log and method with as many
+    # seeds (with --jobs J, up to J runs further). Failed runs (no errors.json) are retried.
     jobs = [(d, p, s) for s in range(args.seeds) for d in args.datasets for p in args.proposals]
-    for job in tqdm(jobs, desc="runs", unit="run"):
-        stored = store.get(job)
-        if stored is not None and "failed" not in stored:  # failed runs are retried
-            continue
-        store.add(run_one(*job, out, data, settings))
-        write_tables(store)
+    todo = [job for job in jobs if store.get(job) is None or "failed" in store.get(job)]
+    with tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="runs", unit="run") as progress, \
+            ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        # Each run is a subprocess: threads only wait for them. Records are stored here, in this thread.
+        futures = [pool.submit(run_one, *job, out, data, settings) for job in todo]
+        for future in as_completed(futures):
+            store.add(future.result())
+            write_tables(store)
+            progress.update()
     write_tables(store)
+    judged_path = out / JUDGED_FILE
+    failed_maps_figure(store.runs, out, json.loads(judged_path.read_text()) if judged_path.is_file() else None)
     print(markdown(aggregate(store.runs)))
     print((out / "robustness.md").read_text())
     return 0

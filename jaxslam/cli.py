@@ -117,8 +117,9 @@ def build_setup_from_args(args: argparse.Namespace, defaults: dict | None = None
 
 def _add_filter_options(p: argparse.ArgumentParser, default_proposal: str, default_particles: int) -> None:
     p.add_argument("--proposal", choices=["op", "smp", "lp"], default=None,
-                   help=f"proposal distribution: odometry, scan matching (GMapping) or look-ahead "
-                        f"(default {default_proposal})")
+                   help=f"proposal distribution: odometry, scan matching (GMapping) or look-ahead, its "
+                        f"localizers drawn around the scan match (--set lookahead_initial=odometry: the "
+                        f"paper's, from the motion model) (default {default_proposal})")
     p.add_argument("--particles", type=int, default=None,
                    help=f"number of SLAM particles N (default {default_particles})")
     p.add_argument("--localizers", type=int, default=None, help="LP: localizer particles L per SLAM particle")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -233,6 +234,63 @@ def test_datasets_failed_runs_and_seed_order(tmp_path, monkeypatch):
     table = (out / "robustness.md").read_text()
     assert "| intel | SMP | 2 | 0.076 ± 0.026 | 1 (seeds 1) | 10 | 2.0 | 100 |" in table
     assert "| aces | LP | 2 | 1.700 ± 0.200 | 0 |" in table
+
+
+def test_datasets_jobs_at_a_time_give_the_same_tables(tmp_path, monkeypatch, capsys):
+    """--jobs 3 runs the same runs as one at a time and writes the same tables; --jobs 0 is refused
+    before any run."""
+    def run_one(dataset, proposal, seed, out, data, settings):
+        time.sleep(0.01 * ((seed * 7 + len(proposal)) % 3))  # finish out of order
+        return _record(dataset, proposal, seed, 0.05 + 0.01 * seed + 0.001 * len(proposal))
+
+    monkeypatch.setattr(datasets, "run_one", run_one)
+    tables = []
+    for jobs in ("1", "3"):
+        out = tmp_path / f"jobs{jobs}"
+        assert datasets.main(["--data", str(tmp_path), "--out", str(out), "--datasets", "intel", "aces",
+                              "--proposals", "smp", "lp", "lp-odometry", "--seeds", "3", "--jobs", jobs]) == 0
+        runs = json.loads((out / "results.json").read_text())["runs"]
+        tables.append((sorted(json.dumps(r, sort_keys=True) for r in runs), (out / "robustness.md").read_text()))
+    assert tables[0] == tables[1] and len(tables[0][0]) == 2 * 3 * 3
+    capsys.readouterr()
+    assert datasets.main(["--data", str(tmp_path), "--out", str(tmp_path / "none"), "--jobs", "0"]) == 2
+    assert "--jobs must be at least 1" in capsys.readouterr().err and not (tmp_path / "none").exists()
+
+
+def test_datasets_failed_maps_figure(tmp_path):
+    """One panel per failed run of the chosen methods whose map exists; none failed: no file."""
+    from PIL import Image
+
+    records = [_record("intel", "smp", 0, 0.05), _record("intel", "smp", 1, 0.3), _record("intel", "op", 0, 0.9),
+               _record("intel", "lp", 0, 0.05)]
+    for r in records:
+        folder = tmp_path / r["dataset"] / f"{r['proposal']}-seed{r['seed']}"
+        folder.mkdir(parents=True)
+        Image.new("L", (900, 300), 128).save(folder / "map.png")
+    path = datasets.failed_maps_figure(records, tmp_path)
+    assert path == tmp_path / datasets.FAILED_MAPS_FILE and path.is_file()
+    width, height = Image.open(path).size
+    assert width < height  # one panel (intel SMP seed 1); with the OP's too it would be two abreast
+    assert datasets.failed_maps_figure(records[:1] + records[3:], tmp_path / "none") is None
+
+
+def test_datasets_proposals_name_the_localizers_start(tmp_path, monkeypatch):
+    """"lp" runs the library's LP as it is; "lp-odometry" pins the paper's localizers, whatever the
+    default; a table-wide --set comes after (it wins)."""
+    commands = []
+
+    def fake_run(cmd, **kw):
+        commands.append(cmd)
+        return subprocess.CompletedProcess(cmd, 1, "", "stopped here")
+
+    monkeypatch.setattr(datasets.subprocess, "run", fake_run)
+    settings = {**datasets.SETTINGS, "set": ["lookahead.alpha=0.1"]}
+    for proposal in ("lp", "lp-odometry"):
+        record = datasets.run_one("intel", proposal, 0, tmp_path, tmp_path, settings)
+        assert "failed" in record
+    lp, paper = (" ".join(c) for c in commands)
+    assert "lookahead_initial" not in lp and "--proposal lp" in lp
+    assert paper.index("lookahead_initial=odometry") < paper.index("lookahead.alpha=0.1")
 
 
 @pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)

@@ -181,19 +181,21 @@ def test_the_pure_filter_is_run_bit_for_bit_compiles_once_and_vmaps():
 
 
 @pytest.mark.slow  # whole-filter gradients of three proposals, six compilations (python3 -m pytest -m slow)
-@pytest.mark.parametrize("proposal", ["op", "smp", "lp"])
-def test_which_configurations_give_motion_gradients(proposal):
+@pytest.mark.parametrize("proposal,initial", [("op", "odometry"), ("smp", "odometry"), ("lp", "odometry"),
+                                              ("lp", "scan_match")])
+def test_which_configurations_give_motion_gradients(proposal, initial):
     """The OP's motion-noise gradient is the score of its draws, finite and nonzero with either
     likelihood lookup. The SMP's and the LP's go through the step's own draw: with the
-    nearest-cell likelihood the weights are piecewise constant in the pose, so the LP's is exactly
-    0 (the SMP's is not: its matched Gaussian carries the motion prior); with
-    likelihood_lookup="bilinear" both are finite and nonzero. Reverse-mode autodiff goes through
-    the whole filter (the maps' computed-once loops included)."""
+    nearest-cell likelihood the weights are piecewise constant in the pose, so the paper's LP's is
+    exactly 0 (the SMP's is not: its matched Gaussian carries the motion prior, and neither is the
+    library's LP's, whose importance weights carry it too); with likelihood_lookup="bilinear" all
+    are finite and nonzero. Reverse-mode autodiff goes through the whole filter (the maps'
+    computed-once loops included)."""
     log = office_scenario(jax.random.key(3)).log.subset(np.arange(40))
     grads = {}
     for lookup in ("nearest", "bilinear"):
         config = SlamConfig(num_particles=4, proposal=proposal, num_localizers=8, horizon=2, max_insert_range=10.0,
-                            beam_stride=4, map_extent=128.0, likelihood_lookup=lookup)
+                            beam_stride=4, map_extent=128.0, likelihood_lookup=lookup, lookahead_initial=initial)
         prepared, _, _ = rbpf.prepare(log, config, RunSettings(linear_update=0.3, angular_update=0.25))
         grads[lookup] = jax.jit(jax.grad(
             lambda p: rbpf.filter(jax.random.key(1), prepared, p, config).marginal_loglik))(default_params())
@@ -201,7 +203,7 @@ def test_which_configurations_give_motion_gradients(proposal):
                          for k in ("nearest", "bilinear"))
     assert np.all(np.isfinite(bilinear)) and np.all(bilinear[[0, 3]] != 0.0)
     assert np.all(np.isfinite(nearest))
-    if proposal == "lp":
+    if (proposal, initial) == ("lp", "odometry"):
         np.testing.assert_array_equal(nearest, 0.0)
     else:
         assert np.all(nearest[[0, 3]] != 0.0)

@@ -253,9 +253,11 @@ def room_field(room_map):
     return paged_field(room_map, SlamConfig(map_extent=ROOM_EXTENT))
 
 
-def lp_config(num_localizers=40, horizon=3, **kw):
+def lp_config(num_localizers=40, horizon=3, lookahead_initial="odometry", **kw):
+    """The paper's LP (localizers from the motion model), which the references here follow; the
+    tests of the library's default (from the scan match) pass ``lookahead_initial="scan_match"``."""
     return SlamConfig(num_particles=4, proposal="lp", map_extent=ROOM_EXTENT, num_localizers=num_localizers,
-                      horizon=horizon,
+                      horizon=horizon, lookahead_initial=lookahead_initial,
                       max_insert_range=10.0, **kw)
 
 
