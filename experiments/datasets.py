@@ -262,8 +262,8 @@ def robustness_markdown(records: list[dict], judged: dict | None = None) -> str:
 
 
 FAILED_MAPS_FILE = "failed_maps.png"
-"""In the output folder: every failed run's map (:func:`failed_runs`, OP's left out unless
-asked), one panel each, titled with its log, method, seed, error and reason."""
+"""In the output folder: every failed run's map (:func:`failed_runs`; the OP's left out unless
+asked), one panel each, titled with its log, method, seed and relation error."""
 
 
 def failed_maps_figure(records: list[dict], out: Path, judged: dict | None = None,
@@ -279,14 +279,15 @@ def failed_maps_figure(records: list[dict], out: Path, judged: dict | None = Non
     from PIL import Image
 
     order = {d: i for i, d in enumerate(DATASETS)}
+    rank = {p: i for i, p in enumerate(PROPOSALS)}
     panels = []
     for (dataset, proposal), failures in sorted(failed_runs(records, judged).items(),
-                                                key=lambda kv: (order.get(kv[0][0], 99), kv[0][1])):
+                                                key=lambda kv: (order.get(kv[0][0], 99), rank.get(kv[0][1], 99))):
         if proposal not in proposals:
             continue
         errors = {r["seed"]: r["trans_mean"] for r in records
                   if r.get("dataset") == dataset and r.get("proposal") == proposal and "failed" not in r}
-        for seed, why in sorted(failures):
+        for seed, _ in sorted(failures):
             png = out / dataset / f"{proposal}-seed{seed}" / "map.png"
             if png.is_file():
                 panels.append((png, f"{dataset} {method_label(proposal)}\nseed {seed}: {errors[seed]:.3f} m"))
