@@ -237,20 +237,33 @@ def test_datasets_failed_runs_and_seed_order(tmp_path, monkeypatch):
 
 
 def test_datasets_jobs_at_a_time_give_the_same_tables(tmp_path, monkeypatch, capsys):
-    """--jobs 3 runs the same runs as one at a time and writes the same tables; --jobs 0 is refused
-    before any run."""
+    """--jobs 3 runs up to three runs at once, the same runs as one at a time, and writes the same
+    tables; --jobs 0 is refused before any run."""
+    import threading
+
+    lock = threading.Lock()
+    running = [0, 0]  # now, most at once
+
     def run_one(dataset, proposal, seed, out, data, settings):
-        time.sleep(0.01 * ((seed * 7 + len(proposal)) % 3))  # finish out of order
+        with lock:
+            running[0] += 1
+            running[1] = max(running)
+        time.sleep(0.02 + 0.01 * ((seed * 7 + len(proposal)) % 3))  # overlap, and finish out of order
+        with lock:
+            running[0] -= 1
         return _record(dataset, proposal, seed, 0.05 + 0.01 * seed + 0.001 * len(proposal))
 
     monkeypatch.setattr(datasets, "run_one", run_one)
-    tables = []
+    tables, most_at_once = [], []
     for jobs in ("1", "3"):
         out = tmp_path / f"jobs{jobs}"
+        running[:] = [0, 0]
         assert datasets.main(["--data", str(tmp_path), "--out", str(out), "--datasets", "intel", "aces",
                               "--proposals", "smp", "lp", "lp-odometry", "--seeds", "3", "--jobs", jobs]) == 0
+        most_at_once.append(running[1])
         runs = json.loads((out / "results.json").read_text())["runs"]
         tables.append((sorted(json.dumps(r, sort_keys=True) for r in runs), (out / "robustness.md").read_text()))
+    assert most_at_once == [1, 3]
     assert tables[0] == tables[1] and len(tables[0][0]) == 2 * 3 * 3
     capsys.readouterr()
     assert datasets.main(["--data", str(tmp_path), "--out", str(tmp_path / "none"), "--jobs", "0"]) == 2

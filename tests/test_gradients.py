@@ -180,7 +180,7 @@ def test_the_pure_filter_is_run_bit_for_bit_compiles_once_and_vmaps():
     np.testing.assert_allclose(np.asarray(batched), singles, rtol=1e-5)
 
 
-@pytest.mark.slow  # whole-filter gradients of three proposals, six compilations (python3 -m pytest -m slow)
+@pytest.mark.slow  # whole-filter gradients of four configurations, eight compilations (python3 -m pytest -m slow)
 @pytest.mark.parametrize("proposal,initial", [("op", "odometry"), ("smp", "odometry"), ("lp", "odometry"),
                                               ("lp", "scan_match")])
 def test_which_configurations_give_motion_gradients(proposal, initial):
