@@ -118,7 +118,7 @@ def section_vmap(args) -> dict:
 
     log = office_scenario(jax.random.key(0)).log
     config, settings, params = build_setup(dict(DEMO_DEFAULTS))
-    local = rbpf._local_log(log, rbpf.local_frame_offset(log))
+    local = rbpf.local_log(log, rbpf.local_frame_offset(log))
     selection = select_updates(local, settings.linear_update, settings.angular_update)
     inputs = jax.tree.map(jnp.asarray, rbpf.build_inputs(local, selection, config.lookahead_steps))
     steps = selection.indices.size - 1

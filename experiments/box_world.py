@@ -41,7 +41,7 @@ import jax
 import numpy as np
 from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the shared resume helper
 
-from jaxslam import rbpf
+from jaxslam import rbpf, slam
 from jaxslam.cli import parse_assignments
 from jaxslam.config import CONFIG_FIELDS, SETTINGS_FIELDS, ConfigError, build_setup
 from jaxslam.metrics import checkpoint_passages, passage_errors, revisiting_accuracy
@@ -148,7 +148,7 @@ def run_once(record: dict, seed: int, world: dict, progress: bool = False):
     scenario = scenario_for(seed, record["odometry_scale"], world)
     config, settings, params = filter_setup(record, scenario, world)
     t0 = time.perf_counter()
-    result = rbpf.run(jax.random.key(10_000 + seed), scenario.log, config, params, settings, progress=progress)
+    result = slam.run(jax.random.key(10_000 + seed), scenario.log, config, params, settings, progress=progress)
     seconds = time.perf_counter() - t0
     truth, lam = scenario.true_poses, world["rotation_weight"]
     passages = scenario.metadata.get("x_passages")

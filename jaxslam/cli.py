@@ -116,10 +116,13 @@ def build_setup_from_args(args: argparse.Namespace, defaults: dict | None = None
 
 
 def _add_filter_options(p: argparse.ArgumentParser, default_proposal: str, default_particles: int) -> None:
-    p.add_argument("--proposal", choices=["op", "smp", "lp"], default=None,
-                   help=f"proposal distribution: odometry, scan matching (GMapping) or look-ahead, its "
-                        f"localizers drawn around the scan match (--set lookahead_initial=odometry: the "
-                        f"paper's, from the motion model) (default {default_proposal})")
+    from jaxslam.proposals import PROPOSALS
+
+    kinds = "; ".join(f"{name}: {proposal.summary}" for name, proposal in PROPOSALS.items())
+    p.add_argument("--proposal", choices=list(PROPOSALS), default=None,
+                   help=f"proposal distribution ({kinds}; the look-ahead's localizers start round the scan "
+                        f"match, --set lookahead_initial=odometry: the paper's, from the motion model) "
+                        f"(default {default_proposal})")
     p.add_argument("--particles", type=int, default=None,
                    help=f"number of SLAM particles N (default {default_particles})")
     p.add_argument("--localizers", type=int, default=None, help="LP: localizer particles L per SLAM particle")
@@ -185,16 +188,16 @@ def _format_gb(nbytes: float) -> str:
 
 
 def _check_memory(log, config, settings) -> None:
-    """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.rbpf.estimate_run_bytes`)
+    """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.resources.estimate_run_bytes`)
     exceeds the machine's available memory; skipped where that cannot be read."""
-    from jaxslam.rbpf import available_memory_bytes, estimate_run_bytes
+    from jaxslam.resources import available_memory_bytes, estimate_run_bytes
 
     available = available_memory_bytes()
     if available is None:
         return
     need, how = estimate_run_bytes(config, log.num_beams)
     if need > available:
-        lp = ", --localizers" if config.proposal == "lp" else ""
+        lp = ", --localizers" if config.lookahead_steps else ""
         raise ConfigError(f"the run needs about {_format_gb(need)} GB ({how}) but {_format_gb(available)} GB are "
                           f"available; lower --particles{lp}, or a smaller --set map_extent=... (m), or a "
                           f"coarser --set resolution=... (m)")
@@ -202,21 +205,11 @@ def _check_memory(log, config, settings) -> None:
 
 def _check_disk(log, config, settings, out, checkpoints: bool) -> None:
     """Refuse (``ConfigError``) a run whose outputs (and checkpoints) would not fit on the disk."""
-    import math
-
-    import numpy as np
-
     from jaxslam.outputs import OutputError, check_free_space, expected_output_bytes
-    from jaxslam.rbpf import pool_size
+    from jaxslam.resources import map_cells, state_bytes
 
-    # The map covers about the odometry's extent plus the beams' reach (outputs are cropped to it).
-    span = np.ptp(log.odometry[:, :2], axis=0) + 2 * config.max_insert_range
-    map_cells = int(math.ceil(span[0] / config.resolution) * math.ceil(span[1] / config.resolution))
-    dy, dx = config.grid.num_blocks
-    pools = pool_size(config)
-    state_bytes = (4 * (config.num_particles * dy * dx + pools.block_capacity * config.grid.block_size**2)
-                   + 3 * pools.capacity * config.tile_size**2)
-    need = expected_output_bytes(map_cells, log.num_scans, state_bytes if checkpoints else 0)
+    need = expected_output_bytes(map_cells(log.odometry, config), log.num_scans,
+                                 state_bytes(config) if checkpoints else 0)
     try:
         check_free_space(out, need)
     except OutputError as err:
@@ -236,8 +229,8 @@ def _run_identity(args, log, setup, source: str) -> dict:
 
 
 def _load_resume(path: Path, identity: dict):
-    """The checkpoint's :class:`~jaxslam.rbpf.RunProgress` if it is of the run ``identity``, else ``ConfigError``."""
-    from jaxslam.rbpf import load_checkpoint
+    """The checkpoint's :class:`~jaxslam.slam.RunProgress` if it is of the run ``identity``, else ``ConfigError``."""
+    from jaxslam.io.checkpoint import load_checkpoint
 
     if not path.is_file():
         raise ConfigError(f"--resume: no checkpoint at {path} (one is written when a run is interrupted, "
@@ -294,11 +287,12 @@ class _StopRequest:
 
 
 def _map_and_write(log, setup, args, source: str, world=None) -> int:
+    from jaxslam.io.checkpoint import save_checkpoint
     from jaxslam.outputs import write_slam_outputs
-    from jaxslam.rbpf import RunInterrupted, save_checkpoint
+    from jaxslam.rbpf import check_extent
+    from jaxslam.slam import RunInterrupted, run
 
     config, settings, params = setup
-    from jaxslam.rbpf import check_extent
 
     check_extent(log, config)
     _check_memory(log, config, settings)
@@ -309,8 +303,6 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     every = getattr(args, "checkpoint_every", None)
 
     import jax
-
-    from jaxslam.rbpf import run
 
     with _StopRequest() as stop:
         chunks = [0]

@@ -35,9 +35,9 @@ from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
 from jaxslam.motion import MotionParams
 from jaxslam.occupancy import InsertionParams
 from jaxslam.paged_map import PagedGridSpec
+from jaxslam.proposals import PROPOSALS
 from jaxslam.resampling import RESAMPLERS, RESAMPLING_GRADIENTS
-
-PROPOSALS = ("op", "smp", "lp")
+from jaxslam.sensor_model import SENSOR_MODELS
 
 
 class ConfigError(ValueError):
@@ -51,12 +51,16 @@ class SlamConfig:
     num_particles: int = 30
     """N, the number of SLAM particles (each with its own map)."""
     proposal: str = "smp"
-    """Proposal distribution: "op" (odometry), "smp" (scan matching), "lp" (look-ahead)."""
+    """Proposal distribution, a name in :data:`jaxslam.proposals.PROPOSALS`: "op" (odometry),
+    "smp" (scan matching), "lp" (look-ahead)."""
+    sensor_model: str = "endpoint"
+    """The laser model that scores scans in the maps, a name in
+    :data:`jaxslam.sensor_model.SENSOR_MODELS` ("endpoint": the likelihood field)."""
     resolution: float = 0.05
     """Map cell side (m)."""
     map_extent: float = 1280.0
     """Side (m) of the square virtual grid the maps live on, centred on the log's first pose
-    (rounded; ``rbpf.run``'s local frame). Memory grows with the area mapped, not with this:
+    (rounded; ``slam.run``'s local frame). Memory grows with the area mapped, not with this:
     a particle's map holds only the tiles it wrote (:mod:`jaxslam.paged_map`); its directory
     costs 4 bytes per 16 x 16 tiles of the extent (2.5 KB at the default 1.28 km and 64-cell tiles)."""
     tile_size: int = 64
@@ -104,7 +108,9 @@ class SlamConfig:
         _normalize_fields(self, "SlamConfig")
         checks = [
             (self.num_particles >= 1, f"num_particles must be >= 1, got {self.num_particles}"),
-            (self.proposal in PROPOSALS, f"proposal must be one of {PROPOSALS}, got {self.proposal!r}"),
+            (self.proposal in PROPOSALS, f"proposal must be one of {tuple(PROPOSALS)}, got {self.proposal!r}"),
+            (self.sensor_model in SENSOR_MODELS,
+             f"sensor_model must be one of {tuple(SENSOR_MODELS)}, got {self.sensor_model!r}"),
             (self.resolution > 0, f"resolution must be > 0 (m), got {self.resolution}"),
             (self.map_extent > 0, f"map_extent must be > 0 (m), got {self.map_extent}"),
             (self.tile_size in (8, 16, 32, 64, 128, 256, 512, 1024),
@@ -141,13 +147,13 @@ class SlamConfig:
 
     @property
     def lookahead_steps(self) -> int:
-        """Future scans each step carries: the horizon for LP, none otherwise."""
-        return self.horizon if self.proposal == "lp" else 0
+        """Future scans each step carries: the horizon for a proposal that looks ahead, else none."""
+        return self.horizon if PROPOSALS[self.proposal].looks_ahead else 0
 
 
 @dataclasses.dataclass(frozen=True)
 class RunSettings:
-    """Host-side settings of ``rbpf.run``: which scans are processed. Never part of the jitted
+    """Host-side settings of ``slam.run``: which scans are processed. Never part of the jitted
     step, so changing them never recompiles it."""
 
     linear_update: float = 0.5

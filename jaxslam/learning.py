@@ -137,6 +137,9 @@ def fit(
     Raises:
       ValueError: before any work, for an unknown trainable name, a starting value outside its
         transform's domain (a zero noise under log), or ``num_steps < 1``.
+      FitError: at the first step whose objective or gradient is not finite (a filter's step
+        that lost every particle, or whose map pools overflowed: ``rbpf.filter``), naming the
+        parameters whose gradient is not; its ``result`` is the fit up to the step before.
     """
     if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
         raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
@@ -168,19 +171,34 @@ def fit(
     @jax.jit
     def update(step_key, coords, state):
         value, grads = jax.value_and_grad(lambda c: objective_fn(step_key, to_params(c)))(coords)
-        grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)  # a NaN step moves nothing
         new_coords, new_state = optimizer.step(state, coords, grads)
-        return value, new_coords, new_state
+        return value, {name: jnp.isfinite(g) for name, g in grads.items()}, new_coords, new_state
 
     from tqdm.auto import tqdm
 
     history: dict[str, list] = {"objective": [], **{name: [] for name in trainable}}
     bar = tqdm(jax.random.split(key, num_steps), desc="fit", unit="step", disable=not progress)
-    for step_key in bar:
+    for k, step_key in enumerate(bar):
+        value, finite, new_coords, new_state = update(step_key, coords, state)
+        bad = [name for name in trainable if not bool(finite[name])]
+        if bad or not np.isfinite(float(value)):
+            so_far = FitResult(to_params(coords), {k: np.asarray(v) for k, v in history.items()}, state)
+            raise FitError(f"fit step {k}: the objective is {float(value)} and the gradient is not finite in {bad}: "
+                           f"the estimate lost every particle at some step, or a filter's map pools overflowed "
+                           f"(rbpf.filter then returns -inf: pass a larger pool); the fit stopped, its result up "
+                           f"to step {k - 1} is in this error's .result", so_far)
         for name in trainable:
             history[name].append(float(transforms[name].to_constrained_fn(coords[name])))
-        value, coords, state = update(step_key, coords, state)
         history["objective"].append(float(value))
+        coords, state = new_coords, new_state
         bar.set_postfix(objective=f"{float(value):.3f}")
     return FitResult(to_params(coords), {k: np.asarray(v) for k, v in history.items()}, state)
+
+
+class FitError(FloatingPointError):
+    """:func:`fit` met a non-finite objective or gradient; ``result`` is the fit before that step."""
+
+    def __init__(self, message: str, result: FitResult):
+        super().__init__(message)
+        self.result = result
 

@@ -38,10 +38,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, UInt8
 
-from jaxslam.grid import GridSpec, cell_clip_bound, flat_index, world_to_cell
+from jaxslam.grid import GridSpec, cell_clip_bound, world_to_cell
 from jaxslam.laser import SensorSpec, beam_endpoints, valid_returns
+from jaxslam.map_view import MapView
 from jaxslam.occupancy import FAR
-from jaxslam.paged_map import PagedField, PagedGridSpec, cell_values, computed_once
+from jaxslam.paged_map import PagedField, PagedGridSpec, computed_once
 
 FIELD_LOOKUPS = ("nearest", "bilinear")
 """How an endpoint reads the likelihood field (see the module docstring)."""
@@ -61,8 +62,8 @@ class LikelihoodParams(NamedTuple):
 
 
 def endpoint_log_likelihood(
-    spec: GridSpec,
-    hit_dist2: UInt8[Array, "H W"],
+    spec: GridSpec | PagedGridSpec,
+    hit_dist2: UInt8[Array, "H W"] | PagedField,
     pose: Float[Array, "3"],
     ranges: Float[Array, "B"],
     sensor: SensorSpec,
@@ -80,8 +81,8 @@ def endpoint_log_likelihood(
 
 
 def endpoint_log_likelihoods(
-    spec: GridSpec,
-    hit_dist2: UInt8[Array, "H W"],
+    spec: GridSpec | PagedGridSpec,
+    hit_dist2: UInt8[Array, "H W"] | PagedField,
     poses: Float[Array, "L 3"],
     ranges: Float[Array, "B"],
     sensor: SensorSpec,
@@ -99,8 +100,9 @@ def endpoint_log_likelihoods(
     """
     if lookup not in FIELD_LOOKUPS:
         raise ValueError(f"lookup must be one of {FIELD_LOOKUPS}, got {lookup!r}")
-    table = per_beam_log_likelihood_table(spec, params)
-    grid = _cells_of(spec)
+    view = MapView(spec, hit_dist2)
+    table = per_beam_log_likelihood_table(view.grid, params)
+    grid = view.grid
     if lookup == "nearest":
         d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
         per_beam = table[d2.astype(jnp.int32)]
@@ -116,11 +118,11 @@ def endpoint_log_likelihoods(
         # convex combination where a far-away point was clipped (all four cells are FAR there).
         frac = jnp.clip(xy - lower, 0.0, 1.0)
         base = jnp.stack([lower[..., 1], lower[..., 0]], axis=-1).astype(jnp.int32)  # (row, col)
-        if isinstance(hit_dist2, PagedField):  # twelve gathers read them: compute them once
+        if view.paged:  # twelve gathers read them: compute them once
             base, frac = computed_once(lambda b, f: (b, f), base, frac)
         per_beam = 0.0
         for d_row, d_col in ((0, 0), (0, 1), (1, 0), (1, 1)):
-            term = table[field_at_cells(spec, hit_dist2, base + jnp.array([d_row, d_col])).astype(jnp.int32)]
+            term = table[view.read(base + jnp.array([d_row, d_col]), FAR).astype(jnp.int32)]
             weight = ((frac[..., 1] if d_row else 1.0 - frac[..., 1])
                       * (frac[..., 0] if d_col else 1.0 - frac[..., 0]))
             per_beam = per_beam + weight * term
@@ -174,39 +176,44 @@ def endpoint_log_normalizer(ranges: Float[Array, "B"], sensor: SensorSpec, param
     return -params.gain * num_counted * jnp.log(lattice + tail)
 
 
-def _cells_of(spec: GridSpec | PagedGridSpec) -> GridSpec:
-    """The grid whose cell coordinates the field is indexed by (a paged map's virtual grid)."""
-    return spec.grid if isinstance(spec, PagedGridSpec) else spec
-
-
-def field_at_cells(spec: GridSpec | PagedGridSpec, hit_dist2: UInt8[Array, "H W"] | PagedField,
-                   cells) -> UInt8[Array, "..."]:
-    """The field at (row, col) cells; ``FAR`` outside the map. ``hit_dist2`` is a dense (H, W)
-    field on a :class:`~jaxslam.grid.GridSpec`, or one particle's :class:`~jaxslam.paged_map.PagedField`
-    on a :class:`~jaxslam.paged_map.PagedGridSpec` (unwritten tiles read ``FAR``)."""
-    if isinstance(hit_dist2, PagedField):
-        return cell_values(spec, hit_dist2, cells, FAR)
-    return hit_dist2.reshape(-1).at[flat_index(spec, cells)].get(mode="fill", fill_value=FAR)
-
-
 def endpoint_cell_distances(
-    spec: GridSpec,
-    hit_dist2: UInt8[Array, "H W"],
+    spec: GridSpec | PagedGridSpec,
+    hit_dist2: UInt8[Array, "H W"] | PagedField,
     poses: Float[Array, "L 3"],
     ranges: Float[Array, "B"],
     sensor: SensorSpec,
 ) -> tuple[UInt8[Array, "L B"], Bool[Array, "B"]]:
     """The stored squared cell distance at every beam's endpoint for L robot poses (``FAR``
     outside the map or the field radius), and which beams count (a return within range)."""
+    view = MapView(spec, hit_dist2)
     ends, valid = beam_endpoints(poses, ranges, sensor)
-    cells = world_to_cell(_cells_of(spec), ends)
-    if isinstance(hit_dist2, PagedField):  # three gathers read the cells: compute them once
+    cells = world_to_cell(view.grid, ends)
+    if view.paged:  # three gathers read the cells: compute them once
         cells = computed_once(lambda c: c, cells)
-    return field_at_cells(spec, hit_dist2, cells), valid
+    return view.read(cells, FAR), valid
 
 
-def per_beam_log_likelihood_table(spec: GridSpec, params: LikelihoodParams) -> Float[Array, "256"]:
+def per_beam_log_likelihood_table(spec: GridSpec | PagedGridSpec, params: LikelihoodParams) -> Float[Array, "256"]:
     """log(z_hit * fit + z_rand) for every uint8 squared cell distance (``FAR``: fit 0)."""
     d2 = jnp.arange(FAR + 1, dtype=jnp.float32)
     fit = jnp.where(d2 == FAR, 0.0, jnp.exp(-0.5 * d2 * spec.resolution**2 / params.sigma**2))
     return jnp.log(params.z_hit * fit + params.z_rand)
+
+
+def endpoint_match_score(
+    spec: GridSpec | PagedGridSpec,
+    hit_dist2: UInt8[Array, "H W"] | PagedField,
+    pose: Float[Array, "3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    sigma: Float[Array, ""],
+) -> Float[Array, ""]:
+    """The match quality of one scan at one pose: the mean per-beam fit in [0, 1] of the beams
+    that count (0 when none counts). A beam's fit is exp(-d_b^2 / (2 sigma^2)), d_b the
+    distance (m) from its endpoint to the nearest registered endpoint; 0 beyond the field
+    radius and outside the map."""
+    d2, valid = endpoint_cell_distances(spec, hit_dist2, pose[None], ranges, sensor)
+    d2_m = d2[0].astype(jnp.float32) * (spec.resolution**2)
+    fit = jnp.where(d2[0] == FAR, 0.0, jnp.exp(-0.5 * d2_m / sigma**2))
+    n = jnp.sum(valid)
+    return jnp.sum(jnp.where(valid, fit, 0.0)) / jnp.maximum(n, 1)

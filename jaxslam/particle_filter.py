@@ -87,20 +87,25 @@ class FilterOutput(NamedTuple):
     :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
 
 
-def scan_filter(step_fn: Callable, key: PRNGKeyArray, state, inputs, log_evidence_fn: Callable,
-                checkpoint: bool = True) -> FilterOutput:
-    """``step_fn(key, state, inputs_t) -> (state, info)`` over the leading axis of ``inputs`` in
-    one ``lax.scan`` (one key per step, split from ``key``), and the summed log-evidence
-    ``log_evidence_fn(stacked_info)``.
+def scan_steps(step_fn: Callable, state, keys: PRNGKeyArray, inputs, checkpoint: bool = False):
+    """``step_fn(key, state, inputs_t) -> (state, info)`` over the leading axis of ``keys`` and
+    ``inputs`` in one ``lax.scan``: ``(final state, stacked infos)``. The one loop body of every
+    filter in the package (:func:`scan_filter`, and :func:`jaxslam.slam.run` chunk by chunk).
 
     ``checkpoint``: rematerialise each step under reverse-mode differentiation
     (``jax.checkpoint``), so that a gradient over T steps keeps T particle sets, not T steps'
     intermediates (for a localization filter, its N x B x M ray casts); it changes no value.
     """
-    num_steps = jax.tree.leaves(inputs)[0].shape[0]
     body = jax.checkpoint(step_fn) if checkpoint else step_fn
-    final, info = jax.lax.scan(lambda carry, xs: body(xs[0], carry, xs[1]), state,
-                               (jax.random.split(key, num_steps), inputs))
+    return jax.lax.scan(lambda carry, xs: body(xs[0], carry, xs[1]), state, (keys, inputs))
+
+
+def scan_filter(step_fn: Callable, key: PRNGKeyArray, state, inputs, log_evidence_fn: Callable,
+                checkpoint: bool = True) -> FilterOutput:
+    """:func:`scan_steps` with one key per step split from ``key``, and the summed log-evidence
+    ``log_evidence_fn(stacked_info)``: a whole-log filter as one pure function."""
+    num_steps = jax.tree.leaves(inputs)[0].shape[0]
+    final, info = scan_steps(step_fn, state, jax.random.split(key, num_steps), inputs, checkpoint)
     return FilterOutput(final, info, jnp.sum(log_evidence_fn(info)))
 
 

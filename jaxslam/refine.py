@@ -40,7 +40,8 @@ from jaxslam.geometry import between_np, weighted_mean_and_covariance, wrap_angl
 from jaxslam.grid import GridSpec
 from jaxslam.driver import run_in_chunks
 from jaxslam.laser import SensorSpec, subsample_beams
-from jaxslam.likelihood_field import endpoint_log_likelihoods
+from jaxslam.map_view import MapView
+from jaxslam.sensor_model import SENSOR_MODELS
 from jaxslam.scan_matching import match, stencil_poses
 
 
@@ -100,7 +101,8 @@ def refine_trajectory(
     def chunk_fn(_, xs, valid):
         chunk_poses, chunk_ranges = xs
         return None, _match_chunk(spec, hit_dist2, jnp.asarray(chunk_poses), jnp.asarray(chunk_ranges), lik_sensor,
-                                  params, config.match_iterations, config.match_lookup, config.max_insert_range)
+                                  params, config.match_iterations, config.match_lookup, config.max_insert_range,
+                                  config.sensor_model)
 
     matched_pose, scores, covariances = run_in_chunks(
         chunk_fn, (poses.astype(np.float32), lik_ranges), num, chunk_size).outputs
@@ -115,17 +117,18 @@ def refine_trajectory(
     return RefinedTrajectory(refined, ok, scores, matched_pose, covariances)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8))
-def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations, lookup, usable_range):
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))
+def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations, lookup, usable_range, model_name):
     sm = params.scan_match
+    model = SENSOR_MODELS[model_name]
 
     def one(pose, scan):
         result = match(spec, hit_dist2, pose, scan, sensor, params.likelihood, sm.linear_step, sm.angular_step,
-                       iterations, lookup, usable_range)
+                       iterations, lookup, usable_range, model)
         # The match's covariance: the tempered likelihood (the gain that makes the beams'
         # evidence honest) normalised over the stencil, plus the proposal's floor.
         candidates, _, spacing = stencil_poses(result.pose, sm)
-        log_lik = endpoint_log_likelihoods(spec, hit_dist2, candidates, scan, sensor, params.likelihood, lookup)
+        log_lik = model.log_likelihoods_fn(MapView(spec, hit_dist2), candidates, scan, sensor, params.likelihood, lookup)
         _, cov = weighted_mean_and_covariance(candidates, jax.nn.softmax(log_lik))
         cov = cov + jnp.diag((sm.min_std_fraction * spacing) ** 2)
         return result.pose, result.score, cov

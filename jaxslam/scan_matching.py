@@ -6,11 +6,12 @@
   matcher vmaps over particles and compiles to one loop (no value-dependent Python control
   flow). Unlike GMapping's matcher, every move is scored with the same likelihood that weighs
   the particles, and the best pose found is always the one returned.
-* :func:`match_score`: the mean per-beam fit in [0, 1], the match quality that decides
-  whether a match counts.
 * :func:`matched_gaussian`: the SMP's steps 1-3 (match, 27-pose stencil round the mode,
-  a Gaussian fitted to it) and its weight increment; the scan-matched look-ahead (LP-SM) and
-  the trajectory refinement use the same fit.
+  a Gaussian fitted to it) and its weight increment; the look-ahead proposal
+  (:mod:`jaxslam.proposals.lookahead`) starts its localizers from the same fit.
+
+Scans are scored by the sensor model (:mod:`jaxslam.sensor_model`; the endpoint model unless
+told otherwise), whose match score decides whether a match counts.
 """
 
 from __future__ import annotations
@@ -27,10 +28,11 @@ from jaxslam import motion
 from jaxslam.geometry import compose, wrap_angle
 from jaxslam.grid import GridSpec
 from jaxslam.laser import SensorSpec, within_usable_range
-from jaxslam.likelihood_field import (LikelihoodParams, endpoint_cell_distances, endpoint_log_likelihood,
-                                      endpoint_log_likelihoods)
+from jaxslam.likelihood_field import LikelihoodParams
+from jaxslam.map_view import MapView
 from jaxslam.motion import LOG_2PI
-from jaxslam.occupancy import FAR
+from jaxslam.paged_map import PagedField, PagedGridSpec
+from jaxslam.sensor_model import ENDPOINT, SensorModel, sensor_model
 
 # NumPy, not jnp: module-level jnp values created while a trace is active would leak tracers.
 _MOVES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=np.float32)
@@ -49,8 +51,8 @@ class MatchResult(NamedTuple):
 
 
 def match(
-    spec: GridSpec,
-    hit_dist2: UInt8[Array, "H W"],
+    spec: GridSpec | PagedGridSpec,
+    hit_dist2: UInt8[Array, "H W"] | PagedField,
     initial_pose: Float[Array, "3"],
     ranges: Float[Array, "B"],
     sensor: SensorSpec,
@@ -60,19 +62,21 @@ def match(
     iterations: int,
     lookup: str = "nearest",
     usable_range: float | None = None,
+    model: SensorModel = ENDPOINT,
 ) -> MatchResult:
     """Hill-climb from ``initial_pose`` for ``iterations`` (static) rounds of six moves, on the
-    endpoint likelihood read from the field by ``lookup`` (static, ``sensor.FIELD_LOOKUPS``).
+    sensor model's likelihood (``model``, static; ``lookup`` as :data:`jaxslam.likelihood_field.FIELD_LOOKUPS`).
     The match's ``score`` counts only beams shorter than ``usable_range`` (m; static; None: all),
     the range up to which the map registers endpoints (``SlamConfig.max_insert_range``)."""
-    log_lik = lambda pose: endpoint_log_likelihood(spec, hit_dist2, pose, ranges, sensor, likelihood, lookup)
+    view = MapView(spec, hit_dist2)
+    log_liks = lambda poses: model.log_likelihoods_fn(view, poses, ranges, sensor, likelihood, lookup)
     step_scale = jnp.stack([linear_step, linear_step, angular_step])
 
     def body(carry, _):
         pose, best, scale = carry
         candidates = pose + _MOVES * (step_scale * scale)
         candidates = candidates.at[:, 2].set(wrap_angle(candidates[:, 2]))
-        values = endpoint_log_likelihoods(spec, hit_dist2, candidates, ranges, sensor, likelihood, lookup)
+        values = log_liks(candidates)
         j = jnp.argmax(values)
         better = values[j] > best
         pose = jnp.where(better, candidates[j], pose)
@@ -80,29 +84,11 @@ def match(
         scale = jnp.where(better, scale, 0.5 * scale)
         return (pose, best, scale), None
 
-    (pose, best, _), _ = jax.lax.scan(body, (initial_pose, log_lik(initial_pose), jnp.float32(1.0)),
+    (pose, best, _), _ = jax.lax.scan(body, (initial_pose, log_liks(initial_pose[None])[0], jnp.float32(1.0)),
                                       None, length=iterations)
     scored = ranges if usable_range is None else within_usable_range(ranges, usable_range)
-    score = match_score(spec, hit_dist2, pose, scored, sensor, likelihood.sigma)
+    score = model.match_score_fn(view, pose, scored, sensor, likelihood)
     return MatchResult(pose, best, score)
-
-
-def match_score(
-    spec: GridSpec,
-    hit_dist2: UInt8[Array, "H W"],
-    pose: Float[Array, "3"],
-    ranges: Float[Array, "B"],
-    sensor: SensorSpec,
-    sigma: Float[Array, ""],
-) -> Float[Array, ""]:
-    """Mean per-beam fit (0..1) of the beams that count; 0 when none counts."""
-    # Per-beam fit exp(-d_b^2 / (2 sigma^2)) in [0, 1], d_b the distance (m) from beam b's
-    # endpoint to the nearest registered endpoint; 0 beyond the field radius and outside the map.
-    d2, valid = endpoint_cell_distances(spec, hit_dist2, pose[None], ranges, sensor)
-    d2_m = d2[0].astype(jnp.float32) * (spec.resolution**2)
-    fit = jnp.where(d2[0] == FAR, 0.0, jnp.exp(-0.5 * d2_m / sigma**2))
-    n = jnp.sum(valid)
-    return jnp.sum(jnp.where(valid, fit, 0.0)) / jnp.maximum(n, 1)
 
 
 def stencil_poses(center: Float[Array, "3"], scan_match_params) -> tuple[Float[Array, "27 3"], Float[Array, "27 3"],
@@ -153,12 +139,13 @@ def matched_gaussian(pose, field, inputs, sensor, params, config, fit_gain,
     if start_key is not None:
         start_std = motion.noise_std(inputs.motion, params.motion) * sm.start_noise
         predicted = compose(pose, inputs.motion + jax.random.normal(start_key, (3,), pose.dtype) * start_std)
+    model = sensor_model(config)
     result = match(spec, field, predicted, inputs.ranges, sensor, params.likelihood,
                    sm.linear_step, sm.angular_step, config.match_iterations, config.match_lookup,
-                   usable_range=config.max_insert_range)
+                   usable_range=config.max_insert_range, model=model)
     candidates, offsets, spacing = stencil_poses(result.pose, sm)
     untempered = params.likelihood._replace(gain=jnp.float32(1.0))
-    raw_log_lik = endpoint_log_likelihoods(spec, field, candidates, inputs.ranges, sensor, untempered,
+    raw_log_lik = model.log_likelihoods_fn(MapView(spec, field), candidates, inputs.ranges, sensor, untempered,
                                            config.likelihood_lookup)
     log_motion = motion.log_density(candidates, pose, inputs.motion, params.motion)
     log_eta = jax.scipy.special.logsumexp(params.likelihood.gain * raw_log_lik + log_motion) + jnp.sum(jnp.log(spacing))

@@ -351,7 +351,7 @@ def test_a_degenerate_run_writes_null_log_evidence_with_its_step(tmp_path, small
 
     config, settings, params = build_setup({"num_particles": 2, "proposal": "op", "linear_update": 0.3,
                                             "max_insert_range": 8.0})
-    result = jaxslam.rbpf.run(jax.random.key(0), small_log, config, default_params(), settings, progress=False)
+    result = jaxslam.slam.run(jax.random.key(0), small_log, config, default_params(), settings, progress=False)
     steps = result.info.degenerate.shape[0]
     degenerate = np.zeros(steps, bool)
     degenerate[2] = True
@@ -382,7 +382,8 @@ def _trap_filter(monkeypatch):
 
 def test_the_memory_estimate_counts_page_tables_pool_insertion_lp_terms_and_xla():
     from jaxslam.config import SlamConfig
-    from jaxslam.rbpf import estimate_run_bytes, pool_size
+    from jaxslam.rbpf import pool_size
+    from jaxslam.resources import estimate_run_bytes
 
     config = SlamConfig(num_particles=10)
     need, how = estimate_run_bytes(config, 181)
@@ -397,7 +398,7 @@ def test_the_memory_estimate_counts_page_tables_pool_insertion_lp_terms_and_xla(
 
 
 def test_available_memory_is_read_from_meminfo():
-    from jaxslam.rbpf import available_memory_bytes
+    from jaxslam.resources import available_memory_bytes
 
     available = available_memory_bytes()
     if not Path("/proc/meminfo").is_file():
@@ -435,7 +436,7 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
             "--no-progress", "--out", str(tmp_path / "out")]
     config, _, _ = build_setup({"num_particles": 30000})
-    need, how = jaxslam.rbpf.estimate_run_bytes(config, small_log.num_beams)
+    need, how = jaxslam.resources.estimate_run_bytes(config, small_log.num_beams)
     assert how.startswith("(30000 particles x 25 x 25 blocks + ")
     expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
     _run_refused(argv, [f"needs about {expected} GB ({how}",
@@ -447,7 +448,7 @@ def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(
 
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
-    for available in (jaxslam.rbpf.available_memory_bytes, lambda: None):
+    for available in (jaxslam.resources.available_memory_bytes, lambda: None):
         monkeypatch.setattr(jaxslam.rbpf, "available_memory_bytes", available)
         with pytest.raises(AssertionError, match="the filter ran"):  # the check let it through to the filter
             main(["map", str(tmp_path / "office.clf"), "--particles", "100000" if available() is None else "4",

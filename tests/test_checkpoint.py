@@ -15,7 +15,7 @@ import jax
 import numpy as np
 import pytest
 
-import jaxslam.rbpf
+import jaxslam.slam
 from jaxslam.cli import checkpoint_path, main
 from jaxslam.driver import run_in_chunks
 from jaxslam.sim import office_scenario
@@ -55,7 +55,7 @@ def _after_chunk(monkeypatch, chunk_index, action):
 
         return run_in_chunks(*args, on_chunk=hook, **kwargs)
 
-    monkeypatch.setattr(jaxslam.rbpf, "run_in_chunks", wrapped)
+    monkeypatch.setattr(jaxslam.slam, "run_in_chunks", wrapped)
 
 
 def _interrupt(log_path, out, monkeypatch, capsys, sig=signal.SIGINT, extra=()):
@@ -131,7 +131,7 @@ def test_a_checkpoint_of_another_run_is_refused(log_path, tmp_path, monkeypatch,
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.rbpf, "run", trap)
+    monkeypatch.setattr(jaxslam.slam, "run", trap)
     code = main(["map", str(log_path), *ARGS, *change, "--resume", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2, err

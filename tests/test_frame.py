@@ -1,6 +1,6 @@
 """The filter runs in a local frame: a log far from the origin maps as well as the same log near it.
 
-``rbpf.run`` subtracts the first odometry pose's translation (rounded to a multiple of 64 m) on
+``slam.run`` subtracts the first odometry pose's translation (rounded to a multiple of 64 m) on
 the host in float64 before anything reaches float32, and adds it back to the paths and the
 maps' placement. So the simulated office shifted by 5,000 km (a multiple of 64 m) runs bit for
 bit as the unshifted one, and only the offset separates the outputs.
@@ -15,7 +15,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxslam import rbpf
+from jaxslam import rbpf, slam
 from jaxslam.config import RunSettings, SlamConfig, default_params
 from jaxslam.io.maps import read_map
 from jaxslam.outputs import write_slam_outputs
@@ -47,8 +47,8 @@ def office_log():
 @pytest.fixture(scope="module")
 def runs(office_log):
     far = _shifted(office_log, SHIFT)
-    near_result = rbpf.run(jax.random.key(0), office_log, CONFIG, default_params(), SETTINGS, progress=False)
-    far_result = rbpf.run(jax.random.key(0), far, CONFIG, default_params(), SETTINGS, progress=False)
+    near_result = slam.run(jax.random.key(0), office_log, CONFIG, default_params(), SETTINGS, progress=False)
+    far_result = slam.run(jax.random.key(0), far, CONFIG, default_params(), SETTINGS, progress=False)
     return office_log, far, near_result, far_result
 
 

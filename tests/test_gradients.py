@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from linear_gaussian import THETA, kalman_log_likelihood, particle_log_likelihood, simulate
 
-from jaxslam import rbpf
+from jaxslam import rbpf, slam
 from jaxslam.config import RunSettings, SlamConfig, default_params
 from jaxslam.resampling import RESAMPLERS, resample_if_needed
 from jaxslam.sim import office_scenario
@@ -89,7 +89,7 @@ def test_rbpf_forward_is_the_same_for_either_resampling_gradient():
     for gradient in ("score", "none"):
         config = SlamConfig(num_particles=6, proposal="smp", max_insert_range=10.0, beam_stride=1, map_extent=128.0,
                             resampling_gradient=gradient)
-        results.append(rbpf.run(jax.random.key(1), log, config, default_params(**{"resample_threshold": 0.9}),
+        results.append(slam.run(jax.random.key(1), log, config, default_params(**{"resample_threshold": 0.9}),
                                 settings, progress=False))
     a, b = results
     assert int(np.asarray(a.info.resampled).sum()) > 0  # the comparison covers resampling steps
@@ -145,7 +145,7 @@ def test_lookahead_at_alpha_zero_has_finite_gradients():
 
 
 def test_the_pure_filter_is_run_bit_for_bit_compiles_once_and_vmaps():
-    """``rbpf.filter`` (init + lax.scan of the step, one jitted function) gives ``rbpf.run``'s
+    """``rbpf.filter`` (init + lax.scan of the step, one jitted function) gives ``slam.run``'s
     particles bit for bit, compiles once for new parameter values and keys, and vmaps over keys."""
     import chex
 
@@ -153,7 +153,7 @@ def test_the_pure_filter_is_run_bit_for_bit_compiles_once_and_vmaps():
     settings = RunSettings(linear_update=0.3, angular_update=0.25)
     config = SlamConfig(num_particles=6, proposal="smp", max_insert_range=10.0, beam_stride=1, map_extent=128.0)
     params = default_params()
-    result = rbpf.run(jax.random.key(1), log, config, params, settings, progress=False)
+    result = slam.run(jax.random.key(1), log, config, params, settings, progress=False)
     prepared, selection, _ = rbpf.prepare(log, config, settings)
     np.testing.assert_array_equal(selection.indices, result.selection.indices)
 

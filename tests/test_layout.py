@@ -79,3 +79,37 @@ def test_import_jaxslam_loads_no_simulator():
             "or m.startswith('jaxslam.io')); print(bad); sys.exit(1 if bad else 0)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    """Every module ``start`` imports, directly or through others (a subpackage's ``__init__``
+    counts when one of its submodules is imported; the top package ``jaxslam``, which re-exports
+    the public API, does not)."""
+    seen, todo = set(), [start]
+    while todo:
+        node = todo.pop()
+        for nxt in graph[node]:
+            parts = nxt.split(".")
+            for parent in (".".join(parts[:k]) for k in range(1, len(parts) + 1)):
+                if parent in graph and parent not in seen and parent != "jaxslam":
+                    seen.add(parent)
+                    todo.append(parent)
+    return seen
+
+
+FILTER_LAYER = ("jaxslam.rbpf", "jaxslam.particle_filter", "jaxslam.proposals", "jaxslam.sensor_model",
+                "jaxslam.localization.mcl", "jaxslam.localization.doors")
+"""The pure filters: what they import must not reach the readers, the outputs or the host drivers."""
+
+
+def test_reachable_can_fail():
+    assert reachable({"a": {"b.c"}, "b": set(), "b.c": {"d"}, "d": set()}, "a") == {"b", "b.c", "d"}
+
+
+def test_the_filter_layer_imports_no_reader_output_or_host_driver():
+    graph = import_graph()
+    for module in FILTER_LAYER:
+        bad = sorted(m for m in reachable(graph, module)
+                     if m.startswith("jaxslam.io") or m in ("jaxslam.outputs", "jaxslam.slam", "jaxslam.cli",
+                                                          "jaxslam.driver", "jaxslam.diagnose"))
+        assert not bad, f"{module} reaches {bad}"

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import rbpf
+from jaxslam import rbpf, slam
 from jaxslam.config import RunSettings, SlamConfig, default_params
 from jaxslam.geometry import between, compose
 from jaxslam.laserlog import LaserLog
@@ -399,7 +399,7 @@ def test_lp_run_end_to_end_on_a_simulated_log():
     config = SlamConfig(num_particles=4, proposal="lp", num_localizers=24, horizon=2, max_insert_range=10.0)
     settings = RunSettings(linear_update=0.0, angular_update=0.0)
     params = default_params(**{"lookahead.alpha": 0.1})
-    result = rbpf.run(jax.random.key(0), log, config, params, settings, chunk_size=8, progress=False)
+    result = slam.run(jax.random.key(0), log, config, params, settings, chunk_size=8, progress=False)
     assert result.best_path.shape == (14, 3)
     info = result.info
     assert np.all(np.isfinite(info.log_evidence))

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import rbpf
+from jaxslam import rbpf, slam
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, config_from_dict, default_params, params_from_dict, params_to_dict
 from jaxslam.laserlog import select_updates
 from jaxslam.sim import office_scenario
@@ -67,7 +67,7 @@ def _position_errors(result, log):
 
 
 def test_smp_tracks_the_truth_and_beats_odometry(office_log):
-    result = rbpf.run(jax.random.key(0), office_log, small_config(), default_params(), SETTINGS, progress=False)
+    result = slam.run(jax.random.key(0), office_log, small_config(), default_params(), SETTINGS, progress=False)
     idx = result.selection.indices
     slam_err, odom_err = _position_errors(result, office_log)
     # Seed-fixed run; on this stretch the SMP stays within a few cm (measured: mean 0.039 m with
@@ -89,7 +89,7 @@ def test_smp_with_other_lookups_tracks_the_truth(office_log, lookups):
     measured mean error 0.108 m on this stretch (0.08 to 0.11 over seeds 0-2, against 0.04 to
     0.07 with the nearest lookup; over the whole office 0.04 to 0.07 against 0.04 to 0.12);
     odometry's is 0.19 m."""
-    result = rbpf.run(jax.random.key(0), office_log, small_config(**lookups), default_params(), SETTINGS, progress=False)
+    result = slam.run(jax.random.key(0), office_log, small_config(**lookups), default_params(), SETTINGS, progress=False)
     slam_err, odom_err = _position_errors(result, office_log)
     assert slam_err.mean() < 0.15
     assert slam_err.mean() < 0.75 * odom_err.mean()
@@ -100,8 +100,8 @@ def test_chunking_does_not_change_the_result(office_log):
     """Padding steps are no-ops: any chunk size gives the same particles, bit for bit."""
     log = office_log.subset(np.arange(60))
     config = small_config(proposal="op", num_particles=6)
-    a = rbpf.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=7, progress=False)
-    b = rbpf.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=64, progress=False)
+    a = slam.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=7, progress=False)
+    b = slam.run(jax.random.key(5), log, config, default_params(), SETTINGS, chunk_size=64, progress=False)
     np.testing.assert_array_equal(np.asarray(a.state.poses), np.asarray(b.state.poses))
     for name in ("directory", "blocks", "logodds", "hit_dist2", "refcount", "block_refcount"):
         np.testing.assert_array_equal(np.asarray(getattr(a.state.maps, name)), np.asarray(getattr(b.state.maps, name)))
@@ -112,10 +112,10 @@ def test_chunking_does_not_change_the_result(office_log):
 def test_same_seed_reproduces_bit_for_bit(office_log):
     log = office_log.subset(np.arange(40))
     config = small_config(num_particles=4)
-    a = rbpf.run(jax.random.key(9), log, config, default_params(), SETTINGS, progress=False)
-    b = rbpf.run(jax.random.key(9), log, config, default_params(), SETTINGS, progress=False)
+    a = slam.run(jax.random.key(9), log, config, default_params(), SETTINGS, progress=False)
+    b = slam.run(jax.random.key(9), log, config, default_params(), SETTINGS, progress=False)
     np.testing.assert_array_equal(a.best_path, b.best_path)
-    c = rbpf.run(jax.random.key(10), log, config, default_params(), SETTINGS, progress=False)
+    c = slam.run(jax.random.key(10), log, config, default_params(), SETTINGS, progress=False)
     assert not np.array_equal(np.asarray(a.info.proposed_poses), np.asarray(c.info.proposed_poses))
 
 
@@ -136,14 +136,14 @@ def test_map_leaving_the_grid_is_counted_not_wrapped(office_log):
     log = office_log.subset(np.arange(30))
     reach = float(np.abs(log.odometry[:, :2] - rbpf.local_frame_offset(log)).max())
     config = small_config(proposal="op", map_extent=2 * reach + 0.5, tile_size=16)
-    result = rbpf.run(jax.random.key(0), log, config, default_params(), SETTINGS, progress=False)
+    result = slam.run(jax.random.key(0), log, config, default_params(), SETTINGS, progress=False)
     assert result.info.outside_samples.sum() > 0
     from jaxslam.outputs import run_warnings
 
     warnings = run_warnings(result)
     assert any("outside the map" in w and "first at step" in w and "map_extent" in w for w in warnings)
     with pytest.raises(ConfigError, match="map_extent"):
-        rbpf.run(jax.random.key(0), log, small_config(proposal="op", map_extent=reach, tile_size=16),
+        slam.run(jax.random.key(0), log, small_config(proposal="op", map_extent=reach, tile_size=16),
                  default_params(), SETTINGS, progress=False)
 
 
@@ -182,11 +182,11 @@ def test_run_settings_do_not_recompile_the_step(office_log):
     share one compiled chunk."""
     log = office_log.subset(np.arange(40))
     config = small_config(proposal="op", num_particles=3)
-    rbpf.run(jax.random.key(0), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
-    compiled = rbpf._run_chunk._cache_size()
+    slam.run(jax.random.key(0), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+    compiled = slam._run_chunk._cache_size()
     other = RunSettings(linear_update=0.6, angular_update=0.5)
-    result = rbpf.run(jax.random.key(0), log, config, default_params(), other, chunk_size=8, progress=False)
-    assert rbpf._run_chunk._cache_size() == compiled
+    result = slam.run(jax.random.key(0), log, config, default_params(), other, chunk_size=8, progress=False)
+    assert slam._run_chunk._cache_size() == compiled
     assert result.settings == other
 
 
@@ -195,8 +195,8 @@ def test_a_pool_too_small_grows_and_gives_the_big_pools_result(office_log):
     (each growth repeats a chunk, reported) and ends with the same particles and maps."""
     log = office_log.subset(np.arange(50))
     config = small_config(num_particles=4)
-    big = rbpf.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
-    small = rbpf.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False,
+    big = slam.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+    small = slam.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=8, progress=False,
                      initial_pool=(24, 8, 4, 2))
     assert big.map_pool["growths"] == [] and len(small.map_pool["growths"]) >= 2
     assert small.map_pool["capacity"] > 24 and small.map_pool["block_capacity"] > 4
@@ -217,11 +217,11 @@ def test_a_second_log_compiles_nothing_new(office_log, caplog):
     import logging
 
     config = small_config(proposal="op", num_particles=3)
-    rbpf.run(jax.random.key(0), office_log.subset(np.arange(40)), config, default_params(), SETTINGS,
+    slam.run(jax.random.key(0), office_log.subset(np.arange(40)), config, default_params(), SETTINGS,
              chunk_size=8, progress=False)
     other = office_scenario(jax.random.key(11)).log.subset(np.arange(55))  # another office log
     with jax.log_compiles(), caplog.at_level(logging.WARNING, logger="jax"):
         caplog.clear()
-        rbpf.run(jax.random.key(1), other, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+        slam.run(jax.random.key(1), other, config, default_params(), SETTINGS, chunk_size=8, progress=False)
     compiled = [r.getMessage() for r in caplog.records if "_run_chunk" in r.getMessage()]
     assert compiled == [], compiled

@@ -122,7 +122,9 @@ def test_every_weight_zero_resets_to_uniform_and_reports_it(room_map, monkeypatc
         inc = jnp.where(jax.random.uniform(key) < 0.5, -jnp.inf, jnp.nan)
         return ProposalOutput(pose, inc, jnp.bool_(True))
 
-    monkeypatch.setattr(rbpf, "_proposal_fn", lambda kind: hopeless)
+    from jaxslam.proposals import PROPOSALS, Proposal
+
+    monkeypatch.setitem(PROPOSALS, "op", Proposal(hopeless, False, "test"))
     state = _state(room_map, pose, np.full(N, -math.log(N)))
     # A config no other test traces (jit caches traces per function and static config).
     config = dataclasses.replace(CONFIG, proposal="op", match_iterations=1)
@@ -182,7 +184,7 @@ def test_beams_beyond_the_usable_range_do_not_dilute_the_match_score(room_map):
     range): the map registers no endpoint farther from a pose. Here 60 % of the beams read 6 m
     (> 5 m, < the laser's 8 m): counted, they pull the score under ``min_score = 0.4``; the SMP
     leaves them out and every particle of a step matches."""
-    from jaxslam.scan_matching import match_score
+    from jaxslam.likelihood_field import endpoint_match_score as match_score
 
     config = dataclasses.replace(CONFIG, max_insert_range=5.0)
     inputs, pose = _inputs()

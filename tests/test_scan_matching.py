@@ -18,7 +18,8 @@ from jaxslam.geometry import between, compose
 from jaxslam.likelihood_field import endpoint_cell_distances, endpoint_log_likelihood
 from jaxslam.occupancy import FAR
 from jaxslam.proposals.base import StepInputs
-from jaxslam.scan_matching import match, match_score, matched_gaussian
+from jaxslam.likelihood_field import endpoint_match_score as match_score
+from jaxslam.scan_matching import match, matched_gaussian
 
 PARAMS = default_params()
 CONFIG = SlamConfig(num_particles=4, proposal="smp", map_extent=ROOM_EXTENT, max_insert_range=10.0)

@@ -57,10 +57,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion, resampling
-from jaxslam.grid import GridSpec
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.laser import SensorSpec
-from jaxslam.likelihood_field import endpoint_log_likelihoods
+from jaxslam.map_view import MapView
+from jaxslam.sensor_model import SensorModel, sensor_model
 from jaxslam.scan_matching import gaussian_log_density, matched_gaussian, sample_gaussian
 
 # Fixed fold-in tags so that the random numbers of horizon step s do not depend on
@@ -328,7 +328,7 @@ def lookahead_core(
 # The grid-map model.
 
 
-def _grid_model(pose_params: motion.MotionParams, spec: GridSpec, hit_dist2, sensor, lik_params,
+def _grid_model(pose_params: motion.MotionParams, view: MapView, model: SensorModel, sensor, lik_params,
                 lookup: str = "nearest"):
     def move(key, poses, step_input):
         step_motion, _ = step_input
@@ -336,7 +336,7 @@ def _grid_model(pose_params: motion.MotionParams, spec: GridSpec, hit_dist2, sen
 
     def log_likelihood(poses, step_input):
         _, ranges = step_input
-        return endpoint_log_likelihoods(spec, hit_dist2, poses, ranges, sensor, lik_params, lookup)
+        return model.log_likelihoods_fn(view, poses, ranges, sensor, lik_params, lookup)
 
     return move, log_likelihood
 
@@ -364,8 +364,8 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
     localizer_gain = params.lookahead.localizer_gain
     evidence_scale = params.likelihood.gain / localizer_gain
     localizer_lik = params.likelihood._replace(gain=localizer_gain)
-    move, log_likelihood = _grid_model(params.motion, spec, field, sensor, localizer_lik,
-                                       config.likelihood_lookup)
+    move, log_likelihood = _grid_model(params.motion, MapView(spec, field), sensor_model(config), sensor,
+                                       localizer_lik, config.likelihood_lookup)
     start = jnp.broadcast_to(pose, (num, 3))
     key_initial = jax.random.fold_in(key, _TAG_INITIAL)
     poses_t = motion.sample(key_initial, start, inputs.motion, params.motion)
