@@ -77,11 +77,10 @@ class SlamConfig:
     "bilinear" (interpolated between the four surrounding cells, so the likelihood is continuous
     in the pose; four gathers per beam). See ``jaxslam.likelihood_field``."""
     match_lookup: str = "bilinear"
-    """The same choice for the hill-climbing scan matcher (the SMP's and LP-SM's match, and the
+    """The same choice for the hill-climbing scan matcher (the SMP's and the LP's match, and the
     refinement's matches and their covariances). "bilinear" (the default) lets the matcher
-    settle between cells instead of stopping wherever a whole cell stops improving: on Intel,
-    ACES and MIT CSAIL it is as accurate or more (docs/results.md). "nearest" is what the
-    box-world tables were measured with."""
+    settle between cells instead of stopping wherever a whole cell stops improving (the
+    figures: docs/notes/2026-11-22-bilinear-matcher.md)."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     resampler: str = "systematic"
@@ -102,7 +101,8 @@ class SlamConfig:
     around each SLAM particle's scan-matched pose, importance-corrected; "LP-SM" in the docs) or
     "odometry" (the motion model, as in the paper). Along a featureless corridor the paper's
     localizers spread with the odometry and the particles inherit the spread; started from the
-    match they stay pinned to the map (FR-clinic, 10 seeds: docs/results.md)."""
+    match they stay pinned to the map (the figures:
+    docs/notes/2026-11-25-robustness-table-and-the-library-lp.md)."""
 
     def __post_init__(self):
         _normalize_fields(self, "SlamConfig")
@@ -159,8 +159,7 @@ class RunSettings:
     linear_update: float = 0.5
     """Process a scan after this much travel (m) since the last processed one. Half GMapping's
     1 m: the odometry's error, and so the cloud every proposal has to search, grows with the
-    motion between processed scans; halving both steps made every proposal more accurate on
-    Intel, ACES and MIT CSAIL at about 1.5 times the cost (docs/tuning.md)."""
+    motion between processed scans (the figures: docs/notes/2026-11-22-update-rate.md)."""
     angular_update: float = 0.25
     """... or after this much rotation (rad); half GMapping's 0.5 rad."""
 

@@ -71,9 +71,9 @@ def sample_with_score(key: PRNGKeyArray, pose: Float[Array, "... 3"], motion: Fl
     log-weight it makes autodiff of the filter's log-likelihood the Fisher-identity (score)
     estimate (Poyiadjis, Doucet & Singh 2011) instead of a pathwise one. A pathwise gradient
     moves the pose against a map that does not move with it (the maps are not differentiable in
-    the poses that built them); on the simulated office its standard errors were 9 to 1,000 times
-    the score's and its mean pointed the wrong way (docs/results.md, "Learning from the
-    log-likelihood"). A zero std (no noise) gives a zero term.
+    the poses that built them), so it is far noisier than the score and points the wrong way
+    (the figures: docs/notes/2026-11-24-what-stopped-the-office-fit.md). A zero std (no noise)
+    gives a zero term.
     """
     std = noise_std(motion, params)
     eps = jax.random.normal(key, pose.shape, pose.dtype)
@@ -106,8 +106,8 @@ def path_log_density(path: Float[Array, "T 3"], motions: Float[Array, "T-1 3"],
     Maximised over the noise terms (:func:`jaxslam.learning.fit`) on a log with ground truth, it
     gives the motion model's own optimum for that log: what a filter that learns the noise from
     the scans can at best recover. It need not be the simulator's values: the simulator takes
-    each step's std at the true motion, the model at the odometry reading, and on the simulated
-    office that alone moves the known-path optimum of ``str`` to about 0.8x and of ``stt`` to
-    about 1.3x (docs/notes/2026-11-25-the-models-own-optimum.md).
+    each step's std at the true motion, the model at the odometry reading, and that alone moves
+    the optimum of ``str`` and ``stt`` (the figures:
+    docs/notes/2026-11-25-the-models-own-optimum.md).
     """
     return jnp.sum(log_density(path[1:], path[:-1], motions, params))

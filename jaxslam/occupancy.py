@@ -1,18 +1,27 @@
-"""Occupancy grid maps: what each particle carries, and how a scan enters it.
+"""Occupancy grid maps: what a map's cells hold, and which cells a scan updates and how.
 
-A map is a pair of (H, W) arrays per particle (stacked (N, H, W) in a filter) on a
-:class:`~jaxslam.grid.GridSpec`:
+Every cell of a map holds two values on a :class:`~jaxslam.grid.GridSpec` grid:
 
-* ``logodds`` float16 (:data:`LOGODDS_DTYPE`): the occupancy log-odds of each cell
+* ``logodds`` float16 (:data:`LOGODDS_DTYPE`): the occupancy log-odds of the cell
   (0 = unknown), updated with the binary Bayes filter of :mod:`jaxslam.binary_bayes`.
-  Half precision (resolution 0.002 at the default clamp of 4) because maps are copied
-  at every resampling and the copies are memory-bound; the filter's weights never read
-  it (they read ``hit_dist2``), it is the map a user looks at;
-* ``hit_dist2`` uint8: the squared distance, in cells, from each cell to the nearest
+  Half precision (resolution 0.002 at the default clamp of 4) halves the memory of the maps
+  and of every tile copied on write; the filter's weights never read it (they read
+  ``hit_dist2``), it is the map a user looks at;
+* ``hit_dist2`` uint8: the squared distance, in cells, from the cell to the nearest
   cell that has registered a laser endpoint, truncated at the field radius (:data:`FAR`
   beyond it). It is the likelihood field of the endpoint model
   (:mod:`jaxslam.likelihood_field`), kept up to date by a scatter-min at insertion time
-  so that a likelihood evaluation is one lookup per beam.
+  so that a likelihood evaluation reads one cell per beam (in a paged map three gathers:
+  directory, block, tile).
+
+The SLAM filter's maps are paged (:mod:`jaxslam.paged_map`), not a dense grid per particle:
+fixed-size tiles of these two arrays live in one pool shared by all particles, each particle
+has a directory into shared blocks of page table that point at the tiles, and a particle that
+inserts a scan into a tile or block it shares gets its own copy first (copy on write);
+resampling copies directories only. This module holds what the paged maps and a dense map
+share: which cells a scan clears and marks (:func:`scan_cells`) and the update of flat cell
+storage (:func:`update_cells`, applied to the tile pool and to a dense map's cells alike).
+A dense :class:`GridMap` with :func:`insert_scan` is a single map (tests, tools).
 """
 
 from __future__ import annotations
@@ -28,7 +37,7 @@ from jaxslam.grid import GridSpec, cell_clip_bound, flat_index
 from jaxslam.laser import SensorSpec, laser_rays
 
 LOGODDS_DTYPE = jnp.float16
-"""Storage type of the per-particle log-odds maps (see the module docstring)."""
+"""Storage type of the log-odds: a dense map's and the paged maps' tile pool (see the module docstring)."""
 
 FAR = 255
 """Value of ``hit_dist2`` for a cell with no endpoint within the field radius."""

@@ -6,7 +6,10 @@ how well each time-t sample explains the future to choose the particle's new pos
 (docs/design.md, "The look-ahead proposal"):
 
 1. Draw x_t^(i) ~ p(x_t | x_{t-1}, u_t), i = 1..L; g_i = a_i = log p(z_t | x_t^(i), m);
-   origin_i = i; log Z = 0.
+   origin_i = i; log Z = 0. That is the paper's draw (``lookahead_initial="odometry"``); the
+   default, ``"scan_match"``, draws them from the Gaussian fitted around the particle's scan
+   match q and sets g_i = log p(z_t | x_t^(i), m) + log p(x_t^(i) | x_{t-1}, u_t) - log q(x_t^(i)),
+   an importance weight; steps 2-5 are the same for both.
 2. For s = t+1 .. t+k: when the localizer ESS < ``resample_threshold`` * L,
    log Z += logsumexp(a) - log L and resample (poses, origin) by softmax(a), a = 0.
    Then move x_s ~ p(x_s | x_{s-1}, u_s) and a_i += log p(z_s | x_s^(i), m).
@@ -33,10 +36,9 @@ Gains. :func:`propose` weighs the localizers with ``lookahead.localizer_gain`` (
 1: each scan's own likelihood, the sharpness the SMP fits with) and multiplies the increment
 by ``likelihood.gain / localizer_gain``, so that the SLAM weights get the evidence tempered
 to the filter's gain like every other proposal's. Tempering the localizers too (the gains
-equal) flattens their weights until the selection barely prefers the poses that explain
-the scans: in the box world (50 SLAM particles, alpha 0.5, 1 m / 0.5 rad updates, seeds 0-5)
-the tempered LP drifted like the OP, median RA 8.8 m and no success, against 0.27 m and 2 of 6
-successes with untempered localizers.
+equal) flattens their weights until the selection barely prefers the poses that explain the
+scans, and the LP drifts like the OP (the box-world figures: docs/design.md, "Gains", and
+docs/notes/2026-11-22-box-world-knobs.md).
 
 The model-independent core (:func:`run_horizon`, :func:`back_propagate`,
 :func:`selection_log_probs`, :func:`select`, :func:`lookahead_core`) takes the
