@@ -150,11 +150,11 @@ def endpoint_log_normalizer(ranges: Float[Array, "B"], sensor: SensorSpec, param
     sigma well above a cell, Z is the half-normal's ``sigma sqrt(pi/2)`` plus half a cell; as
     sigma falls below a cell, Z tends to one cell, not to 0, so an endpoint inside a registered
     cell (distance 0) is worth at most ``-log(resolution)``. Exact for the nearest lookup. For
-    the bilinear lookup it is an approximation that holds for sigma above a cell: integrated
-    from a registered cell's centre outward, the log-linearly interpolated density has a Z about
-    4 times smaller at sigma = 0.36 cells and 12 times at 0.2 cells (within half a cell at 3
-    cells). That integral tends to 0 with sigma, and with it the log-likelihood would again be
-    unbounded as sigma falls; the cell count keeps the model well posed, and a sigma learned
+    the bilinear lookup it is an approximation that holds for sigma above a cell (the
+    interpolated density's own Z falls below it under a cell: measured ratios in
+    docs/notes/2026-11-25-the-models-own-optimum.md). That integral tends to 0 with sigma, and
+    with it the log-likelihood would again be unbounded as sigma falls; the cell count keeps
+    the model well posed, and a sigma learned
     with it is comparable with a reference computed with it (not with one computed under another
     normaliser). The filters add it to their log-evidence, not to the weights (a constant there
     changes nothing but rounding).
