@@ -163,14 +163,14 @@ def no_work(monkeypatch):
     """Traps: reading the log, running a filter or reading a trajectory fails the test."""
     import jaxslam.io
     import jaxslam.localization.doors
-    import jaxslam.rbpf
+    import jaxslam.slam
 
     def trap(*args, **kwargs):
         raise AssertionError("the work started before the input was refused")
 
     monkeypatch.setattr(jaxslam.io, "read_log", trap)
     monkeypatch.setattr(jaxslam.io, "read_trajectory", trap)
-    monkeypatch.setattr(jaxslam.rbpf, "run", trap)
+    monkeypatch.setattr(jaxslam.slam, "run", trap)
     monkeypatch.setattr(jaxslam.localization.doors, "run_filter", trap)
 
 
@@ -377,7 +377,7 @@ def _trap_filter(monkeypatch):
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.rbpf, "run", trap)
+    monkeypatch.setattr(jaxslam.slam, "run", trap)
 
 
 def test_the_memory_estimate_counts_page_tables_pool_insertion_lp_terms_and_xla():
