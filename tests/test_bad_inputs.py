@@ -78,10 +78,7 @@ CASES = [
      _config({"settings": {"linear_update": 1}})),
     ("cfg-not-json", WITH_CFG, ["cannot read config file"], _config("{config: nope")),
     ("cfg-missing-file", [*MAP, "--config", "{out}.json"], ["cannot read config file"], None),
-    ("cfg-grid-removed", WITH_CFG, ["grid was removed", "map_extent"],
-     _config({"config": {"grid": {"shape": [100, 100], "resolution": 0.05, "origin": [0, 0]}}})),
-    ("cfg-map-padding-removed", WITH_CFG, ["map_padding was removed", "map_extent"],
-     _config({"config": {"map_padding": 5}})),
+    ("cfg-unknown-field", WITH_CFG, ["unknown parameter", "map_padding"], _config({"config": {"map_padding": 5}})),
     ("cfg-tile-size", WITH_CFG, ["tile_size must be a power of two", "got 48"], _config({"config": {"tile_size": 48}})),
     ("set-extent-negative", [*MAP, *_sets("map_extent=-5")], ["map_extent must be > 0", "-5"], None),
     ("set-int-given-float", [*MAP, *_sets("beam_stride=2.9")], ["beam_stride must be a", "integer", "'2.9'"], None),
@@ -110,7 +107,7 @@ CASES = [
     ("param-negative-min-score", [*MAP, *_sets("scan_match.min_score=-0.1")], ["min_score must be >= 0"], None),
     ("param-negative-resample", [*MAP, *_sets("resample_threshold=-0.5")], ["resample_threshold must be >= 0"], None),
     ("param-alpha-one", [*MAP, *_sets("lookahead.alpha=1")], ["lookahead.alpha must be in [0, 1)", "1.0"], None),
-    ("param-correction", [*MAP, *_sets("lookahead.selection_correction=2")], ["selection_correction must be in [0, 1]"],
+    ("param-correction", [*MAP, *_sets("lookahead.selection_correction=0.5")], ["selection_correction must be 0 or 1"],
      None),
     ("param-alpha-flag-nan", [*MAP, "--alpha", "nan"], ["lookahead.alpha must be a finite number"], None),
     # Flags.
@@ -163,6 +160,7 @@ def no_work(monkeypatch):
     """Traps: reading the log, running a filter or reading a trajectory fails the test."""
     import jaxslam.io
     import jaxslam.localization.doors
+    import jaxslam.localization.mcl
     import jaxslam.rbpf
 
     def trap(*args, **kwargs):
@@ -171,7 +169,8 @@ def no_work(monkeypatch):
     monkeypatch.setattr(jaxslam.io, "read_log", trap)
     monkeypatch.setattr(jaxslam.io, "read_trajectory", trap)
     monkeypatch.setattr(jaxslam.rbpf, "run", trap)
-    monkeypatch.setattr(jaxslam.localization.doors, "run_filter", trap)
+    monkeypatch.setattr(jaxslam.localization.doors, "filter", trap)
+    monkeypatch.setattr(jaxslam.localization.mcl, "filter", trap)
 
 
 def _run_refused(argv, words, capsys):
