@@ -77,11 +77,11 @@ def main(argv=None):
     ranges = jnp.asarray(expected_ranges(jnp.asarray(walls), pose, sensor)[0]) * 0.9
     inputs = mcl.ScanInputs(jnp.array([0.1, 0.0, 0.01]), ranges)
     base = mcl.init_tracked(jax.random.key(0), pose, jnp.array([0.3, 0.3, 0.1]), mcl.MclConfig(n))
-    config = doors.DoorConfig(num_particles=n)
+    config = doors.DoorConfig(mcl.MclConfig(n))
 
     mparams = mcl.make_params()
     fns = {"mcl": lambda: mcl.step_jit(jax.random.key(1), base, inputs, jnp.asarray(walls), sensor, mparams,
-                                       config.mcl_config())}
+                                       config.mcl)}
     for k in ks:
         door_map = doors.make_door_map(walls, door_segments(k))
         state, params = doors.init(base, door_map), doors.make_params(door_map)

@@ -113,23 +113,22 @@ def section_vmap(args) -> dict:
     from jaxslam import rbpf
     from jaxslam.cli import DEMO_DEFAULTS
     from jaxslam.config import build_setup
-    from jaxslam.laserlog import select_updates
     from jaxslam.sim import office_scenario
 
     log = office_scenario(jax.random.key(0)).log
     config, settings, params = build_setup(dict(DEMO_DEFAULTS))
-    local = rbpf.local_log(log, rbpf.local_frame_offset(log))
-    selection = select_updates(local, settings.linear_update, settings.angular_update)
-    inputs = jax.tree.map(jnp.asarray, rbpf.build_inputs(local, selection, config.lookahead_steps))
+    prepared, selection, _ = rbpf.prepare(log, config, settings)  # the local frame's arrays
+    inputs = jax.tree.map(jnp.asarray, prepared.inputs)
+    sensor = prepared.sensor
     steps = selection.indices.size - 1
     pool = rbpf.pool_size(config)
     pool = pool._replace(capacity=4 * pool.capacity)  # room for the whole run: no growth inside the timed calls
 
     def one_run(key):
-        state = rbpf.init(key, jnp.asarray(local.ranges[0]), local.sensor, params, config,
-                          jnp.asarray(local.odometry[0], jnp.float32), pool=pool)
+        state = rbpf.init(key, jnp.asarray(prepared.first_ranges), sensor, params, config,
+                          jnp.asarray(prepared.initial_pose), pool=pool)
         keys = jax.random.split(key, steps)
-        state, info = jax.lax.scan(lambda s, x: rbpf.step(x[0], s, x[1], local.sensor, params, config), state,
+        state, info = jax.lax.scan(lambda s, x: rbpf.step(x[0], s, x[1], sensor, params, config), state,
                                    (keys, inputs))
         return state.poses, state.maps.overflow, info.log_evidence
 

@@ -19,7 +19,7 @@ then for the table's cells DIR/ra_distribution.png, DIR/fig5.png (RA and success
 the paper's Fig. 5; for several N), DIR/examples.png and DIR/failures.png (the best particle's
 map and path: each method's first seed and worst failure, as Fig. 4), and for several scales
 DIR/noise_scale.png and DIR/noise_scale.md (success rate +- binomial standard error).
-``box_world_merge.py`` merges result folders, old-format ones included, into one.
+``box_world_merge.py`` merges result folders into one.
 
     python experiments/box_world.py --table table --out results/box_world
     python experiments/box_world.py --table noise --out results/box_world_noise

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the shared resume helper
+from door_harness import FILTERS, door_state_accuracy, run_filter_batch  # experiments/door_harness.py
 
 from jaxslam.localization import doors, mcl
 from jaxslam.localization.plotting import figure_run, save_figures
@@ -64,17 +65,15 @@ def evaluate(keys, scenarios: list[DoorScenario], filter_kind: str, config: door
     scenario's start regions) in one jitted ``lax.map`` over vmapped batches of seeds."""
     first = scenarios[0]
     inputs, truth = stack_inputs(scenarios)
-    out = doors.run_filter_batch(keys, inputs, truth, jnp.asarray(first.start_regions), first.door_map,
-                                 first.log.sensor, params, config, filter_kind, tuple(first.heading_range),
-                                 batch_size)
+    out = run_filter_batch(keys, inputs, truth, jnp.asarray(first.start_regions), first.door_map,
+                           first.log.sensor, params, config, filter_kind, tuple(first.heading_range), batch_size)
     pos = np.asarray(out.position_error)
     head = np.rad2deg(np.asarray(out.heading_error))
     success = (pos[:, -1] < SUCCESS_POSITION) & (head[:, -1] < SUCCESS_HEADING_DEG)
     belief = np.asarray(out.door_belief)
     observed = np.stack([s.observed_doors.any(axis=0) for s in scenarios])
     truth_open = np.stack([s.true_door_open[-1] for s in scenarios])
-    accuracy = float("nan") if filter_kind == "static" else doors.door_state_accuracy(belief[:, -1], truth_open,
-                                                                                       observed)
+    accuracy = float("nan") if filter_kind == "static" else door_state_accuracy(belief[:, -1], truth_open, observed)
     return Evaluation(filter_kind, pos, head, success, belief, accuracy)
 
 
@@ -106,7 +105,7 @@ def main(argv=None):
     config, params = filter_settings(scenarios[0], particles)
     keys = jax.random.split(jax.random.key(10_000 + args.seed_offset), seeds)
     settings = {"scenario": "corridors", "seeds": seeds, "particles": particles, "seed_offset": args.seed_offset,
-                "beams_used": int(scenarios[0].log.num_beams // config.beam_stride + 1),
+                "beams_used": int(scenarios[0].log.num_beams // config.mcl.beam_stride + 1),
                 "scans": scenarios[0].num_scans}
     # Resumable by filter: a finished filter's summary is in results.json and its arrays beside it.
     try:
@@ -114,7 +113,7 @@ def main(argv=None):
     except SettingsMismatch as err:
         raise SystemExit(f"experiments/doors.py: error: {err}") from None
     evaluations = []
-    for kind in doors.FILTERS:
+    for kind in FILTERS:
         arrays = args.out / f"{kind}.npz"
         if store.done(kind) and arrays.is_file():
             with np.load(arrays) as saved:

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     scenario = patrol_doors_scenario(jax.random.key(0), num_round_trips=args.round_trips,
                                      p_open_closed=args.truth[0], p_closed_open=args.truth[1])
     door_map, sensor = scenario.door_map, scenario.log.sensor
-    config = doors.DoorConfig(num_particles=args.particles, beam_stride=2)
+    config = doors.DoorConfig(mcl.MclConfig(num_particles=args.particles, beam_stride=2))
     base = doors.make_params(door_map, beam=make_beam_model_params(sigma_hit=0.2), likelihood_gain=args.gain)
     inputs = mcl.log_inputs(scenario.log)
     regions = jnp.asarray(scenario.start_regions)
@@ -77,7 +77,7 @@ def main(argv=None) -> int:
 
     def objective(key, p):
         k_init, k_run = jax.random.split(key)
-        start = mcl.init_global(k_init, regions, config.mcl_config(), tuple(scenario.heading_range))
+        start = mcl.init_global(k_init, regions, config.mcl, tuple(scenario.heading_range))
         out = doors.filter(k_run, doors.init(start, door_map), inputs, door_map, sensor, with_transitions(p), config)
         return out.marginal_loglik
 

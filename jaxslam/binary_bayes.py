@@ -1,8 +1,8 @@
 """The binary Bayes filter in closed form, shared by occupancy-grid cells and doors.
 
 A binary state y (cell occupied / door open) is tracked either as log-odds
-``l = log p(y) / (1 - p(y))`` (grid cells: the static-state update is an addition)
-or as a probability ``p`` (doors: a transition model mixes the states between
+``l = log p(y) / (1 - p(y))`` (grid cells: the static-state update is an addition, done by
+:mod:`jaxslam.occupancy`; :func:`probability` reads a map back) or as a probability ``p`` (doors: a transition model mixes the states between
 steps, which is linear in p).
 """
 
@@ -14,31 +14,12 @@ import numpy as np
 from jaxtyping import Array, Float
 
 
-def logodds(p: Float[Array, "..."]) -> Float[Array, "..."]:
-    """Log-odds of a probability, finite for p in (0, 1)."""
-    return jnp.log(p) - jnp.log1p(-p)
-
-
 def probability(logodds_value: Float[Array, "..."]) -> Float[Array, "..."]:
     """Probability of a log-odds value. A NumPy array (a map on the host, for outputs and
     figures) gives a float64 NumPy array; anything else a JAX array of its float type."""
     if isinstance(logodds_value, np.ndarray):
         return 1.0 / (1.0 + np.exp(-logodds_value.astype(np.float64)))
     return jax.nn.sigmoid(logodds_value)
-
-
-def clamp_logodds(value, lower, upper):
-    """Clamp log-odds so that a state stays able to change (GMapping-free maps saturate otherwise)."""
-    return jnp.clip(value, lower, upper)
-
-
-def update_logodds(prior, measurement, lower=-jnp.inf, upper=jnp.inf):
-    """Static-state update: posterior log-odds = prior + inverse-sensor-model log-odds, clamped.
-
-    ``measurement`` is ``log p(y | z) / p(not y | z) - log p(y) / p(not y)`` (the prior already
-    removed), so that a sequence of measurements adds up.
-    """
-    return clamp_logodds(prior + measurement, lower, upper)
 
 
 def predict(p, p_stay, p_enter):

@@ -32,11 +32,11 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
-from jaxslam.motion import MotionParams
+from jaxslam.motion import MotionParams, motion_params
 from jaxslam.occupancy import InsertionParams
 from jaxslam.paged_map import PagedGridSpec
 from jaxslam.proposals import PROPOSALS
-from jaxslam.resampling import RESAMPLERS, RESAMPLING_GRADIENTS
+from jaxslam.resampling import RESAMPLERS
 from jaxslam.sensor_model import SENSOR_MODELS
 
 
@@ -85,11 +85,6 @@ class SlamConfig:
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     resampler: str = "systematic"
     """Resampling scheme: systematic, stratified, multinomial or residual."""
-    resampling_gradient: str = "score"
-    """What autodiff sees of a resampling; the forward pass is the same bit for bit.
-    "score": the gradient of the log-likelihood estimate is the particle estimate of the score
-    (Scibior & Wood 2021); "none": resampling stops the gradient of the weights (biased). See
-    :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
     match_iterations: int = 24
     """Fixed iteration budget of the hill-climbing scan matcher."""
     num_localizers: int = 100
@@ -128,8 +123,6 @@ class SlamConfig:
              f"match_lookup must be one of {FIELD_LOOKUPS}, got {self.match_lookup!r}"),
             (self.beam_stride >= 1, f"beam_stride must be >= 1, got {self.beam_stride}"),
             (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}, got {self.resampler!r}"),
-            (self.resampling_gradient in RESAMPLING_GRADIENTS,
-             f"resampling_gradient must be one of {RESAMPLING_GRADIENTS}, got {self.resampling_gradient!r}"),
             (self.match_iterations >= 0, f"match_iterations must be >= 0, got {self.match_iterations}"),
             (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
             (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),
@@ -255,12 +248,12 @@ class LookaheadParams(NamedTuple):
     then scaled by ``likelihood.gain / localizer_gain`` (the tempered evidence), so setting
     it equal to ``likelihood.gain`` tempers the localizers and leaves the increment as is."""
     selection_correction: Float[Array, ""]
-    """How much of the selection correction the SLAM weight keeps, in [0, 1]. The increment is
-    log mean_i exp(g_i) + c (g_J - logsumexp(g) - log p_J): c = 1 (default) is the design's
-    g_J - log L - log p_J, unbiased for alpha > 0 but noisy, since it depends on which sample
-    was drawn; c = 0 weighs every SLAM particle by its evidence estimate alone, unbiased for
-    every alpha (the paper's 0 included) and independent of the draw, so the look-ahead then
-    only chooses the pose. Values in between temper the correction like the likelihood gain."""
+    """Whether the SLAM weight keeps the selection correction: 1 or 0 (a switch, traced so that
+    changing it never recompiles). 1 (default) is the design's increment g_J - log L - log p_J,
+    unbiased for alpha > 0 but noisy, since it depends on which sample was drawn; 0 weighs every
+    SLAM particle by its evidence estimate log mean_i exp(g_i) alone, unbiased for every alpha
+    (the paper's 0 included) and independent of the draw, so the look-ahead then only chooses
+    the pose."""
 
 
 class SlamParams(NamedTuple):
@@ -334,7 +327,7 @@ _PARAM_RANGES: dict[str, tuple[Any, str]] = {
     # Above 1 is allowed (ESS <= L): the localizers are then resampled at every step of the horizon.
     "lookahead.resample_threshold": (_at_least(0.0), ">= 0 (a fraction of L: 0 never resamples, above 1 always)"),
     "lookahead.localizer_gain": (_above(0.0), "> 0"),
-    "lookahead.selection_correction": (lambda v: 0.0 <= v <= 1.0, "in [0, 1]"),
+    "lookahead.selection_correction": (lambda v: v in (0.0, 1.0), "0 or 1 (keep the selection correction or not)"),
     # Above 1 is allowed and used (tests, "above 1 always does"): ESS <= N, so every step resamples.
     "resample_threshold": (_at_least(0.0), ">= 0 (a fraction of N: 0 never resamples, above 1 always)"),
 }
@@ -370,7 +363,7 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
         return cls(**{f: jnp.float32(merged[f"{prefix}.{f}"]) for f in cls._fields})
 
     return SlamParams(
-        motion=group(MotionParams, "motion"),
+        motion=motion_params(*(merged[f"motion.{f}"] for f in MotionParams._fields)),
         likelihood=group(LikelihoodParams, "likelihood"),
         insertion=group(InsertionParams, "insertion"),
         scan_match=group(ScanMatchParams, "scan_match"),
@@ -431,13 +424,6 @@ def config_from_dict(values: dict[str, Any]) -> SlamConfig:
     return _dataclass_from_dict(SlamConfig, values)
 
 
-REMOVED_NAMES = {
-    "grid": "the maps are paged on a virtual grid centred on the log's start: set map_extent (m) and resolution (m)",
-    "map_padding": "the maps no longer follow the odometry's bounding box: set map_extent (m), the virtual grid's side",
-}
-"""Names of settings that were removed, and what replaces them (for the error message)."""
-
-
 def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamParams]:
     """The config, run settings and parameters of one flat dictionary of names.
 
@@ -446,9 +432,6 @@ def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamPa
     missing keeps its default. This is the one builder behind ``--set``, config files and the
     experiments' method tables. Unknown names and bad values raise ``ConfigError``.
     """
-    for name in values:
-        if name in REMOVED_NAMES:
-            raise ConfigError(f"{name} was removed: {REMOVED_NAMES[name]}")
     config_values = {k: v for k, v in values.items() if k in CONFIG_FIELDS}
     settings_values = {k: v for k, v in values.items() if k in SETTINGS_FIELDS}
     param_values = {k: v for k, v in values.items() if k not in CONFIG_FIELDS and k not in SETTINGS_FIELDS}

@@ -1,7 +1,7 @@
 """Fitting a filter's parameters to data: Adam on the log-likelihood, in plain JAX.
 
 The filters return an estimate of log p(data | params) whose gradient is the score estimate
-(:data:`jaxslam.resampling.RESAMPLING_GRADIENTS`): :func:`fit` climbs it with Adam (Kingma &
+(:func:`jaxslam.resampling.resample_if_needed`): :func:`fit` climbs it with Adam (Kingma &
 Ba 2015; written here, the design card has no optax) over *unconstrained* coordinates, so
 that a noise stays positive (log) and a probability inside (0, 1) (logit). Parameters are
 addressed by their dotted names (``"motion.srr"``, as ``--set`` and ``default_params`` do);

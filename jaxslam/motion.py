@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from jaxslam.geometry import between, compose, wrap_angle
@@ -42,6 +43,20 @@ class MotionParams(NamedTuple):
     """Std floor of each translation component (m)."""
     min_rotation_std: Float[Array, ""]
     """Std floor of the rotation (rad)."""
+
+
+def motion_params(srr, srt, str_, stt, min_translation_std=0.0, min_rotation_std=0.0) -> MotionParams:
+    """The one constructor of :class:`MotionParams`: float32 scalars (``str_`` is the field
+    ``str``). Every value must be a finite number >= 0 (checked when it is concrete, not when it
+    is traced), else ``ValueError`` names it."""
+    values = (srr, srt, str_, stt, min_translation_std, min_rotation_std)
+    for name, value in zip(MotionParams._fields, values):
+        if isinstance(value, jax.core.Tracer):
+            continue
+        x = np.asarray(value, np.float64) if not isinstance(value, (str, bytes)) else None
+        if x is None or x.shape != () or not np.isfinite(x) or x < 0:
+            raise ValueError(f"motion_params: {name} must be a finite number >= 0, got {value!r}")
+    return MotionParams(*(jnp.asarray(v, jnp.float32) for v in values))
 
 
 def noise_std(motion: Float[Array, "... 3"], params: MotionParams) -> Float[Array, "... 3"]:

@@ -37,20 +37,6 @@ def plot_path(ax, poses, label=None, **kwargs):
     return ax.plot(poses[:, 0], poses[:, 1], label=label, **kwargs)
 
 
-def plot_particles(ax, poses, weights=None, arrow_length: float = 0.0, **kwargs):
-    """Scatter particle positions (N, 3), sized or coloured by weight when given."""
-    poses = np.asarray(poses)
-    if weights is not None:
-        kwargs.setdefault("c", np.asarray(weights))
-        kwargs.setdefault("cmap", "viridis")
-    kwargs.setdefault("s", 6)
-    artist = ax.scatter(poses[:, 0], poses[:, 1], **kwargs)
-    if arrow_length > 0:
-        ax.quiver(poses[:, 0], poses[:, 1], np.cos(poses[:, 2]), np.sin(poses[:, 2]),
-                  angles="xy", scale_units="xy", scale=1.0 / arrow_length, width=0.002, color="tab:red")
-    return artist
-
-
 def plot_segments(ax, segments, **kwargs):
     """Draw line segments (M, 4) [x1, y1, x2, y2]."""
     from matplotlib.collections import LineCollection

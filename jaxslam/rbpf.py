@@ -173,8 +173,7 @@ def step(
         lik_sensor, params, config)
 
     update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
-                                                   params.resample_threshold, config.resampler,
-                                                   config.resampling_gradient)
+                                                   params.resample_threshold, config.resampler)
     # Only the particles the resampling keeps insert the scan: the others' maps are dropped next.
     survivors = jnp.zeros((n,), bool).at[update.ancestors].set(True)
     maps, outside = paged_map.insert_scans(spec, state.maps, out.pose, inputs.ranges, sensor, params.insertion,

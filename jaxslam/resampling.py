@@ -91,46 +91,33 @@ RESAMPLERS: dict[str, ResampleFn] = {
 }
 
 
-RESAMPLING_GRADIENTS = ("score", "none")
-"""What autodiff sees of a resampling (the forward values are the same bit for bit):
-
-* ``"score"``: the weights after resampling are ``1/N * w[a] / stop_gradient(w[a])`` (Scibior &
-  Wood 2021, "Differentiable particle filtering without modifying the forward pass"): 1/N in
-  value, but their derivative carries the resampling's dependence on the parameters, so the
-  gradient of the filter's log-likelihood estimate is the particle estimate of the score
-  (Fisher's identity over the surviving paths, as Poyiadjis, Doucet and Singh 2011), consistent
-  as N grows.
-* ``"none"``: uniform constants: the resampling acts as a stop-gradient on the weights, and the
-  gradient misses every step's selection (biased; kept to show the difference).
-"""
-
-
 def resample_if_needed(
     key: PRNGKeyArray,
     log_weights: Float[Array, "N"],
     resample_threshold: Float[Array, ""],
     resample_fn: ResampleFn = systematic,
-    gradient: str = "score",
 ) -> tuple[Int[Array, "N"], Float[Array, "N"], Bool[Array, ""]]:
     """Selective resampling: resample when ESS < ``resample_threshold`` * N.
 
     Returns ``(ancestors, new_log_weights, resampled)``: identity ancestors and the
-    normalised weights when no resampling happens, uniform weights after it (in value; with
-    ``gradient="score"`` their derivative is that of ``log w[ancestors]``, see
-    :data:`RESAMPLING_GRADIENTS`).
+    normalised weights when no resampling happens, uniform weights after it.
+
+    What autodiff sees of a resampling (the score gradient): the weights after it are
+    ``1/N * w[a] / stop_gradient(w[a])`` (Scibior & Wood 2021, "Differentiable particle filtering
+    without modifying the forward pass"): 1/N in value, but their derivative carries the
+    resampling's dependence on the parameters, so that the gradient of the filter's
+    log-likelihood estimate is the particle estimate of the score (Fisher's identity over the
+    surviving paths, as Poyiadjis, Doucet and Singh 2011), consistent as N grows.
     """
-    if gradient not in RESAMPLING_GRADIENTS:
-        raise ValueError(f"gradient must be one of {RESAMPLING_GRADIENTS}, got {gradient!r}")
     n = log_weights.shape[0]
     normalized, _ = normalize_log_weights(log_weights)
     do = ess(normalized) < resample_threshold * n
     drawn = resample_fn(key, normalized, n)
     ancestors = jnp.where(do, drawn, jnp.arange(n, dtype=jnp.int32))
     uniform = jnp.full_like(normalized, -jnp.log(n))
-    if gradient == "score":
-        # x - stop_gradient(x) is exactly 0 for finite x, so the value stays 1/N bit for bit. A
-        # drawn particle never has weight zero; the where keeps an impossible -inf from making NaN.
-        picked = normalized[drawn]
-        uniform = uniform + jnp.where(jnp.isfinite(picked), picked - jax.lax.stop_gradient(picked), 0.0)
+    # x - stop_gradient(x) is exactly 0 for finite x, so the value stays 1/N bit for bit. A
+    # drawn particle never has weight zero; the where keeps an impossible -inf from making NaN.
+    picked = normalized[drawn]
+    uniform = uniform + jnp.where(jnp.isfinite(picked), picked - jax.lax.stop_gradient(picked), 0.0)
     new_log_weights = jnp.where(do, uniform, normalized)
     return ancestors, new_log_weights, do

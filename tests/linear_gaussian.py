@@ -41,7 +41,7 @@ def kalman_log_likelihood(theta, ys):
     return terms.sum()
 
 
-def particle_log_likelihood(theta, key, ys, num_particles, resampler, gradient, resample_threshold=1.0):
+def particle_log_likelihood(theta, key, ys, num_particles, resampler, resample_threshold=1.0):
     """The bootstrap filter's estimate of log p(y_1:T | theta) (sum of the steps' log-evidence)."""
     a, q, r = theta
     k0, k1 = jax.random.split(key)
@@ -55,7 +55,7 @@ def particle_log_likelihood(theta, key, ys, num_particles, resampler, gradient, 
         x = a * x + jnp.sqrt(q) * jax.random.normal(k_move, (num_particles,))  # reparameterised
         poses = jnp.stack([x, jnp.zeros_like(x), jnp.zeros_like(x)], axis=-1)
         update = reweight_and_resample(k_resample, poses, log_weights, norm.logpdf(y, x, jnp.sqrt(r)),
-                                       jnp.float32(resample_threshold), resampler, gradient)
+                                       jnp.float32(resample_threshold), resampler)
         return (x[update.ancestors], update.new_log_weights), update.log_evidence
 
     _, log_evidence = jax.lax.scan(step, (x, log_weights), (jax.random.split(k1, ys.shape[0]), ys))

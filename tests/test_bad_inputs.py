@@ -78,10 +78,7 @@ CASES = [
      _config({"settings": {"linear_update": 1}})),
     ("cfg-not-json", WITH_CFG, ["cannot read config file"], _config("{config: nope")),
     ("cfg-missing-file", [*MAP, "--config", "{out}.json"], ["cannot read config file"], None),
-    ("cfg-grid-removed", WITH_CFG, ["grid was removed", "map_extent"],
-     _config({"config": {"grid": {"shape": [100, 100], "resolution": 0.05, "origin": [0, 0]}}})),
-    ("cfg-map-padding-removed", WITH_CFG, ["map_padding was removed", "map_extent"],
-     _config({"config": {"map_padding": 5}})),
+    ("cfg-unknown-field", WITH_CFG, ["unknown parameter", "map_padding"], _config({"config": {"map_padding": 5}})),
     ("cfg-tile-size", WITH_CFG, ["tile_size must be a power of two", "got 48"], _config({"config": {"tile_size": 48}})),
     ("set-extent-negative", [*MAP, *_sets("map_extent=-5")], ["map_extent must be > 0", "-5"], None),
     ("set-int-given-float", [*MAP, *_sets("beam_stride=2.9")], ["beam_stride must be a", "integer", "'2.9'"], None),
@@ -110,7 +107,7 @@ CASES = [
     ("param-negative-min-score", [*MAP, *_sets("scan_match.min_score=-0.1")], ["min_score must be >= 0"], None),
     ("param-negative-resample", [*MAP, *_sets("resample_threshold=-0.5")], ["resample_threshold must be >= 0"], None),
     ("param-alpha-one", [*MAP, *_sets("lookahead.alpha=1")], ["lookahead.alpha must be in [0, 1)", "1.0"], None),
-    ("param-correction", [*MAP, *_sets("lookahead.selection_correction=2")], ["selection_correction must be in [0, 1]"],
+    ("param-correction", [*MAP, *_sets("lookahead.selection_correction=0.5")], ["selection_correction must be 0 or 1"],
      None),
     ("param-alpha-flag-nan", [*MAP, "--alpha", "nan"], ["lookahead.alpha must be a finite number"], None),
     # Flags.
@@ -163,6 +160,7 @@ def no_work(monkeypatch):
     """Traps: reading the log, running a filter or reading a trajectory fails the test."""
     import jaxslam.io
     import jaxslam.localization.doors
+    import jaxslam.localization.mcl
     import jaxslam.slam
 
     def trap(*args, **kwargs):
@@ -171,7 +169,8 @@ def no_work(monkeypatch):
     monkeypatch.setattr(jaxslam.io, "read_log", trap)
     monkeypatch.setattr(jaxslam.io, "read_trajectory", trap)
     monkeypatch.setattr(jaxslam.slam, "run", trap)
-    monkeypatch.setattr(jaxslam.localization.doors, "run_filter", trap)
+    monkeypatch.setattr(jaxslam.localization.doors, "filter", trap)
+    monkeypatch.setattr(jaxslam.localization.mcl, "filter", trap)
 
 
 def _run_refused(argv, words, capsys):
@@ -345,7 +344,7 @@ def test_strict_json_nulls_non_finite_numbers_with_reasons():
 def test_a_degenerate_run_writes_null_log_evidence_with_its_step(tmp_path, small_log, monkeypatch):
     """A run whose every particle's weight went to zero at a step: log_evidence is null in
     summary.json, and null_reasons names the step and the scan."""
-    import jaxslam.rbpf
+    import jaxslam.slam
     from jaxslam.config import default_params
     from jaxslam.outputs import write_slam_outputs
 
@@ -372,7 +371,7 @@ def test_a_degenerate_run_writes_null_log_evidence_with_its_step(tmp_path, small
 
 
 def _trap_filter(monkeypatch):
-    import jaxslam.rbpf
+    import jaxslam.slam
 
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
@@ -428,11 +427,11 @@ def test_a_log_leaving_the_map_is_refused_before_the_filter(tmp_path, small_log,
 
 
 def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monkeypatch):
-    import jaxslam.rbpf
+    import jaxslam.resources
 
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
-    monkeypatch.setattr(jaxslam.rbpf, "available_memory_bytes", lambda: 8 * 10**9)
+    monkeypatch.setattr(jaxslam.resources, "available_memory_bytes", lambda: 8 * 10**9)
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
             "--no-progress", "--out", str(tmp_path / "out")]
     config, _, _ = build_setup({"num_particles": 30000})
@@ -444,12 +443,12 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
 
 
 def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(tmp_path, small_log, monkeypatch):
-    import jaxslam.rbpf
+    import jaxslam.resources
 
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
     for available in (jaxslam.resources.available_memory_bytes, lambda: None):
-        monkeypatch.setattr(jaxslam.rbpf, "available_memory_bytes", available)
+        monkeypatch.setattr(jaxslam.resources, "available_memory_bytes", available)
         with pytest.raises(AssertionError, match="the filter ran"):  # the check let it through to the filter
             main(["map", str(tmp_path / "office.clf"), "--particles", "100000" if available() is None else "4",
                   "--no-progress", "--out", str(tmp_path / "out")])

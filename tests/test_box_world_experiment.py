@@ -128,49 +128,42 @@ def test_box_world_resumes_and_refuses(exp, tmp_path, monkeypatch, capsys):
     assert "other settings" in err and "Traceback" not in err
 
 
-OLD = {
-    "settings": {"runs": 2, "quick": False, "scenario": {}, "alpha": 0.5, "rotation_weight": 1.0, "beam_stride": 2,
-                 "linear_update": 0.5, "angular_update": 0.25, "motion_scale": 0.45, "world_odometry_scale": 0.5,
-                 "likelihood_field": "endpoints", "match_lookup": "nearest", "lookahead_weight": "filter", "set": [],
-                 "success_ra": 0.2},
-    "cells": {
-        f"{label} | N=50": {"method": label, "N": 50, "runs": [
-            {"seed": s, "ra": 0.1 * (s + 1), "best_particle_error": 0.0, "seconds": 1.0, "num_steps": 5,
-             "num_fallbacks": 0, "num_degenerate": 0, "num_resamplings": 1, "min_ess": 1.0,
-             "lineages_from_lap1": {"end": 1}} for s in range(2)]}
-        for label in ["OP", "SMP", "LP a=0 L=100 k=5", "LP a=0.5 L=100 k=5", "LP a=0.5 L=50 k=3",
-                      "LP-SM a=0.5 L=100 k=5", "LP a=0.5 c=0 L=100 k=5", "LP-SM a=0.5 c=0 L=100 k=5",
-                      "LP a=0.5 L=200 k=5"]},
-}
+def _results(exp, scale: float, seeds: int = 2) -> dict:
+    """A results.json of box_world.py's format: the noise table's methods at N = 50 and one odometry
+    scale, seed s with RA 0.1 (s + 1)."""
+    settings = bw.world_settings(exp, exp["tables"]["noise"])
+    cells, runs = {}, []
+    for name in exp["tables"]["noise"]["methods"]:
+        record = {"method": name, **bw.cell_record(bw.method_settings(exp, name), 50, scale)}
+        key = bw.cell_key(record)
+        cells[key] = record
+        runs += [{"cell": key, **{f: 0 for f in bw.RUN_FIELDS}, "seed": s, "ra": 0.1 * (s + 1)} for s in range(seeds)]
+    return json.loads(json.dumps({"settings": settings, "runs": runs, "cells": cells}))
 
 
-def test_old_format_is_converted(exp, capsys):
-    cells, runs = bwm.convert_old(OLD, exp)
-    assert "L=200" in capsys.readouterr().err  # a label without a method is skipped, loudly
-    names = {c["method"] for c in cells.values()}
-    assert names == {"OP", "SMP", "LP a=0", "LP", "LP L=50 k=3", "LP-SM", "LP c=0", "LP-SM c=0"}
-    for name in names:
-        key = bw.cell_key(bw.cell_record(bw.method_settings(exp, name), 50, 0.5))
-        assert cells[key]["method"] == name
-        assert [r["ra"] for r in runs if r["cell"] == key] == [0.1, 0.2]
-    assert all("lineages_from_lap1" not in r for r in runs)
-    no_scale = {**OLD, "settings": {k: v for k, v in OLD["settings"].items() if k != "world_odometry_scale"}}
-    assert {c["odometry_scale"] for c in bwm.convert_old(no_scale, exp)[0].values()} == {1.0}
-    with pytest.raises(bwm.MergeError, match="beam_stride"):
-        bwm.convert_old({**OLD, "settings": {**OLD["settings"], "beam_stride": 1}}, exp)
+def test_merge_refuses_other_files(exp, tmp_path, capsys):
+    no_runs = tmp_path / "cells_only.json"
+    no_runs.write_text(json.dumps({"settings": {}, "cells": {"OP | N=50": {"N": 50, "runs": []}}}))
+    with pytest.raises(bwm.MergeError, match="no 'runs'"):
+        bwm.merge_results([no_runs], exp)
+    other = _results(exp, 0.5)
+    other["settings"]["success_ra"] = 0.3
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    with pytest.raises(bwm.MergeError, match="other settings"):
+        bwm.merge_results([tmp_path / "other.json"], exp)
+    assert bwm.main([str(tmp_path / "out"), str(no_runs)]) == 2
+    assert "Traceback" not in capsys.readouterr().err
 
 
 def test_merge_then_the_table_only_draws(exp, tmp_path, monkeypatch):
-    old = tmp_path / "old.json"
-    old.write_text(json.dumps(OLD))
-    one = {**OLD, "settings": {**OLD["settings"], "world_odometry_scale": 1.0}}
-    (tmp_path / "one.json").write_text(json.dumps(one))
+    (tmp_path / "half.json").write_text(json.dumps(_results(exp, 0.5)))
+    (tmp_path / "one.json").write_text(json.dumps(_results(exp, 1.0)))
     out = tmp_path / "merged"
-    assert bwm.main([str(out), str(old), str(tmp_path / "one.json")]) == 0
+    assert bwm.main([str(out), str(tmp_path / "half.json"), str(tmp_path / "one.json")]) == 0
     assert "1/2: 0.50 ± 0.35" in (out / "noise_scale.md").read_text()
     assert (out / "noise_scale.png").is_file()
-    merged = bwm.merge_results([out], exp)  # the new format reads back
-    assert len(merged["runs"]) == 2 * 2 * 8
+    merged = bwm.merge_results([out], exp)  # the merged folder reads back
+    assert len(merged["runs"]) == 2 * 2 * len(exp["tables"]["noise"]["methods"])
     config = json.loads(bw.DEFAULT_CONFIG.read_text())
     config["tables"]["noise"]["odometry_scales"] = [0.5, 1.0]
     (tmp_path / "bw.json").write_text(json.dumps(config))

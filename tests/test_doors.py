@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import sys
+from pathlib import Path
 from typing import NamedTuple
 
 import chex
@@ -16,9 +18,13 @@ from jaxslam.localization import doors, mcl
 from jaxslam.geometry import between
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.localization.beam_model import beam_model_log_likelihood, make_beam_model_params
+from jaxslam.motion import motion_params
 from jaxslam.segment_map import raycast
 
-ZERO_MOTION = mcl.default_motion_params(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+import door_harness  # noqa: E402  (experiments/door_harness.py)
+
+ZERO_MOTION = motion_params(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 def _room_with_three_doors():
@@ -106,7 +112,7 @@ def _single_particle_filter(case: _Changing):
     door_map = doors.make_door_map(case.walls, case.door_segments, case.initial, case.p_oo, case.p_oc)
     params = doors.make_params(door_map, motion=ZERO_MOTION, beam=case.beam, likelihood_gain=case.gain,
                                resample_threshold=0.0)
-    config = doors.DoorConfig(num_particles=1)
+    config = doors.DoorConfig(mcl.MclConfig(num_particles=1))
     state = doors.init(mcl.MclState(jnp.asarray(case.poses[:1]), jnp.zeros(1), jnp.zeros((), jnp.int32)), door_map)
     motions = np.concatenate([np.zeros((1, 3)), np.asarray(between(case.poses[:-1], case.poses[1:]))])
     inputs = mcl.ScanInputs(jnp.asarray(motions, jnp.float32), jnp.asarray(np.stack(case.scans)))
@@ -157,11 +163,15 @@ def test_filter_loglik_and_transition_gradient_match_brute_force():
             np.testing.assert_allclose(float(got[k]), numeric, rtol=2e-3, atol=2e-2, err_msg=f"{name}[{k}]")
     # Teeth: the transitions matter to this log (door 0 changed while the robot watched).
     assert np.max(np.abs(np.asarray(grad_oc))) > 1.0
-    # run is the filter without its log-likelihood.
-    final, info = doors.run(jax.random.key(0), state, inputs, door_map, case.sensor, params, config)
+    # filter_history is the filter, with every step's particles in its info.
     out = doors.filter(jax.random.key(0), state, inputs, door_map, case.sensor, params, config)
-    chex.assert_trees_all_equal((final, info), (out.state, out.info))
-    np.testing.assert_allclose(float(out.marginal_loglik), float(np.sum(np.asarray(info.mcl.log_evidence))), rtol=1e-6)
+    kept = doors.filter_history(jax.random.key(0), state, inputs, door_map, case.sensor, params, config)
+    infos, history = kept.info
+    chex.assert_trees_all_equal((out.state, out.info, out.marginal_loglik), (kept.state, infos, kept.marginal_loglik))
+    np.testing.assert_allclose(float(out.marginal_loglik), float(np.sum(np.asarray(out.info.mcl.log_evidence))),
+                               rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(history.door_open[-1]), np.asarray(out.state.door_open))
+    assert history.poses.shape == (len(case.poses), 1, 3)
 
 
 def test_unobserved_door_decays_to_closed_form():
@@ -170,13 +180,14 @@ def test_unobserved_door_decays_to_closed_form():
     p_oo, p_oc, initial = np.array([0.97, 0.9, 0.99]), np.array([0.05, 0.2, 0.001]), np.array([0.95, 0.1, 0.5])
     door_map = doors.make_door_map(walls, door_segments, initial, p_oo, p_oc)
     params = doors.make_params(door_map, motion=ZERO_MOTION, resample_threshold=0.0)
-    config = doors.DoorConfig(num_particles=2)
+    config = doors.DoorConfig(mcl.MclConfig(num_particles=2))
     pose = jnp.array([8.0, 1.0, -0.5])
     state = doors.init(mcl.MclState(jnp.stack([pose, pose]), jnp.log(jnp.full(2, 0.5)), jnp.zeros((), jnp.int32)),
                        door_map)
     steps = 40
     inputs = mcl.ScanInputs(jnp.zeros((steps, 3)), jnp.full((steps, 31), 2.0))
-    final, info = doors.run(jax.random.key(0), state, inputs, door_map, sensor, params, config)
+    out = doors.filter(jax.random.key(0), state, inputs, door_map, sensor, params, config)
+    final, info = out.state, out.info
     assert np.all(np.asarray(info.door_observed) == 0)
     for n in (1, 10, 40):
         want = binary_bayes.predict_n(initial, p_oo, p_oc, n)
@@ -208,14 +219,15 @@ def test_memoryless_baseline_equals_hybrid_with_half_transitions():
     door_map, sensor, inputs, state = _small_run_setup()
     params = doors.make_params(door_map, likelihood_gain=0.3, resample_threshold=0.7)
     key = jax.random.key(11)
-    a, info_a = doors.run(key, state, inputs, door_map, sensor, params, doors.DoorConfig(64, memory=False))
-    b, info_b = doors.run(key, state, inputs, door_map, sensor, doors.memoryless_params(params),
-                          doors.DoorConfig(64, memory=True))
+    a, info_a, _ = doors.filter(key, state, inputs, door_map, sensor, params,
+                                doors.DoorConfig(mcl.MclConfig(64), memory=False))
+    b, info_b, _ = doors.filter(key, state, inputs, door_map, sensor, doors.memoryless_params(params),
+                                doors.DoorConfig(mcl.MclConfig(64), memory=True))
     chex.assert_trees_all_close(a, b, atol=1e-5)
     chex.assert_trees_all_close(info_a, info_b, atol=1e-4)
     assert np.any(np.asarray(info_a.mcl.resampled))  # the resampling path was exercised
     # With memory and the map's transitions, the result differs (the test can fail).
-    c, _ = doors.run(key, state, inputs, door_map, sensor, params, doors.DoorConfig(64, memory=True))
+    c = doors.filter(key, state, inputs, door_map, sensor, params, doors.DoorConfig(mcl.MclConfig(64))).state
     assert not np.allclose(np.asarray(c.door_open), np.asarray(a.door_open), atol=1e-3)
 
 
@@ -253,7 +265,7 @@ def test_beam_to_door_attribution_on_hand_made_geometry():
 
 def test_door_step_compiles_once():
     door_map, sensor, inputs, state = _small_run_setup(32)
-    config = doors.DoorConfig(32)
+    config = doors.DoorConfig(mcl.MclConfig(32))
 
     @jax.jit
     @chex.assert_max_traces(n=1)
@@ -273,4 +285,46 @@ def test_door_state_accuracy():
     truth = np.array([True, False, True])
     observed = np.array([[True, True, False], [True, True, True]])
     # Seed 0: 2 of 2 right; seed 1: 0.6 is not > 0.65 (wrong), 0.1 right, 0.9 right -> 4 of 5.
-    assert doors.door_state_accuracy(belief, truth, observed) == pytest.approx(0.8)
+    assert door_harness.door_state_accuracy(belief, truth, observed) == pytest.approx(0.8)
+
+
+def test_door_config_holds_the_mcl_config():
+    config = doors.DoorConfig(mcl.MclConfig(num_particles=7, beam_stride=3), memory=False)
+    assert config.mcl.num_particles == 7 and config.mcl.beam_stride == 3 and not config.memory
+    assert doors.DoorConfig().mcl == mcl.MclConfig()
+    hash(config)  # static under jit
+    with pytest.raises(TypeError, match="MclConfig"):
+        doors.DoorConfig(64)
+    with pytest.raises(ValueError, match="num_particles"):  # checked once, by MclConfig
+        doors.DoorConfig(mcl.MclConfig(num_particles=0))
+
+
+def test_the_experiment_harness_composes_the_library_filters():
+    """experiments/door_harness.py: ``run_filter`` is ``mcl.init_global`` then ``doors.filter`` (or
+    ``mcl.filter`` on the map as given), scored against the truth; a batch of seeds is the same runs."""
+    door_map, sensor, inputs, _ = _small_run_setup()
+    params = doors.make_params(door_map, likelihood_gain=0.3)
+    config = doors.DoorConfig(mcl.MclConfig(16))
+    regions = jnp.array([[1.8, 1.8, 2.2, 2.2]])
+    truth = jnp.asarray(np.cumsum(np.asarray(inputs.motion), axis=0) + [2.0, 2.0, -0.5], jnp.float32)
+    key = jax.random.key(3)
+    run = jax.jit(door_harness.run_filter, static_argnames=("config", "filter_kind", "heading_range"))
+    k_init, k_run = jax.random.split(key)
+    start = mcl.init_global(k_init, regions, config.mcl)
+    hybrid = run(key, inputs, truth, regions, door_map, sensor, params, config, "hybrid")
+    out = doors.filter(k_run, doors.init(start, door_map), inputs, door_map, sensor, params, config)
+    np.testing.assert_array_equal(np.asarray(hybrid.final_door_open), np.asarray(out.state.door_open))
+    np.testing.assert_array_equal(np.asarray(hybrid.door_belief), np.asarray(out.info.door_belief))
+    want = np.hypot(*(np.asarray(out.info.mcl.mean_pose[:, :2]) - np.asarray(truth[:, :2])).T)
+    np.testing.assert_allclose(np.asarray(hybrid.position_error), want, rtol=1e-6, atol=1e-6)
+    static = run(key, inputs, truth, regions, door_map, sensor, params, config, "static")
+    segments, active = doors.static_segments(door_map)
+    out = mcl.filter(k_run, start, inputs, segments, sensor, params.mcl_params(), config.mcl, active)
+    np.testing.assert_array_equal(np.asarray(static.final_poses), np.asarray(out.state.poses))
+    np.testing.assert_array_equal(np.asarray(static.door_belief[-1]), [0.0, 1.0, 1.0])  # the map as given
+    batch = door_harness.run_filter_batch(jax.random.split(key, 2), jax.tree.map(lambda x: jnp.stack([x, x]), inputs),
+                                          jnp.stack([truth, truth]), regions, door_map, sensor, params, config,
+                                          "hybrid", batch_size=2)
+    assert batch.position_error.shape == (2, inputs.motion.shape[0])
+    with pytest.raises(ValueError, match="filter_kind"):
+        door_harness.run_filter(key, inputs, truth, regions, door_map, sensor, params, config, "nope")

@@ -2,10 +2,9 @@
 
 A bootstrap particle filter on a 1-D linear-Gaussian model, built on the package's
 ``particle_filter.reweight_and_resample``, against the Kalman filter's exact gradient of
-log p(y_1:T | theta): with ``resampling_gradient="score"`` (Scibior & Wood's stop-gradient
-construction) the gradient of the log-likelihood estimate, averaged over runs, matches it for
-every resampling scheme; with ``"none"`` (resampling as an implicit stop-gradient on the
-weights) it does not. Both give the same forward values bit for bit.
+log p(y_1:T | theta): with the score gradient through resampling (Scibior & Wood's
+stop-gradient construction) the gradient of the log-likelihood estimate, averaged over runs,
+matches it for every resampling scheme.
 """
 
 from __future__ import annotations
@@ -23,12 +22,12 @@ from jaxslam.config import RunSettings, SlamConfig, default_params
 from jaxslam.resampling import RESAMPLERS, resample_if_needed
 from jaxslam.sim import office_scenario
 
-def _gradients(resampler, gradient, num_runs=400, num_particles=100, num_steps=10):
+def _gradients(resampler, num_runs=400, num_particles=100, num_steps=10):
     ys = simulate(jax.random.key(0), THETA, num_steps)
     keys = jax.random.split(jax.random.key(1), num_runs)
-    fn = jax.jit(jax.vmap(jax.value_and_grad(particle_log_likelihood), in_axes=(None, 0, None, None, None, None)),
-                 static_argnums=(3, 4, 5))
-    values, grads = fn(THETA, keys, ys, num_particles, resampler, gradient)
+    fn = jax.jit(jax.vmap(jax.value_and_grad(particle_log_likelihood), in_axes=(None, 0, None, None, None)),
+                 static_argnums=(3, 4))
+    values, grads = fn(THETA, keys, ys, num_particles, resampler)
     exact = np.asarray(jax.grad(kalman_log_likelihood)(THETA, ys))
     grads = np.asarray(grads)
     z = (grads.mean(0) - exact) / (grads.std(0, ddof=1) / np.sqrt(num_runs))
@@ -40,24 +39,16 @@ def _gradients(resampler, gradient, num_runs=400, num_particles=100, num_steps=1
 def test_score_gradient_matches_the_kalman_gradient(resampler):
     """Resampling every step (threshold 1), 400 runs of N = 100 over 10 steps: the mean gradient
     in (a, q, r) is within 3 Monte Carlo standard errors of the exact one (the estimator's bias,
-    O(1/N), is below that); the implicit stop-gradient misses by more than 20."""
-    _, _, z = _gradients(resampler, "score")
+    O(1/N), is below that)."""
+    _, _, z = _gradients(resampler)
     assert np.all(np.abs(z) < 3.0), z
-    _, _, z_none = _gradients(resampler, "none")
-    assert np.all(np.abs(z_none) > 20.0), z_none
-
-
-def test_resampling_gradient_keeps_the_forward_values():
-    values_score, _, _ = _gradients("systematic", "score", num_runs=8)
-    values_none, _, _ = _gradients("systematic", "none", num_runs=8)
-    np.testing.assert_array_equal(values_score, values_none)
 
 
 def test_without_resampling_autodiff_is_the_derivative_of_the_estimate():
     """No resampling (threshold 0): for a fixed key the estimate is smooth in theta, and its
     autodiff gradient equals a central finite difference of it."""
     ys = simulate(jax.random.key(0), THETA, 10)
-    f = jax.jit(lambda th: particle_log_likelihood(th, jax.random.key(5), ys, 50, "systematic", "score", 0.0))
+    f = jax.jit(lambda th: particle_log_likelihood(th, jax.random.key(5), ys, 50, "systematic", 0.0))
     grad = np.asarray(jax.grad(f)(THETA))
     eps = 1e-3
     fd = [(float(f(THETA.at[i].add(eps))) - float(f(THETA.at[i].add(-eps)))) / (2 * eps) for i in range(3)]
@@ -80,22 +71,6 @@ def test_score_resampling_gradient_is_finite_with_zero_weights():
         (value, (resampled, weights)), grad = jax.value_and_grad(f, has_aux=True)(jnp.float32(0.3), resample_fn)
         assert bool(resampled) and np.isfinite(float(value)) and np.isfinite(float(grad))
         np.testing.assert_array_equal(np.asarray(weights), np.full(5, -np.log(5.0), np.float32))
-
-
-def test_rbpf_forward_is_the_same_for_either_resampling_gradient():
-    log = office_scenario(jax.random.key(3)).log.subset(np.arange(60))
-    settings = RunSettings(linear_update=0.3, angular_update=0.25)
-    results = []
-    for gradient in ("score", "none"):
-        config = SlamConfig(num_particles=6, proposal="smp", max_insert_range=10.0, beam_stride=1, map_extent=128.0,
-                            resampling_gradient=gradient)
-        results.append(slam.run(jax.random.key(1), log, config, default_params(**{"resample_threshold": 0.9}),
-                                settings, progress=False))
-    a, b = results
-    assert int(np.asarray(a.info.resampled).sum()) > 0  # the comparison covers resampling steps
-    np.testing.assert_array_equal(np.asarray(a.trajectory), np.asarray(b.trajectory))
-    np.testing.assert_array_equal(np.asarray(a.info.log_evidence), np.asarray(b.info.log_evidence))
-    np.testing.assert_array_equal(np.asarray(a.state.log_weights), np.asarray(b.state.log_weights))
 
 
 def test_selection_mixture_derivative_is_exact_and_finite_at_the_ends():

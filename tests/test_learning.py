@@ -50,7 +50,7 @@ def test_fit_with_the_particle_filter_finds_the_kalman_maximum():
     exact = fit(jax.random.key(1), lambda key, p: kalman_log_likelihood(_theta(p), ys), start, num_steps=300,
                 learning_rate=0.05, trainable=["q", "r"], progress=False)
     estimated = fit(jax.random.key(1), lambda key, p: particle_log_likelihood(_theta(p), key, ys, 200, "systematic",
-                                                                              "score", 0.5),
+                                                                              0.5),
                     start, num_steps=150, learning_rate=0.05, trainable=["q", "r"], progress=False)
     mle = np.array([float(exact.params.q), float(exact.params.r)])
     assert abs(exact.history["objective"][-1] - exact.history["objective"][-2]) < 1e-3  # converged

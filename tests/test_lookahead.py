@@ -135,8 +135,8 @@ def test_without_selection_correction_the_increment_is_the_evidence_estimate(alp
     assert abs(mean - TOY_EXACT) < 3 * se, (mean, se, TOY_EXACT)
 
 
-def test_partial_selection_correction_matches_numpy_reference():
-    """c in (0, 1) scales log[softmax(g)_J / p_J]; c = 1 is the design's increment bit for bit."""
+def test_selection_correction_switch_matches_numpy_reference():
+    """c = 1 is the design's increment bit for bit; c = 0 is the evidence estimate alone, same draw."""
     log_v = jnp.array([-1.0, -jnp.inf, 0.5, -2.0, 0.2])
     g = jnp.array([-0.3, -1.2, 0.4, -0.8, -0.1])
     for alpha in (0.0, 0.3):
@@ -146,14 +146,13 @@ def test_partial_selection_correction_matches_numpy_reference():
         j = int(full.index)
         g64, log_p64 = np.asarray(g, np.float64), np.asarray(full.log_p, np.float64)
         lse = np.log(np.sum(np.exp(g64)))
-        for c in (0.0, 0.25, 0.5):
-            draw = la.select(jax.random.key(5), log_v, g, alpha, c)
-            assert int(draw.index) == j  # c changes the weight, never the draw
-            expected = lse - math.log(5) + c * (g64[j] - lse - log_p64[j])
-            np.testing.assert_allclose(float(draw.log_weight_increment), expected, atol=2e-6)
+        np.testing.assert_allclose(float(full.log_weight_increment), g64[j] - math.log(5) - log_p64[j], atol=2e-6)
+        draw = la.select(jax.random.key(5), log_v, g, alpha, 0.0)
+        assert int(draw.index) == j  # c changes the weight, never the draw
+        np.testing.assert_allclose(float(draw.log_weight_increment), lse - math.log(5), atol=2e-6)
     # The paper's 0/0 (alpha = 0, every V zero) is undefined only while the correction is kept.
     dead = jnp.full((5,), -jnp.inf)
-    assert np.isneginf(float(la.select(jax.random.key(0), dead, g, 0.0, 0.5).log_weight_increment))
+    assert np.isneginf(float(la.select(jax.random.key(0), dead, g, 0.0, 1.0).log_weight_increment))
     np.testing.assert_allclose(float(la.select(jax.random.key(0), dead, g, 0.0, 0.0).log_weight_increment),
                                float(jax.scipy.special.logsumexp(g)) - math.log(5), atol=1e-6)
 

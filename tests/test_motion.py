@@ -9,10 +9,22 @@ import pytest
 
 from jaxslam import motion as M
 
-PARAMS = M.MotionParams(*(jnp.float32(v) for v in (0.1, 0.2, 0.1, 0.2, 0.01, 0.005)))
+PARAMS = M.motion_params(0.1, 0.2, 0.1, 0.2, 0.01, 0.005)
 POSE = np.array([1.0, 2.0, 0.7], np.float32)
 MOTION = np.array([0.5, 0.1, 0.3], np.float32)
 N = 200_000
+
+
+def test_motion_params_is_float32_and_checked():
+    params = M.motion_params(0.1, 0.2, np.float64(0.1), jnp.float32(0.2), 0.01)
+    assert all(v.dtype == jnp.float32 and v.shape == () for v in params)
+    assert float(params.str) == pytest.approx(0.1) and float(params.min_rotation_std) == 0.0
+    for bad in (-0.1, float("nan"), float("inf"), [0.1, 0.2], "0.1"):
+        with pytest.raises(ValueError, match="srt must be a finite number >= 0"):
+            M.motion_params(0.1, bad, 0.1, 0.2)
+    # Traced values pass unchecked (a fit differentiates through the constructor).
+    grad = jax.grad(lambda v: M.motion_params(v, 0.0, 0.0, 0.0, 0.01, 0.0).srr * 2.0)(jnp.float32(0.3))
+    assert float(grad) == 2.0
 
 log_density = jax.jit(M.log_density)
 sample = jax.jit(M.sample)
@@ -220,7 +232,7 @@ def test_sample_with_score_draws_the_same_and_its_gradient_is_the_score():
 
 def test_sample_with_score_is_finite_without_noise():
     """Every std zero (a known path): the pose is the odometry's, the term and its gradient 0."""
-    zero = M.MotionParams(*(jnp.float32(0.0) for _ in range(6)))
+    zero = M.motion_params(0, 0, 0, 0, 0, 0)
     new, score = M.sample_with_score(jax.random.key(0), jnp.asarray(POSE), MOTION, zero)
     grads = jax.grad(lambda p: M.sample_with_score(jax.random.key(0), jnp.asarray(POSE), MOTION, p)[1])(zero)
     assert float(score) == 0.0

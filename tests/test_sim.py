@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxslam.geometry import between
-from jaxslam.motion import noise_std
+from jaxslam.motion import motion_params, noise_std
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.sim import (
     box_segments,
@@ -19,7 +19,6 @@ from jaxslam.sim import (
     concat_paths,
     concat_worlds,
     make_world,
-    motion_params,
     noisy_odometry,
     office_scenario,
     passage_indices,

@@ -31,31 +31,27 @@ others closed". When no beam path crosses two doors, both choices agree.
 Baselines: static MCL on the map as given (:func:`static_segments` with
 :mod:`jaxslam.localization.mcl`), and door-aware MCL without memory (``DoorConfig(memory=False)``:
 every door is 50% open before every update, which equals the hybrid filter
-with p(open|open) = p(open|closed) = 0.5; a test pins that down).
+with p(open|open) = p(open|closed) = 0.5; a test pins that down). Running them over many
+seeds and scoring them against the truth is the experiment's (experiments/door_harness.py).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from jaxslam import binary_bayes, particle_filter, resampling
+from jaxslam import binary_bayes, particle_filter
 from jaxslam import motion as motion_model
-from jaxslam.geometry import wrap_angle
 from jaxslam.laser import SensorSpec, laser_rays, subsample_beams
 from jaxslam.localization import mcl
 from jaxslam.localization.beam_model import BeamModelParams, beam_model_log_likelihood
-from jaxslam.localization.mcl import MclInfo, ScanInputs
+from jaxslam.localization.mcl import MclConfig, MclInfo, ScanInputs
 from jaxslam.motion import MotionParams
 from jaxslam.segment_map import raycast
-
-FILTERS = ("hybrid", "static", "memoryless")
 
 
 class DoorMap(NamedTuple):
@@ -113,32 +109,16 @@ def static_segments(door_map: DoorMap, door_open: Bool[Array, "K"] | None = None
 class DoorConfig:
     """Static settings (shapes and code paths). Hashable; changing it recompiles."""
 
-    num_particles: int = 1000
-    """N, the number of particles (each with a pose and K door beliefs)."""
-    beam_stride: int = 1
-    """Use every ``beam_stride``-th beam of a scan."""
-    resampler: str = "systematic"
-    """Resampling scheme: one of :data:`jaxslam.resampling.RESAMPLERS`."""
-    resampling_gradient: str = "score"
-    """What autodiff sees of a resampling (the forward pass is the same bit for bit): one of
-    :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
+    mcl: MclConfig = dataclasses.field(default_factory=MclConfig)
+    """The particle set's settings, as for static MCL (and checked there): N particles (each
+    with a pose and K door beliefs), the beam stride, the resampler."""
     memory: bool = True
     """False: the memoryless baseline, every door 50% open before every update (the
     stored beliefs and the transition model are ignored)."""
 
     def __post_init__(self):
-        if self.num_particles < 1:
-            raise ValueError("DoorConfig: num_particles must be >= 1")
-        if self.beam_stride < 1:
-            raise ValueError("DoorConfig: beam_stride must be >= 1")
-        if self.resampler not in resampling.RESAMPLERS:
-            raise ValueError(f"DoorConfig: resampler must be one of {sorted(resampling.RESAMPLERS)}")
-        if self.resampling_gradient not in resampling.RESAMPLING_GRADIENTS:
-            raise ValueError(f"DoorConfig: resampling_gradient must be one of {resampling.RESAMPLING_GRADIENTS}")
-
-    def mcl_config(self) -> mcl.MclConfig:
-        """The same settings for static MCL."""
-        return mcl.MclConfig(self.num_particles, self.beam_stride, self.resampler, self.resampling_gradient)
+        if not isinstance(self.mcl, MclConfig):
+            raise TypeError(f"DoorConfig: mcl must be an MclConfig, got {self.mcl!r}")
 
 
 class DoorParams(NamedTuple):
@@ -191,7 +171,7 @@ class DoorState(NamedTuple):
 
 
 class DoorInfo(NamedTuple):
-    """Diagnostics of one step (stacked over time by :func:`run`)."""
+    """Diagnostics of one step (stacked over time by :func:`filter`)."""
 
     mcl: MclInfo
     """ESS, resampled, mean pose, covariance, log-evidence increment, degenerate, ancestors."""
@@ -308,11 +288,10 @@ def step(key: PRNGKeyArray, state: DoorState, inputs: ScanInputs, door_map: Door
     else:
         predicted = jnp.full_like(state.door_open, 0.5)
     lik = jax.vmap(lambda p: scan_door_likelihoods(door_map, p, inputs.ranges, sensor, params,
-                                                   config.beam_stride))(poses)
+                                                   config.mcl.beam_stride))(poses)
     posterior, log_lik = jax.vmap(door_update)(predicted, lik)
     update = particle_filter.reweight_and_resample(k_resample, poses, state.log_weights, log_lik,
-                                                   params.resample_threshold, config.resampler,
-                                                   config.resampling_gradient)
+                                                   params.resample_threshold, config.mcl.resampler)
     w = jnp.exp(update.log_weights)  # after the update, before resampling (uniform when degenerate)
     door_info = DoorInfo(MclInfo.of(update), w @ posterior, w @ (lik.num_beams > 0).astype(jnp.float32),
                          w @ lik.num_beams)
@@ -338,106 +317,6 @@ of the steps' log-evidence. Jittable, vmappable, differentiable in ``params`` (t
 probabilities included; each step rematerialised under reverse mode)."""
 
 
-def _run(key, state, inputs, door_map, sensor, params, config):
-    out = _filter(key, state, inputs, door_map, sensor, params, config)
-    return out.state, out.info
-
-
-run = jax.jit(_run, static_argnames=("config",))
-"""``run(key, state, inputs, door_map, sensor, params, config) -> (final DoorState, (T, ...) DoorInfo)``:
-:func:`filter` without the log-likelihood."""
-
-
-# --------------------------------------------------------------------------------------------
-# Running a scenario with a filter, over many seeds (the reusable part of experiments/doors.py)
-# --------------------------------------------------------------------------------------------
-
-
-class DoorRun(NamedTuple):
-    """What one filter did on one scenario log (leading axes: seeds, when batched)."""
-
-    position_error: Float[Array, "T"]
-    """|mean position - true position| (m) per step."""
-    heading_error: Float[Array, "T"]
-    """|mean heading - true heading| (rad, wrapped) per step."""
-    door_belief: Float[Array, "T K"]
-    """Marginal p(open) per door per step (for static MCL: the map's fixed belief)."""
-    door_observed: Float[Array, "T K"]
-    """Particle weight that observed door k at step t (0 for static MCL)."""
-    ess: Float[Array, "T"]
-    """ESS per step."""
-    final_poses: Float[Array, "N 3"]
-    """Particle poses at the end."""
-    final_door_open: Float[Array, "N K"]
-    """Particle door beliefs at the end (for static MCL: the map's fixed belief)."""
-    final_log_weights: Float[Array, "N"]
-    """Log-weights at the end."""
-
-
-def _errors(mean_pose, true_poses):
-    pos = jnp.hypot(mean_pose[:, 0] - true_poses[:, 0], mean_pose[:, 1] - true_poses[:, 1])
-    head = jnp.abs(wrap_angle(mean_pose[:, 2] - true_poses[:, 2]))
-    return pos, head
-
-
-def run_filter(key: PRNGKeyArray, inputs: ScanInputs, true_poses: Float[Array, "T 3"],
-               start_regions: Float[Array, "R 4"], door_map: DoorMap, sensor: SensorSpec,
-               params: DoorParams, config: DoorConfig, filter_kind: str,
-               heading_range: tuple[float, float] = (-np.pi, np.pi)) -> DoorRun:
-    """Global initialisation over ``start_regions``, then one filter over the log. Pure and
-    vmappable over (key, inputs, true_poses); ``filter_kind`` in :data:`FILTERS` (static).
-
-    The three filters use the same key split, so they see the same initial particles.
-    """
-    if filter_kind not in FILTERS:
-        raise ValueError(f"filter_kind must be one of {FILTERS}, got {filter_kind!r}")
-    k_init, k_run = jax.random.split(key)
-    init_state = mcl.init_global(k_init, start_regions, config.mcl_config(), heading_range)
-    true_poses = jnp.asarray(true_poses, jnp.float32)
-    if filter_kind == "static":
-        segments, active = static_segments(door_map)
-        final, info = mcl.run(k_run, init_state, inputs, segments, sensor, params.mcl_params(),
-                                          config.mcl_config(), active)
-        pos, head = _errors(info.mean_pose, true_poses)
-        t = inputs.motion.shape[0]
-        fixed = (door_map.initial_open >= 0.5).astype(jnp.float32)
-        return DoorRun(pos, head, jnp.broadcast_to(fixed, (t, door_map.num_doors)),
-                       jnp.zeros((t, door_map.num_doors)), info.ess, final.poses,
-                       jnp.broadcast_to(fixed, (final.poses.shape[0], door_map.num_doors)), final.log_weights)
-    cfg = config if filter_kind == "hybrid" else dataclasses.replace(config, memory=False)
-    final, info = _run(k_run, init(init_state, door_map), inputs, door_map, sensor, params, cfg)
-    pos, head = _errors(info.mcl.mean_pose, true_poses)
-    return DoorRun(pos, head, info.door_belief, info.door_observed, info.mcl.ess, final.poses,
-                   final.door_open, final.log_weights)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "filter_kind", "heading_range", "batch_size"))
-def run_filter_batch(keys: PRNGKeyArray, inputs: ScanInputs, true_poses: Float[Array, "S T 3"],
-                     start_regions, door_map: DoorMap, sensor: SensorSpec, params: DoorParams,
-                     config: DoorConfig, filter_kind: str,
-                     heading_range: tuple[float, float] = (-np.pi, np.pi), batch_size: int = 8) -> DoorRun:
-    """:func:`run_filter` over S seeds: ``lax.map`` in vmapped batches of ``batch_size`` seeds
-    (bounds the (batch, N, B, W+K) ray-casting intermediates)."""
-
-    def one(args):
-        key, inp, truth = args
-        return run_filter(key, inp, truth, start_regions, door_map, sensor, params, config, filter_kind,
-                          heading_range)
-
-    return jax.lax.map(one, (keys, inputs, true_poses), batch_size=batch_size)
-
-
-def door_state_accuracy(final_belief: np.ndarray, true_open: np.ndarray, observed: np.ndarray,
-                        open_threshold: float = 0.65, closed_threshold: float = 0.35) -> float:
-    """Fraction of observed doors whose belief is on the right side: p(open) > 0.65 for an open
-    door, < 0.35 for a closed one. Arrays broadcast ((S, K) over seeds); NaN when nothing was observed."""
-    final_belief, true_open, observed = np.broadcast_arrays(np.asarray(final_belief), np.asarray(true_open),
-                                                            np.asarray(observed, bool))
-    right = np.where(true_open, final_belief > open_threshold, final_belief < closed_threshold)
-    n = observed.sum()
-    return float(right[observed].sum() / n) if n else float("nan")
-
-
 class DoorHistory(NamedTuple):
     """Per-step particle sets of one run (for figures): after each step's resampling."""
 
@@ -446,16 +325,17 @@ class DoorHistory(NamedTuple):
     log_weights: Float[Array, "T N"]
 
 
-def _run_history(key, state, inputs, door_map, sensor, params, config):
-    keys = jax.random.split(key, inputs.motion.shape[0])
-
-    def body(carry, xs):
-        k, inp = xs
-        new, info = step(k, carry, inp, door_map, sensor, params, config)
+def _filter_history(key, state, inputs, door_map, sensor, params, config) -> particle_filter.FilterOutput:
+    def step_keeping_particles(k, s, inp):
+        new, info = step(k, s, inp, door_map, sensor, params, config)
         return new, (info, DoorHistory(new.poses, new.door_open, new.log_weights))
 
-    return jax.lax.scan(body, state, (keys, inputs))
+    return particle_filter.scan_filter(step_keeping_particles, key, state, inputs,
+                                       lambda info: info[0].mcl.log_evidence, checkpoint=False)
 
 
-run_history = jax.jit(_run_history, static_argnames=("config",))
-"""As :func:`run`, returning ``(final, (infos, DoorHistory))``: every step's particles (T N (K+4) floats)."""
+filter_history = jax.jit(_filter_history, static_argnames=("config",))
+"""As :func:`filter` (the same keys and steps), with every step's particles in the info:
+``FilterOutput(state, (infos, DoorHistory), marginal_loglik)``, T N (K + 4) floats kept (for
+figures). Its steps are not rematerialised under autodiff, so its values can differ from
+:func:`filter`'s in the last bit (:func:`jaxslam.particle_filter.scan_filter`)."""

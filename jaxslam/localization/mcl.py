@@ -10,7 +10,7 @@ shared by every filter (:func:`jaxslam.particle_filter.reweight_and_resample`).
 Shape of the code: a static :class:`MclConfig` (particle count, beam stride,
 resampler; changing it recompiles), traced :class:`MclParams`, named
 :class:`MclState` / :class:`MclInfo`; ``init_tracked`` / ``init_global`` /
-``step`` / ``run`` are pure, and ``run`` is one ``lax.scan`` over the scans.
+``step`` / ``filter`` are pure, and ``filter`` is one ``lax.scan`` over the scans.
 MCL serves localization only (a known map); the door filter in
 :mod:`jaxslam.localization.doors` builds on it.
 """
@@ -32,7 +32,7 @@ from jaxslam.geometry import between, wrap_angle
 from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.laserlog import LaserLog
 from jaxslam.localization.beam_model import BeamModelParams, beam_model_log_likelihood, make_beam_model_params
-from jaxslam.motion import MotionParams
+from jaxslam.motion import MotionParams, motion_params
 from jaxslam.segment_map import expected_ranges
 
 
@@ -46,9 +46,6 @@ class MclConfig:
     """Use every ``beam_stride``-th beam of a scan in the likelihood."""
     resampler: str = "systematic"
     """Resampling scheme: one of :data:`jaxslam.resampling.RESAMPLERS`."""
-    resampling_gradient: str = "score"
-    """What autodiff sees of a resampling (the forward pass is the same bit for bit): one of
-    :data:`jaxslam.resampling.RESAMPLING_GRADIENTS`."""
 
     def __post_init__(self):
         if self.num_particles < 1:
@@ -57,8 +54,6 @@ class MclConfig:
             raise ValueError("MclConfig: beam_stride must be >= 1")
         if self.resampler not in resampling.RESAMPLERS:
             raise ValueError(f"MclConfig: resampler must be one of {sorted(resampling.RESAMPLERS)}")
-        if self.resampling_gradient not in resampling.RESAMPLING_GRADIENTS:
-            raise ValueError(f"MclConfig: resampling_gradient must be one of {resampling.RESAMPLING_GRADIENTS}")
 
 
 class MclParams(NamedTuple):
@@ -75,18 +70,12 @@ class MclParams(NamedTuple):
     """Resample when ESS < resample_threshold * N (0: never, 1: every step)."""
 
 
-def default_motion_params(srr=0.05, srt=0.02, str_=0.05, stt=0.05, min_translation_std=0.01,
-                          min_rotation_std=0.005) -> MotionParams:
-    """A :class:`MotionParams` of float32 scalars (the filter's assumed odometry noise)."""
-    f = lambda v: jnp.asarray(v, jnp.float32)  # noqa: E731
-    return MotionParams(f(srr), f(srt), f(str_), f(stt), f(min_translation_std), f(min_rotation_std))
-
-
 def make_params(motion: MotionParams | None = None, beam: BeamModelParams | None = None,
                 likelihood_gain=0.5, resample_threshold=0.5) -> MclParams:
-    """An :class:`MclParams` with float32 leaves; None picks the defaults."""
+    """An :class:`MclParams` with float32 leaves; None picks the defaults (the assumed odometry
+    noise ``motion_params(0.05, 0.02, 0.05, 0.05, 0.01, 0.005)``)."""
     return MclParams(
-        default_motion_params() if motion is None else motion,
+        motion_params(0.05, 0.02, 0.05, 0.05, 0.01, 0.005) if motion is None else motion,
         make_beam_model_params() if beam is None else beam,
         jnp.asarray(likelihood_gain, jnp.float32),
         jnp.asarray(resample_threshold, jnp.float32),
@@ -105,7 +94,7 @@ class MclState(NamedTuple):
 
 
 class MclInfo(NamedTuple):
-    """Diagnostics of one step (stacked over time by :func:`run`)."""
+    """Diagnostics of one step (stacked over time by :func:`filter`)."""
 
     ess: Float[Array, ""]
     """Effective sample size after the weight update, before resampling."""
@@ -131,7 +120,7 @@ class MclInfo(NamedTuple):
 
 
 class ScanInputs(NamedTuple):
-    """What one step consumes (stacked (T, ...) for :func:`run`)."""
+    """What one step consumes (stacked (T, ...) for :func:`filter`)."""
 
     motion: Float[Array, "3"]
     """Odometry motion [dx, dy, dtheta] since the previous scan, in the previous robot frame."""
@@ -209,8 +198,7 @@ def step(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float
     log_lik = jax.vmap(lambda p: scan_log_likelihood(segments, p, inputs.ranges, sensor, params, active,
                                                      config.beam_stride))(poses)
     update = particle_filter.reweight_and_resample(k_resample, poses, state.log_weights, log_lik,
-                                                   params.resample_threshold, config.resampler,
-                                                   config.resampling_gradient)
+                                                   params.resample_threshold, config.resampler)
     return MclState(poses[update.ancestors], update.new_log_weights, state.step + 1), MclInfo.of(update)
 
 
@@ -234,15 +222,6 @@ def filter(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Flo
     return particle_filter.scan_filter(
         lambda k, s, inp: step(k, s, inp, segments, sensor, params, config, active), key, state, inputs,
         lambda info: info.log_evidence)
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def run(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Float[Array, "M 4"],
-        sensor: SensorSpec, params: MclParams, config: MclConfig,
-        active: Bool[Array, "M"] | None = None) -> tuple[MclState, MclInfo]:
-    """:func:`filter` without the log-likelihood: ``(final state, (T, ...) stacked infos)``."""
-    out = filter(key, state, inputs, segments, sensor, params, config, active)
-    return out.state, out.info
 
 
 def log_inputs(log: LaserLog) -> ScanInputs:

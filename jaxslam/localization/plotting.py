@@ -47,7 +47,7 @@ def plot_belief_histograms(axes, door_open_history, log_weight_history, door: in
     """Fig. 4: particle weight per 0.01 bin of p(open) of ``door`` at each of ``times``.
 
     ``door_open_history`` (T, N, K) and ``log_weight_history`` (T, N) from
-    :func:`jaxslam.localization.doors.run_history`.
+    :func:`jaxslam.localization.doors.filter_history`.
     """
     bins = np.linspace(0.0, 1.0, 101)
     for ax, t in zip(axes, times):
@@ -103,13 +103,14 @@ def plot_position_errors(ax, position_errors: dict[str, np.ndarray]):
 def figure_run(key, scenario, config: doors.DoorConfig, params: doors.DoorParams,
                memory: bool = True):
     """One hybrid run (``memory=False``: the memoryless baseline) with every step's particles, for
-    the figures: ``(infos, DoorHistory)``. Same key use as :func:`jaxslam.localization.doors.run_filter`."""
+    the figures: ``(infos, DoorHistory)``. The key is split as the door experiment's harness does
+    (experiments/door_harness.py): ``(initial particles, filter)``."""
     k_init, k_run = jax.random.split(key)
-    state = doors.init(mcl.init_global(k_init, jnp.asarray(scenario.start_regions), config.mcl_config(),
+    state = doors.init(mcl.init_global(k_init, jnp.asarray(scenario.start_regions), config.mcl,
                                        tuple(scenario.heading_range)), scenario.door_map)
-    _, (infos, history) = doors.run_history(k_run, state, mcl.log_inputs(scenario.log), scenario.door_map,
-                                            scenario.log.sensor, params, dataclasses.replace(config, memory=memory))
-    return infos, history
+    out = doors.filter_history(k_run, state, mcl.log_inputs(scenario.log), scenario.door_map, scenario.log.sensor,
+                               params, dataclasses.replace(config, memory=memory))
+    return out.info
 
 
 def save_figures(out_dir, scenario, infos, history, params: doors.DoorParams,

@@ -21,7 +21,7 @@ how well each time-t sample explains the future to choose the particle's new pos
 
 Step 5 is log mean_i exp(g_i) (the evidence estimate) plus the selection correction
 log[softmax(g)_J / p_J], whose exponential has mean 1 over J. ``lookahead.selection_correction``
-= c scales that correction: c = 1 is step 5; c = 0 keeps the evidence estimate alone, which is
+= c switches that correction: c = 1 is step 5; c = 0 keeps the evidence estimate alone, which is
 unbiased for every alpha and does not depend on J, at the price of weighting poses that the
 look-ahead chose (a smoothing-like draw) as if they came from the filter's proposal.
 
@@ -276,23 +276,19 @@ def select(
 ) -> LookaheadDraw:
     """Steps 4-5: draw J ~ p and return the weight increment.
 
-    The increment is log mean exp(g) + c (g_J - logsumexp(g) - log p_J) with c =
-    ``selection_correction`` in [0, 1]; c = 1 (default) is g_J - log L - log p_J. With
-    alpha = 0, c > 0 and every V zero the increment is -inf (the paper's weight is 0/0
-    there; the RBPF then drops the particle) and ``fallback`` reports it.
+    ``selection_correction`` is 1 or 0: with 1 (default) the increment is g_J - log L - log p_J,
+    with 0 the evidence estimate log mean exp(g) alone (without the selection correction
+    g_J - logsumexp(g) - log p_J). With alpha = 0, correction 1 and every V zero the increment is
+    -inf (the paper's weight is 0/0 there; the RBPF then drops the particle) and ``fallback``
+    reports it.
     """
     num = log_v.shape[0]
     log_p, fallback = selection_log_probs(log_v, log_lik_t, alpha)
     index = jax.random.categorical(key, log_p).astype(jnp.int32)
     full = log_lik_t[index] - math.log(num) - log_p[index]
-    log_evidence_t = _log_mean_exp(log_lik_t)
-    correction = full - log_evidence_t  # log[softmax(g)_J / p_J]
-    c = jnp.asarray(selection_correction, log_lik_t.dtype)
-    # c = 1 returns the full form untouched (bit for bit); c < 1 never multiplies an infinite
-    # correction (0 * inf = NaN).
-    tempered = log_evidence_t + c * jnp.where(jnp.isfinite(correction), correction, 0.0)
-    increment = jnp.where(c >= 1.0, full, tempered)
-    paper_form_undefined = fallback & (jnp.asarray(alpha) <= 0.0) & (c > 0.0)
+    corrected = jnp.asarray(selection_correction, log_lik_t.dtype) > 0.0
+    increment = jnp.where(corrected, full, _log_mean_exp(log_lik_t))
+    paper_form_undefined = fallback & (jnp.asarray(alpha) <= 0.0) & corrected
     increment = jnp.where(paper_form_undefined | jnp.isnan(increment), -jnp.inf, increment)
     return LookaheadDraw(index, log_v, log_p, increment, fallback)
 

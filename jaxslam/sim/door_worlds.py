@@ -55,8 +55,8 @@ from jaxslam.laserlog import LaserLog
 from jaxslam.localization import doors
 from jaxslam.localization.beam_model import make_beam_model_params
 from jaxslam.localization.doors import DoorMap, make_door_map
-from jaxslam.localization.mcl import default_motion_params
-from jaxslam.motion import MotionParams
+from jaxslam.localization.mcl import MclConfig
+from jaxslam.motion import MotionParams, motion_params
 from jaxslam.segment_map import expected_ranges
 from jaxslam.sim.paths import concat_paths, waypoint_path
 from jaxslam.sim.simulate import simulate_log
@@ -114,16 +114,16 @@ def filter_settings(scenario: DoorScenario, num_particles: int = 1000, beam_stri
     likelihood gain 0.1 (31 of 61 beams, treated as about 3 independent ones: a particle cloud of
     0.6 m x 0.3 rad does not collapse on the first scan), resampling at ESS < 0.5 N, the map's
     door transitions."""
-    config = doors.DoorConfig(num_particles=num_particles, beam_stride=beam_stride)
+    config = doors.DoorConfig(MclConfig(num_particles=num_particles, beam_stride=beam_stride))
     params = doors.make_params(scenario.door_map, beam=make_beam_model_params(sigma_hit=0.2), likelihood_gain=0.1,
                                resample_threshold=0.5)
     return config, params
 
 
 def scenario_motion_params() -> MotionParams:
-    """Odometry noise used to simulate the logs (the filters assume
-    :func:`jaxslam.localization.mcl.default_motion_params`, which is larger)."""
-    return default_motion_params(0.02, 0.01, 0.02, 0.02, 0.005, 0.002)
+    """Odometry noise used to simulate the logs (the filters assume the default of
+    :func:`jaxslam.localization.mcl.make_params`, which is larger)."""
+    return motion_params(0.02, 0.01, 0.02, 0.02, 0.005, 0.002)
 
 
 def _room(cx: float, wall_y: float, side: float) -> np.ndarray:

@@ -16,10 +16,6 @@ from jaxslam.geometry import wrap_angle_np
 _TINY = 1e-9
 
 
-def _direction_angle(v) -> float:
-    return float(np.arctan2(v[1], v[0]))
-
-
 class _Piece:
     """A line or an arc the robot drives along, parameterised by arc length."""
 

@@ -15,12 +15,11 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
 from jaxslam.laserlog import LaserLog
-from jaxslam.motion import MotionParams
+from jaxslam.motion import MotionParams, motion_params
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path, waypoint_path_length
 from jaxslam.sim.simulate import simulate_log
@@ -46,12 +45,6 @@ class Scenario(NamedTuple):
     metadata: dict[str, Any]
     """Scenario facts: the parameters it was simulated with (``motion_params``,
     ``range_noise_std``, ``step_length``, ...) and landmarks such as checkpoints."""
-
-
-def motion_params(srr, srt, str_, stt, min_translation_std=0.0, min_rotation_std=0.0) -> MotionParams:
-    """A :class:`~jaxslam.motion.MotionParams` of float32 scalars (``str_`` is ``str``)."""
-    f = jnp.float32
-    return MotionParams(f(srr), f(srt), f(str_), f(stt), f(min_translation_std), f(min_rotation_std))
 
 
 # ----------------------------------------------------------------------------- office
