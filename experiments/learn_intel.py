@@ -64,13 +64,13 @@ def main(argv=None) -> int:
                                             "likelihood.gain": 1.0})
     config = dataclasses.replace(config, likelihood_lookup="bilinear")
     prepared, _, _ = rbpf.prepare(log, config, settings)
-    # rbpf.filter cannot grow the pools: start them large enough for the whole excerpt.
+    # rbpf.filter cannot grow the pools: start them large enough for the whole excerpt (a step
+    # that does not fit makes the objective -inf, and fit stops with a FitError saying so).
     base = rbpf.pool_size(config)
     pool = PoolSize(8 * base.capacity, base.max_new_tiles, 8 * base.block_capacity, base.max_new_blocks)
 
     def objective(key, p):
-        out = rbpf.filter(key, prepared, p, config, pool=pool)
-        return jax.numpy.where(out.state.maps.overflow, -jax.numpy.inf, out.marginal_loglik)
+        return rbpf.filter(key, prepared, p, config, pool=pool).marginal_loglik
 
     print(f"{args.dataset}: {log.num_scans} scans in the first {args.seconds:g} s, "
           f"{prepared.inputs.motion.shape[0]} updates", flush=True)
