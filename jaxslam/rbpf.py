@@ -287,6 +287,13 @@ def to_local(poses, frame_offset) -> np.ndarray:
     return out
 
 
+def grid_to_world(grid, frame_offset):
+    """A grid (``GridSpec`` or ``PagedGridSpec``) of the local frame placed in the log's frame:
+    its origin moved by the (2,) ``frame_offset``."""
+    x0, y0 = (float(v) for v in frame_offset)
+    return dataclasses.replace(grid, origin=(grid.origin[0] + x0, grid.origin[1] + y0))
+
+
 def local_log(log: LaserLog, frame_offset) -> LaserLog:
     """``log`` with its odometry and ground truth in the local frame of ``frame_offset``
     (:func:`local_frame_offset`); the same object when the offset is zero."""

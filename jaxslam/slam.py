@@ -10,7 +10,6 @@ run's key as ``filter`` derives them, so both give the same particles.
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 from typing import NamedTuple
@@ -72,9 +71,7 @@ class SlamResult(NamedTuple):
     @property
     def world_grid(self) -> PagedGridSpec:
         """The virtual grid placed in the log's (world) frame."""
-        grid = self.config.grid
-        x0, y0 = self.frame_offset
-        return dataclasses.replace(grid, origin=(grid.origin[0] + float(x0), grid.origin[1] + float(y0)))
+        return rbpf.grid_to_world(self.config.grid, self.frame_offset)
 
     def dense_map(self, particle: int | None = None, local: bool = False) -> tuple[np.ndarray, np.ndarray, GridSpec]:
         """One particle's map (default the best) as dense host arrays over the tiles it wrote:
@@ -84,8 +81,7 @@ class SlamResult(NamedTuple):
         logodds, field, box = paged_map.to_dense(self.config.grid, self.state.maps, particle)
         if local:
             return logodds, field, box
-        x0, y0 = self.frame_offset
-        return logodds, field, dataclasses.replace(box, origin=(box.origin[0] + float(x0), box.origin[1] + float(y0)))
+        return logodds, field, rbpf.grid_to_world(box, self.frame_offset)
 
     def to_world(self, poses) -> np.ndarray:
         """Poses (..., 3) or points (..., 2) of the local frame (``state.poses``,
