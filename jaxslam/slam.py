@@ -184,21 +184,10 @@ def run(
     done = 0
     prior_info = None
     if resume is None:
-        pool = rbpf.pool_size(config) if initial_pool is None else PoolSize(*(int(v) for v in initial_pool))
-        while True:  # the first scan alone may not fit a pool given too small
-            state = rbpf.init(key_init, jnp.asarray(prepared.first_ranges), sensor, params, config, initial_pose, pool=pool)
-            if not bool(state.maps.overflow):
-                break
-            pool = _larger_pool(state.maps)
+        state = _initial_state(key_init, prepared, params, config, initial_pool)
     else:
+        _check_resume(resume, num_steps, chunk_size, config)
         done = int(resume.steps_done)
-        if resume.num_steps != num_steps or not 0 <= done <= num_steps or (done % chunk_size and done != num_steps):
-            raise ValueError(f"resume: {done} of {resume.num_steps} steps done does not fit this run "
-                             f"({num_steps} steps, chunks of {chunk_size})")
-        expected = (config.num_particles,) + config.grid.num_blocks
-        if np.shape(resume.state.maps.directory) != expected:
-            raise ValueError(f"resume: the saved map directories are {np.shape(resume.state.maps.directory)}, this "
-                             f"run's are {expected} (particles, blocks)")
         state = jax.tree.map(jnp.asarray, resume.state)
         prior_info = resume.info
         step_keys = step_keys[done:]
@@ -206,35 +195,8 @@ def run(
 
     growths = [] if initial_pool is None or state.maps.pool_size == tuple(initial_pool) else [
         {"step": 0, **state.maps.pool_size._asdict()}]
-    chunk_starts = iter(range(done, max(num_steps, 1), chunk_size))
-
-    def chunk_fn(state, xs, valid):
-        keys, chunk_inputs = xs
-        start = next(chunk_starts)
-        done_infos, offset = [], 0
-        while True:
-            state, info = _run_chunk(state, keys, chunk_inputs, valid, sensor, params, config)
-            stalled = np.flatnonzero(np.asarray(info.pool_overflow) & valid)
-            if stalled.size == 0:
-                done_infos.append(info)
-                break
-            # Step s did not fit the pool: its state is the one before it. Keep the steps before
-            # it, grow the pool from what s asked for, and take the chunk's rest again from s.
-            s = int(stalled[0])
-            done_infos.append(jax.tree.map(lambda a: a[:s], info))
-            pool = _larger_pool(state.maps)
-            state = state._replace(maps=paged_map.grow(config.grid, state.maps, pool))
-            offset += s
-            growths.append({"step": start + offset, **pool._asdict()})
-            if progress:
-                print(f"jaxslam: the map pools grew to {pool.capacity} tiles ({pool.max_new_tiles} new per step) "
-                      f"and {pool.block_capacity} blocks ({pool.max_new_blocks} new per step) at step "
-                      f"{start + offset}; that step and the chunk's rest are taken again (one recompile)",
-                      file=sys.stderr)
-            keys, chunk_inputs = (jax.tree.map(lambda a: pad_items(a[s:], chunk_size), t) for t in (keys, chunk_inputs))
-            valid = np.concatenate([valid[s:], np.zeros(s, bool)])
-        info = jax.tree.map(lambda *parts: np.concatenate([np.asarray(p) for p in parts])[:chunk_size], *done_infos)
-        return state, info
+    chunk_fn = _chunk_fn_growing_pools(iter(range(done, max(num_steps, 1), chunk_size)), chunk_size, sensor, params,
+                                       config, growths, progress)
 
     def with_prior(info):
         if prior_info is None:
@@ -265,14 +227,81 @@ def run(
         "total": total,
         "real_time_factor": log.duration / total if total > 0 else float("inf"),
     }
-    maps = state.maps
-    map_pool = {
+    return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings, frame_offset,
+                      _pool_report(state.maps, growths))
+
+
+def _initial_state(key, prepared: rbpf.PreparedLog, params: SlamParams, config: SlamConfig,
+                   initial_pool) -> SlamState:
+    """:func:`jaxslam.rbpf.init` in pools of ``initial_pool`` (default :func:`jaxslam.rbpf.pool_size`),
+    grown until the first scan alone fits."""
+    pool = rbpf.pool_size(config) if initial_pool is None else PoolSize(*(int(v) for v in initial_pool))
+    while True:
+        state = rbpf.init(key, jnp.asarray(prepared.first_ranges), prepared.sensor, params, config,
+                          jnp.asarray(prepared.initial_pose), pool=pool)
+        if not bool(state.maps.overflow):
+            return state
+        pool = _larger_pool(state.maps)
+
+
+def _check_resume(resume: RunProgress, num_steps: int, chunk_size: int, config: SlamConfig) -> None:
+    """``ValueError`` unless ``resume`` is a point of a run of ``num_steps`` steps in chunks of
+    ``chunk_size`` with ``config``'s particles and grid."""
+    done = int(resume.steps_done)
+    if resume.num_steps != num_steps or not 0 <= done <= num_steps or (done % chunk_size and done != num_steps):
+        raise ValueError(f"resume: {done} of {resume.num_steps} steps done does not fit this run "
+                         f"({num_steps} steps, chunks of {chunk_size})")
+    expected = (config.num_particles,) + config.grid.num_blocks
+    if np.shape(resume.state.maps.directory) != expected:
+        raise ValueError(f"resume: the saved map directories are {np.shape(resume.state.maps.directory)}, this "
+                         f"run's are {expected} (particles, blocks)")
+
+
+def _chunk_fn_growing_pools(chunk_starts, chunk_size: int, sensor, params: SlamParams, config: SlamConfig,
+                            growths: list, progress: bool):
+    """The chunk function of :func:`run`: :func:`_run_chunk`, and when a step did not fit the
+    pools, the steps before it kept, the pools grown (each growth appended to ``growths``) and
+    the chunk taken again from that step."""
+
+    def chunk_fn(state, xs, valid):
+        keys, chunk_inputs = xs
+        start = next(chunk_starts)
+        done_infos, offset = [], 0
+        while True:
+            state, info = _run_chunk(state, keys, chunk_inputs, valid, sensor, params, config)
+            stalled = np.flatnonzero(np.asarray(info.pool_overflow) & valid)
+            if stalled.size == 0:
+                done_infos.append(info)
+                break
+            # Step s did not fit the pool: its state is the one before it. Keep the steps before
+            # it, grow the pool from what s asked for, and take the chunk's rest again from s.
+            s = int(stalled[0])
+            done_infos.append(jax.tree.map(lambda a: a[:s], info))
+            pool = _larger_pool(state.maps)
+            state = state._replace(maps=paged_map.grow(config.grid, state.maps, pool))
+            offset += s
+            growths.append({"step": start + offset, **pool._asdict()})
+            if progress:
+                print(f"jaxslam: the map pools grew to {pool.capacity} tiles ({pool.max_new_tiles} new per step) "
+                      f"and {pool.block_capacity} blocks ({pool.max_new_blocks} new per step) at step "
+                      f"{start + offset}; that step and the chunk's rest are taken again (one recompile)",
+                      file=sys.stderr)
+            keys, chunk_inputs = (jax.tree.map(lambda a: pad_items(a[s:], chunk_size), t) for t in (keys, chunk_inputs))
+            valid = np.concatenate([valid[s:], np.zeros(s, bool)])
+        info = jax.tree.map(lambda *parts: np.concatenate([np.asarray(p) for p in parts])[:chunk_size], *done_infos)
+        return state, info
+
+    return chunk_fn
+
+
+def _pool_report(maps: PagedMaps, growths: list) -> dict:
+    """:attr:`SlamResult.map_pool`."""
+    return {
         **maps.pool_size._asdict(),
         "tiles_in_use": int(paged_map.tiles_in_use(maps)), "peak_request": int(maps.peak_request),
         "blocks_in_use": int(paged_map.blocks_in_use(maps)), "peak_block_request": int(maps.peak_block_request),
         "bytes": int(sum(np.asarray(a).nbytes for a in maps)), "growths": growths,
     }
-    return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings, frame_offset, map_pool)
 
 
 
