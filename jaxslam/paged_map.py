@@ -3,27 +3,50 @@
 A dense map per particle costs the grid's bounding box times the particle count, and every
 resampling copies whole maps. Here the grid is a large *virtual* grid cut into square tiles
 of ``tile_size`` cells, grouped into square blocks of ``block_size`` tiles
-(:class:`PagedGridSpec`), and the particles' maps are:
+(:class:`PagedGridSpec`), and the particles' maps are (:class:`PagedMaps`):
 
 * one **tile pool**, ``(C, T, T)`` log-odds (float16) and likelihood field (uint8), with a
-  reference count per tile (how many blocks point at it);
+  reference count per tile slot: how many blocks (in use) point at it;
 * one **block pool**, ``(B, S, S)`` int32: a block is a piece of page table, the tile-pool slot
-  of each of its S x S tiles (-1: a tile never written), with a reference count per block (how
-  many particles point at it);
+  of each of its S x S tiles (:data:`UNWRITTEN`, -1: a tile never written), with a reference
+  count per block slot: how many particles' directories point at it;
 * one **directory** per particle, ``(DY, DX)`` int32: the block-pool slot of each of its blocks
-  (-1: a block it never wrote).
+  (:data:`UNWRITTEN`: a block it never wrote).
 
-A page table with an entry for every tile of a 1.28 km grid would cost 0.64 MB per particle,
-0.64 GB at N = 1,000, copied at every resampling; the directory costs 2.5 KB and the blocks a
-particle writes 1 KB each, so the memory grows with the area mapped, not with the extent times
-the particles. Resampling copies directories only (:func:`resample`): particles share the blocks
-and tiles of their common past, as GMapping's reference-counted patches do. Inserting a scan
-(:func:`insert_scans`) first makes every block and tile it writes the writer's own (a block or
-tile only it uses is written in place; a shared one is copied into a free slot, an unwritten one
-gets a fresh slot), then scatters the scan's updates into the tile pool: the same cells get the
-same updates as in a dense grid (:func:`jaxslam.occupancy.update_cells`), and the work is the
-dense insertion's plus the copied tiles. Slots nothing references any more are free again at
-once.
+Two levels, so that what a particle owns alone is small: a page table over the whole grid per
+particle would cost the grid's extent times the particles again, copied at every resampling
+(the memory figures are in ``docs/notes/2026-11-23-two-level-page-tables.md``). Resampling
+copies directories only (:func:`resample`): particles share the blocks and tiles of their
+common past, as GMapping's reference-counted patches do. Inserting a scan (:func:`insert_scans`)
+first makes every block and tile it writes the writer's own (one only it uses is written in
+place; a shared one is copied into a free slot; an unwritten one gets a fresh slot), then
+scatters the scan's updates into the tile pool: the same cells get the same updates as in a
+dense grid (:func:`jaxslam.occupancy.update_cells`). A slot nothing references any more is free
+again at once. :func:`check_invariants` states what holds between any two operations.
+
+Copy on write, worked through. Particles 0, 1 and 2 come out of a resampling with the same
+map: each directory's entry (0, 0) is block slot 5, so ``block_refcount[5] = 3``; block 5's
+entry (1, 2) is tile slot 9, and ``refcount[9] = 1``: one *block* points at tile 9, however
+many particles read it through that block. Now particle 2 alone inserts a scan that changes
+cells of that tile (particles 0 and 1 write nothing under block 5 this time). Block 5 is shared
+(refcount 3, not 1), so neither it nor tile 9 is particle 2's own: it requests one block and one
+tile, and the prefix sum hands it the first free slots, say block 7 and tile 12.
+
+* Block first: block 7 becomes a copy of block 5, so every tile block 5 points at gains a
+  reference (``refcount[9]`` becomes 2); particle 2's directory entry (0, 0) becomes 7,
+  ``block_refcount[5]`` drops to 2 and ``block_refcount[7]`` is 1.
+* Then the tile: tile 12 becomes a copy of tile 9 (log-odds and field), block 7's entry (1, 2)
+  becomes 12, ``refcount[9]`` is back to 1 (block 5 only) and ``refcount[12]`` is 1.
+* Then the scan's cells are written into tile 12. Particles 0 and 1 still read tile 9 through
+  block 5, unchanged. Had the tile been unwritten (-1 in block 5), tile 12 would have started
+  unknown (log-odds 0, field ``FAR``) instead of as a copy.
+
+The next time particle 2 writes that tile (no resampling having copied particle 2 meanwhile),
+block 7 and tile 12 each have refcount 1: they are its own and are written in place, with no
+copy. If a resampling then keeps only particle 2's descendants, block 5 loses its last
+references and is free, and each tile it pointed at loses one reference: tile 9 drops to 0 and
+is free; the tiles block 7 shares with it drop back to 1. (``tests/test_paged_map.py`` replays
+this example on real scans.)
 
 Everything has a static shape and no sequential loop over particles: free slots are handed
 out by a prefix sum over the particles' requests. The pools' capacities and the most tiles and
@@ -38,16 +61,16 @@ import dataclasses
 import math
 from typing import NamedTuple
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
+from jaxslam.computed_once import computed_once
 from jaxslam.grid import GridSpec, world_to_cell
 from jaxslam.laser import SensorSpec, laser_rays
-from jaxslam.occupancy import FAR, LOGODDS_DTYPE, InsertionParams, field_kernel, scan_cells, update_cells
+from jaxslam.occupancy import (FAR, LOGODDS_DTYPE, InsertionParams, ScanCells, field_kernel, scan_cells,
+                               update_cells)
 
 UNWRITTEN = -1
 """Directory or block entry of a block or tile the particle never wrote."""
@@ -67,7 +90,7 @@ class PagedGridSpec:
     """World (x, y) in metres of the lower-left corner of the virtual grid."""
     block_size: int = 16
     """S, tiles per block side (a power of two): the unit of page table particles share and copy
-    on write (16 x 16 tiles of 64 cells: 51.2 m at 5 cm, 1 KB of page table)."""
+    on write."""
 
     def __post_init__(self):
         ty, tx = self.num_tiles
@@ -140,7 +163,8 @@ class PoolSize(NamedTuple):
 
 
 class PagedMaps(NamedTuple):
-    """The maps of N particles: directories of shared blocks of page table into one pool of tiles."""
+    """The maps of N particles: directories of shared blocks of page table into one pool of tiles
+    (what holds between operations: :func:`check_invariants`)."""
 
     directory: Int[Array, "N DY DX"]
     """Block-pool slot of each block of each particle's map; :data:`UNWRITTEN` (-1) where none."""
@@ -189,6 +213,7 @@ def first_free(refcount: Int[Array, "C"], size: int) -> Int[Array, "M"]:
 
 
 def _check_pool(spec: PagedGridSpec, pool: PoolSize) -> None:
+    """ValueError unless ``pool`` has positive sizes within their capacities and int32 indices suffice."""
     if min(pool) < 1 or pool.max_new_tiles > pool.capacity or pool.max_new_blocks > pool.block_capacity:
         raise ValueError(f"a paged map's pools need positive sizes and at most their capacity new per insertion, "
                          f"got {pool}")
@@ -297,41 +322,398 @@ def _window_start(spec: PagedGridSpec, pose: Float[Array, "3"], sensor: SensorSp
     return jnp.clip(start, 0, high).astype(jnp.int32)
 
 
-def computed_once(fn, first, *rest):
-    """``fn(first, *rest)``, computed into memory once, before anything reads it.
+# Inserting scans. insert_scans runs the stages below in this order, each a function of the
+# previous stages' NamedTuples:
+#   _window_shape     the static size of the window of tiles (and of blocks) one scan can change
+#   _scan_targets     where each updated cell goes: a tile of the particle's window, a place in it
+#   _window_layout    where each window tile lies: a block of the window of blocks, an entry in it
+#   _window_pages     the slots each particle's directory and blocks give its window now
+#   _requests         the tiles and blocks a particle writes but does not own
+#   _grant_slots      free slots for all particles' requests, by prefix sums; all or nothing
+#   _copy_blocks      granted blocks become copies (or fresh); directories and references follow
+#   _copy_tiles       granted tiles become copies (or fresh); the writers' blocks point at them
+#   _write_cells      the scans' updates, scattered into tiles each writer now owns
 
-    XLA fuses a cheap-looking elementwise producer into every consumer. For the beam samples of
-    an insertion (a few dozen operations per sample, 10^6 samples) and the beam endpoints of a
-    likelihood (read by a page-table gather and then a pool gather, four times with bilinear
-    reads) that means recomputing them inside each gather and scatter that reads them, in
-    scalar loops: measured, it doubled the insertion's time on Intel and cost the scan matcher
-    about 5 ms a step. The outputs of a loop whose trip count XLA cannot know are always
-    materialised, by vectorised code, once; so ``fn`` runs in a ``while_loop`` whose trip count
-    depends on the data (1, or 2 if ``first``'s first element is +inf: the same result).
-    ``jax.lax.optimization_barrier`` does not do this: XLA's CPU pipeline drops it before fusion.
-    Reverse-mode autodiff cannot go through a ``while_loop``, so the derivative is ``fn``'s own
-    (a custom JVP): the forward values are the loop's, gradients flow as if ``fn`` were called.
+
+class _Window(NamedTuple):
+    """The static size of the window of tiles that holds every cell one scan can change, and of
+    the window of blocks that holds that window (Python ints: changing one recompiles)."""
+
+    tiles_per_side: int
+    """K, tiles per side of the window."""
+    tiles: int
+    """K K, tiles in the window; also the index that stands for "no tile"."""
+    blocks_per_side: int
+    """Blocks per side of the window of blocks."""
+    blocks: int
+    """Blocks in the window of blocks."""
+
+
+def _window_shape(spec: PagedGridSpec, max_insert_range: float, field_radius: int) -> _Window:
+    """The window's static size: its side is fixed by the scan's reach, so shapes stay static."""
+    side = spec.window_tiles(max_insert_range, field_radius)
+    block_side = spec.window_blocks(side)
+    return _Window(side, side * side, block_side, block_side * block_side)
+
+
+class _CellTargets(NamedTuple):
+    """Where some updated cells go, as (window tile, place in the tile)."""
+
+    window_tile: Int[Array, "..."]
+    """The cell's tile as a flat index over all particles' windows: particle p's window tile
+    (row, col) is p (K K + 1) + row K + col; p (K K + 1) + K K stands for no tile (a cell masked
+    out or off the window), whose updates are dropped."""
+    place: Int[Array, "..."]
+    """The cell's place in its tile, row T + col."""
+
+
+class _ScanTargets(NamedTuple):
+    """What every particle's scan updates, located in its window (``N`` leading)."""
+
+    free: _CellTargets
+    """The beam samples (cells seen free), (N, beams, samples)."""
+    ends: _CellTargets
+    """The beam endpoints (cells seen occupied), (N, beams)."""
+    splats: _CellTargets
+    """The cells of each endpoint's splat into the likelihood field, (N, beams, kernel)."""
+    touched: Bool[Array, "N KK"]
+    """The window tiles the scan may change (a superset: an extra tile costs a copy, no more)."""
+    window_start: Int[Array, "N 2"]
+    """(row, col) of each window's first tile in the virtual grid."""
+    outside: Int[Array, "N"]
+    """Beam samples that fell outside the virtual grid."""
+
+
+def _window_tile(spec: PagedGridSpec, window: _Window, start: Int[Array, "2"], cells: Int[Array, "... 2"],
+                 mask: Bool[Array, "..."]) -> Int[Array, "..."]:
+    """Each (row, col) cell's tile in a window starting at tile ``start``, row K + col; K K (no
+    tile) where ``mask`` is False or the cell is off the window."""
+    shift, side = spec.tile_shift, window.tiles_per_side
+    tile_row, tile_col = (cells[..., 0] >> shift) - start[0], (cells[..., 1] >> shift) - start[1]
+    inside = mask & (tile_row >= 0) & (tile_row < side) & (tile_col >= 0) & (tile_col < side)
+    return jnp.where(inside, tile_row * side + tile_col, window.tiles)
+
+
+def _place_in_tile(spec: PagedGridSpec, cells: Int[Array, "... 2"]) -> Int[Array, "..."]:
+    """Each (row, col) cell's place in its tile, row T + col (by masks: tile sizes are powers of two)."""
+    t, shift = spec.tile_size, spec.tile_shift
+    return ((cells[..., 0] & (t - 1)) << shift) + (cells[..., 1] & (t - 1))
+
+
+def _tiles_touched(spec: PagedGridSpec, window: _Window, start: Int[Array, "2"], cells: ScanCells,
+                   field_radius: int) -> Bool[Array, "KK"]:
+    """The window tiles one scan may change, found from a few points per beam instead of every
+    sample (cheaper, and a superset is harmless: an extra tile copied).
+
+    Cells along a ray move monotonically in row and column, so the samples between two points
+    less than a tile side apart lie in the tiles of the four (row, column) combinations of the
+    two points' tiles; those are marked where any sample between the points is free. An
+    endpoint's field splat (radius below a tile side) lies in the tiles of its box's four corners.
     """
-    # closure_convert: the custom JVP must not close over traced values (fn often does).
-    converted, consts = jax.closure_convert(fn, first, *rest)
-    return _computed_once(converted, first, *rest, *consts)
+    stride = max(spec.tile_size // 2, 1)
+    num_samples = cells.free.shape[1]
+    num_points = -(-(num_samples - 1) // stride) + 1
+    index = jnp.minimum(jnp.arange(num_points) * stride, num_samples - 1)
+    points = cells.free_cells[:, index]  # (B, P, 2)
+    padded = jnp.pad(cells.free, ((0, 0), (0, (num_points - 1) * stride + 1 - num_samples)))
+    # Segment i spans samples i * stride .. (i + 1) * stride, both ends included.
+    starts_of_segments = padded[:, :-1].reshape(padded.shape[0], num_points - 1, stride)
+    segment_free = jnp.any(starts_of_segments, axis=2) | padded[:, stride::stride]
+    a, b = points[:, :-1], points[:, 1:]
+    corners = [jnp.stack([x[..., 0], y[..., 1]], -1) for x in (a, b) for y in (a, b)]
+    free_touched = jnp.stack([_window_tile(spec, window, start, c, segment_free) for c in corners], -1)
+    r = jnp.asarray([field_radius, -field_radius])
+    box = [cells.end_cells + jnp.stack([dr, dc]) for dr in r for dc in r]
+    splat_touched = jnp.stack([_window_tile(spec, window, start, c, cells.returned) for c in box], -1)
+    return (jnp.zeros(window.tiles + 1, bool).at[free_touched.reshape(-1)].set(True)
+            .at[splat_touched.reshape(-1)].set(True)[:window.tiles])
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _computed_once(fn, first, *rest):
-    shapes = jax.eval_shape(fn, first, *rest)
-    init = jax.tree.map(lambda shape: jnp.zeros(shape.shape, shape.dtype), shapes)
-    probe = first.reshape(-1)[0].astype(jnp.float32)
-    trips = 1 + (probe > jnp.finfo(jnp.float32).max).astype(jnp.int32)
-    _, out = jax.lax.while_loop(lambda c: c[0] < trips, lambda c: (c[0] + 1, fn(first, *rest)),
-                                (jnp.int32(0), init))
-    return out
+def _one_scan_targets(spec: PagedGridSpec, window: _Window, pose: Float[Array, "3"], particle: Int[Array, ""],
+                      ranges: Float[Array, "B"], sensor: SensorSpec, params: InsertionParams,
+                      max_insert_range: float, field_radius: int) -> _ScanTargets:
+    """:func:`_scan_targets` for one particle (no ``N`` axis); ``particle`` offsets its window
+    tiles into the flat index over all windows. The window holds every cell of the grid the scan
+    can reach (it is clamped inside the grid), so a cell off the window is off the grid."""
+    cells = scan_cells(spec.grid, pose, ranges, sensor, params, max_insert_range)
+    start = _window_start(spec, pose, sensor, window.tiles_per_side, max_insert_range, field_radius)
+    first = particle * (window.tiles + 1)
+    offsets, _ = field_kernel(field_radius)
+    splat_cells = cells.end_cells[:, None, :] + jnp.asarray(offsets)  # (B, kernel, 2)
+    free_tile = _window_tile(spec, window, start, cells.free_cells, cells.free)
+    end_tile = _window_tile(spec, window, start, cells.end_cells, cells.returned)
+    splat_tile = _window_tile(spec, window, start, splat_cells, cells.returned[:, None])
+    outside = (jnp.sum(cells.free & (free_tile == window.tiles))
+               + jnp.sum(cells.returned & (end_tile == window.tiles)))
+    return _ScanTargets(
+        free=_CellTargets(free_tile + first, _place_in_tile(spec, cells.free_cells)),
+        ends=_CellTargets(end_tile + first, _place_in_tile(spec, cells.end_cells)),
+        splats=_CellTargets(splat_tile + first, _place_in_tile(spec, splat_cells)),
+        touched=_tiles_touched(spec, window, start, cells, field_radius),
+        window_start=start,
+        outside=outside,
+    )
 
 
-@_computed_once.defjvp
-def _computed_once_jvp(fn, primals, tangents):
-    _, tangents_out = jax.jvp(fn, primals, tangents)
-    return _computed_once(fn, *primals), tangents_out
+def _scan_targets(spec: PagedGridSpec, window: _Window, poses: Float[Array, "N 3"], ranges: Float[Array, "B"],
+                  sensor: SensorSpec, params: InsertionParams, max_insert_range: float,
+                  field_radius: int) -> _ScanTargets:
+    """Every particle's updated cells as (window tile, place), its touched tiles and its samples
+    outside the grid. Computed into memory once (:func:`~jaxslam.computed_once.computed_once`):
+    the per-sample arithmetic is otherwise recomputed inside every scatter that reads it."""
+    def one(pose, particle):
+        return _one_scan_targets(spec, window, pose, particle, ranges, sensor, params, max_insert_range,
+                                 field_radius)
+
+    return computed_once(jax.vmap(one), poses, jnp.arange(poses.shape[0], dtype=jnp.int32))
+
+
+class _WindowLayout(NamedTuple):
+    """Where each particle's window tiles lie in its directory (geometry only, no map read)."""
+
+    tile_block: Int[Array, "N KK"]
+    """The block of the window of blocks (row times blocks per side + col) each window tile lies in."""
+    tile_in_block: Int[Array, "N KK"]
+    """Each window tile's entry in its block, row S + col."""
+    block_rows: Int[Array, "N KB"]
+    """The directory row of each row of the window of blocks (past the directory's edge: dropped)."""
+    block_cols: Int[Array, "N KB"]
+    """The directory column of each column of the window of blocks (likewise)."""
+    in_directory: Bool[Array, "N KBB"]
+    """Each window block lies inside the directory."""
+
+
+def _window_layout(spec: PagedGridSpec, window: _Window, window_start: Int[Array, "N 2"]) -> _WindowLayout:
+    """Where each window tile lies: in which block of the particle's window of blocks, at which
+    entry. The window of blocks starts at the block of the window's first tile, so one gather of
+    the directory serves all the window's tiles."""
+    n = window_start.shape[0]
+    s, shift = spec.block_size, spec.block_shift
+    dy, dx = spec.num_blocks
+    side, block_side = window.tiles_per_side, window.blocks_per_side
+    tile_rows, tile_cols = window_start[:, :1] + jnp.arange(side), window_start[:, 1:] + jnp.arange(side)  # (N, K)
+    block_start = window_start >> shift  # (N, 2)
+    tile_block = (((tile_rows >> shift) - block_start[:, :1])[:, :, None] * block_side
+                  + ((tile_cols >> shift) - block_start[:, 1:])[:, None, :]).reshape(n, window.tiles)
+    tile_in_block = ((tile_rows & (s - 1))[:, :, None] * s + (tile_cols & (s - 1))[:, None, :]).reshape(n, window.tiles)
+    block_rows = block_start[:, :1] + jnp.arange(block_side)
+    block_cols = block_start[:, 1:] + jnp.arange(block_side)
+    in_directory = ((block_rows < dy)[:, :, None] & (block_cols < dx)[:, None, :]).reshape(n, window.blocks)
+    return _WindowLayout(tile_block, tile_in_block, block_rows, block_cols, in_directory)
+
+
+class _WindowPages(NamedTuple):
+    """What each particle's directory and the blocks give its window before the insertion."""
+
+    block_slots: Int[Array, "N KBB"]
+    """The block slot of each window block; :data:`UNWRITTEN` where none (or off the directory)."""
+    block_owned: Bool[Array, "N KBB"]
+    """The block is the particle's alone (no other directory points at it): written in place."""
+    tile_slots: Int[Array, "N KK"]
+    """The tile slot of each window tile; :data:`UNWRITTEN` where none."""
+    tile_owned: Bool[Array, "N KK"]
+    """The tile is the particle's alone: its block is, and no other block points at the tile."""
+
+
+def _window_pages(spec: PagedGridSpec, maps: PagedMaps, layout: _WindowLayout) -> _WindowPages:
+    """The slots each particle's window reads now, and which of them it owns (refcount 1): those
+    it may write in place; the others it must be given before it writes."""
+    dy, dx = spec.num_blocks
+    block_slots = jax.vmap(lambda d, r, c: d[jnp.minimum(r, dy - 1)[:, None], jnp.minimum(c, dx - 1)[None, :]])(
+        maps.directory, layout.block_rows, layout.block_cols).reshape(layout.in_directory.shape)
+    block_slots = jnp.where(layout.in_directory, block_slots, UNWRITTEN)
+    block_owned = (block_slots >= 0) & (maps.block_refcount[jnp.maximum(block_slots, 0)] == 1)
+    entries = maps.blocks.reshape(maps.blocks.shape[0], -1)
+    block_of_tile = jnp.take_along_axis(block_slots, layout.tile_block, axis=1)
+    tile_slots = jnp.where(block_of_tile >= 0, entries[jnp.maximum(block_of_tile, 0), layout.tile_in_block],
+                           UNWRITTEN)
+    tile_owned = (jnp.take_along_axis(block_owned, layout.tile_block, axis=1) & (tile_slots >= 0)
+                  & (maps.refcount[jnp.maximum(tile_slots, 0)] == 1))
+    return _WindowPages(block_slots, block_owned, tile_slots, tile_owned)
+
+
+class _Requests(NamedTuple):
+    """The new slots each particle needs before it writes (a copy of a shared one, or a fresh one)."""
+
+    tiles: Bool[Array, "N KK"]
+    """Window tiles it writes but does not own."""
+    blocks: Bool[Array, "N KBB"]
+    """Window blocks it does not own that hold such a tile (a new tile needs an owned block to point at it)."""
+
+
+def _requests(touched: Bool[Array, "N KK"], active: Bool[Array, "N"], layout: _WindowLayout,
+              pages: _WindowPages) -> _Requests:
+    """The tiles and blocks each active particle writes but does not own: each needs a new slot."""
+    tiles = touched & active[:, None] & ~pages.tile_owned
+    num_blocks = pages.block_owned.shape[1]
+    blocks = jnp.any(tiles[:, :, None] & (layout.tile_block[:, :, None] == jnp.arange(num_blocks)), axis=1)
+    return _Requests(tiles, blocks & ~pages.block_owned)
+
+
+class _PoolGrant(NamedTuple):
+    """One pool's answer to all particles' requests."""
+
+    count: Int[Array, ""]
+    """The requests, all particles together."""
+    fits: Bool[Array, ""]
+    """They fit: at most the pool's per-insertion limit, and that many slots are free."""
+    slots: Int[Array, "R"]
+    """The j-th request's slot (the j-th free slot), for every request position in particle order."""
+
+
+def _prefix_grant(wanted: Bool[Array, "..."], free: Int[Array, "M"], size: int) -> _PoolGrant:
+    """The j-th request (in particle order) gets ``free[j]``: a prefix sum, no loop over particles.
+    ``free`` holds the first free slots, padded with ``size`` (the pool's slot count)."""
+    limit = free.shape[0]
+    wanted = wanted.reshape(-1)
+    count = jnp.sum(wanted).astype(jnp.int32)
+    fits = ((count <= limit) & (free[jnp.clip(count - 1, 0, limit - 1)] < size)) | (count == 0)
+    return _PoolGrant(count, fits, free[jnp.clip(jnp.cumsum(wanted) - 1, 0, limit - 1)])
+
+
+class _Grants(NamedTuple):
+    """The new slots the insertion hands out: all requests, or none (flat over N x window)."""
+
+    fits: Bool[Array, ""]
+    """Every tile and block request fits; else nothing is granted or written (``overflow``)."""
+    tile_count: Int[Array, ""]
+    """Tile requests, all particles together (granted or not)."""
+    block_count: Int[Array, ""]
+    """Block requests, likewise."""
+    tiles: Bool[Array, "N*KK"]
+    """Window tiles that get a new slot."""
+    blocks: Bool[Array, "N*KBB"]
+    """Window blocks that get a new slot."""
+    tile_slots: Int[Array, "N*KK"]
+    """The new tile slot of each, C (no slot: dropped) elsewhere."""
+    block_slots: Int[Array, "N*KBB"]
+    """The new block slot of each, B (no slot: dropped) elsewhere."""
+
+
+def _grant_slots(maps: PagedMaps, requests: _Requests) -> _Grants:
+    """Free slots for all particles' requests, all or nothing: an insertion that needs more new
+    tiles or blocks than it may take or than are free grants nothing (and writes nothing)."""
+    capacity, _, block_capacity, _ = maps.pool_size
+    tiles = _prefix_grant(requests.tiles, maps.free_slots, capacity)
+    blocks = _prefix_grant(requests.blocks, maps.free_blocks, block_capacity)
+    fits = tiles.fits & blocks.fits
+    granted_tiles, granted_blocks = requests.tiles.reshape(-1) & fits, requests.blocks.reshape(-1) & fits
+    return _Grants(fits, tiles.count, blocks.count, granted_tiles, granted_blocks,
+                   jnp.where(granted_tiles, tiles.slots, capacity),
+                   jnp.where(granted_blocks, blocks.slots, block_capacity))
+
+
+class _BlockCopies(NamedTuple):
+    """The maps after the granted blocks are made (before any tile is)."""
+
+    directory: Int[Array, "N DY DX"]
+    """Directories pointing at the new blocks."""
+    entries: Int[Array, "B S*S"]
+    """The block pool (flat entries), with the new blocks."""
+    block_refcount: Int[Array, "B"]
+    """Block references after the directories moved to the new blocks."""
+    refcount: Int[Array, "C"]
+    """Tile references after the copies (one more each) and the freed blocks (one less each)."""
+    window_blocks: Int[Array, "N KBB"]
+    """Each particle's block slot of each window block, new or not."""
+
+
+def _copy_blocks(spec: PagedGridSpec, maps: PagedMaps, layout: _WindowLayout, pages: _WindowPages,
+                 grants: _Grants) -> _BlockCopies:
+    """Each granted block slot becomes a copy of the block it replaces (or a fresh, unwritten
+    one) and the writer's directory points at it. A copy points at the same tiles, so each gains
+    a reference; a shared block every holder of which made its own copy is free now, and its
+    tiles lose its reference."""
+    n, num_window_blocks = pages.block_slots.shape
+    capacity, _, block_capacity, max_new_blocks = maps.pool_size
+    dy, _ = spec.num_blocks
+    entries = maps.blocks.reshape(block_capacity, -1)
+    old_blocks = pages.block_slots.reshape(-1)
+    # The j-th granted block's request position, and its source: the block it replaces.
+    requests = jnp.nonzero(grants.blocks, size=max_new_blocks, fill_value=n * num_window_blocks)[0]
+    source = jnp.concatenate([old_blocks, jnp.full((1,), UNWRITTEN, old_blocks.dtype)])[requests]
+    target = jnp.where(requests < n * num_window_blocks, maps.free_blocks, block_capacity)
+    copied = jnp.where((source >= 0)[:, None], entries[jnp.maximum(source, 0)], UNWRITTEN)
+    new_entries = entries.at[target].set(copied, mode="drop")
+    refcount = maps.refcount.at[jnp.where((target < block_capacity)[:, None] & (copied >= 0), copied,
+                                          capacity)].add(1, mode="drop")
+    block_refcount = (maps.block_refcount.at[jnp.where(grants.blocks & (old_blocks >= 0), old_blocks, block_capacity)]
+                      .add(-1, mode="drop").at[grants.block_slots].add(1, mode="drop"))
+    freed = (maps.block_refcount > 0) & (block_refcount == 0)
+    refcount = refcount.at[jnp.where(freed[:, None] & (entries >= 0), entries, capacity)].add(-1, mode="drop")
+    window_blocks = jnp.where(grants.blocks, grants.block_slots, old_blocks).reshape(n, num_window_blocks)
+    particle = jnp.arange(n)[:, None, None]
+    side = layout.block_rows.shape[1]
+    directory = maps.directory.at[particle, jnp.where(layout.block_rows < dy, layout.block_rows, dy)[:, :, None],
+                                  layout.block_cols[:, None, :]].set(window_blocks.reshape(n, side, side),
+                                                                     mode="drop")
+    return _BlockCopies(directory, new_entries, block_refcount, refcount, window_blocks)
+
+
+class _TileCopies(NamedTuple):
+    """The maps' tiles after the granted tiles are made (before the scans are written)."""
+
+    logodds: Float[Array, "C T T"]
+    """The log-odds pool with the new tiles."""
+    hit_dist2: UInt8[Array, "C T T"]
+    """The field pool with the new tiles."""
+    refcount: Int[Array, "C"]
+    """Tile references after the writers' blocks moved to the new tiles."""
+    entries: Int[Array, "B S*S"]
+    """The block pool (flat entries), the writers' blocks pointing at their new tiles."""
+
+
+def _copy_tiles(maps: PagedMaps, layout: _WindowLayout, pages: _WindowPages, grants: _Grants,
+                blocks: _BlockCopies) -> _TileCopies:
+    """Each granted tile slot becomes a copy of the tile it replaces (or a fresh one: unknown
+    log-odds, ``FAR`` field), and the writer's block, its own now, points at it instead."""
+    capacity, max_new_tiles, block_capacity, _ = maps.pool_size
+    old_slots = pages.tile_slots.reshape(-1)
+    num_window_tiles = old_slots.shape[0]
+    # The j-th granted tile's request position, and its source: the tile it replaces.
+    requests = jnp.nonzero(grants.tiles, size=max_new_tiles, fill_value=num_window_tiles)[0]
+    source = jnp.concatenate([old_slots, jnp.full((1,), UNWRITTEN, old_slots.dtype)])[requests]
+    target = jnp.where(requests < num_window_tiles, maps.free_slots, capacity)
+    logodds = maps.logodds.at[target].set(_tile_values(maps.logodds, source, 0.0), mode="drop")
+    hit_dist2 = maps.hit_dist2.at[target].set(_tile_values(maps.hit_dist2, source, FAR), mode="drop")
+    refcount = (blocks.refcount.at[jnp.where(grants.tiles & (old_slots >= 0), old_slots, capacity)]
+                .add(-1, mode="drop").at[grants.tile_slots].add(1, mode="drop"))
+    writer_block = jnp.take_along_axis(blocks.window_blocks, layout.tile_block, axis=1).reshape(-1)
+    entries = blocks.entries.at[jnp.where(grants.tiles, writer_block, block_capacity),
+                                layout.tile_in_block.reshape(-1)].set(grants.tile_slots, mode="drop")
+    return _TileCopies(logodds, hit_dist2, refcount, entries)
+
+
+def _pool_index(spec: PagedGridSpec, writable_slot: Int[Array, "N*(KK+1)"], cells: _CellTargets,
+                capacity: int) -> Int[Array, "..."]:
+    """Each cell's index in the flattened tile pool; one past its end (dropped) where its tile
+    has no writable slot."""
+    t = spec.tile_size
+    slot = writable_slot[cells.window_tile]
+    return jnp.where(slot < capacity, slot * (t * t) + cells.place, capacity * t * t)
+
+
+def _write_cells(spec: PagedGridSpec, tiles: _TileCopies, targets: _ScanTargets, pages: _WindowPages,
+                 grants: _Grants, active: Bool[Array, "N"], params: InsertionParams,
+                 field_radius: int) -> tuple[Float[Array, "C T T"], UInt8[Array, "C T T"]]:
+    """All particles' updates scattered into the pools at once, each into tiles its writer owns
+    (no two particles write one slot): the same updates as a dense grid's
+    (:func:`jaxslam.occupancy.update_cells`). Cells of inactive particles, and all cells when
+    the grants did not fit, are dropped. Returns the log-odds and field pools."""
+    capacity = tiles.refcount.shape[0]
+    n, num_window_tiles = pages.tile_slots.shape
+    slots = jnp.where(grants.tiles, grants.tile_slots, pages.tile_slots.reshape(-1))
+    writable = (pages.tile_owned.reshape(-1) & grants.fits) | grants.tiles
+    writable_slot = jnp.where(writable & jnp.repeat(active, num_window_tiles), slots, capacity)
+    # One more per particle: its "no tile" index (K K), never writable.
+    writable_slot = jnp.concatenate([writable_slot.reshape(n, num_window_tiles),
+                                     jnp.full((n, 1), capacity, jnp.int32)], axis=1).reshape(-1)
+    _, d2 = field_kernel(field_radius)
+    free, ends, splats = (_pool_index(spec, writable_slot, cells, capacity)
+                          for cells in (targets.free, targets.ends, targets.splats))
+    logodds, hit_dist2 = update_cells(tiles.logodds.reshape(-1), tiles.hit_dist2.reshape(-1), free, ends, splats,
+                                      d2, params)
+    return logodds.reshape(tiles.logodds.shape), hit_dist2.reshape(tiles.hit_dist2.shape)
 
 
 def insert_scans(
@@ -365,178 +747,29 @@ def insert_scans(
 
     Returns the new maps and, per particle, the beam samples that fell outside the virtual grid.
     """
-    t = spec.tile_size
-    k = spec.window_tiles(max_insert_range, field_radius)
-    kk = k * k
-    s, bshift = spec.block_size, spec.block_shift
-    kb = spec.window_blocks(k)
-    kbb = kb * kb
-    dy, dx = spec.num_blocks
-    capacity, m, block_capacity, mb = maps.pool_size
-    n = poses.shape[0]
-    active = jnp.ones((n,), bool) if active is None else jnp.asarray(active, bool)
-    grid = spec.grid
-
-    offsets, d2 = field_kernel(field_radius)
-    shift = spec.tile_shift
-
-    stride = max(t // 2, 1)  # samples between the points that bound a beam's tiles (< a tile side)
-
-    def where_cells_go(pose, particle):
-        """One particle's updated cells as (tile, place): the tile's flat index among all particles'
-        windows (N x (K K + 1); the last of each particle's K K + 1: no tile, dropped) and the
-        cell's place in its tile; the tiles its scan may touch, and the samples outside the grid.
-
-        The window holds every cell of the grid the scan can reach (it is clamped inside the
-        grid), so a cell off the window's tiles is off the grid."""
-        cells = scan_cells(grid, pose, ranges, sensor, params, max_insert_range)
-        start = _window_start(spec, pose, sensor, k, max_insert_range, field_radius)
-        base = particle * (kk + 1)
-
-        def tile_of(c, mask):
-            tile_row, tile_col = (c[..., 0] >> shift) - start[0], (c[..., 1] >> shift) - start[1]
-            ok = mask & (tile_row >= 0) & (tile_row < k) & (tile_col >= 0) & (tile_col < k)
-            return jnp.where(ok, tile_row * k + tile_col, kk)
-
-        def place_of(c):
-            return ((c[..., 0] & (t - 1)) << shift) + (c[..., 1] & (t - 1))
-
-        free_tile = tile_of(cells.free_cells, cells.free)
-        end_tile = tile_of(cells.end_cells, cells.returned)
-        splat_cells = cells.end_cells[:, None, :] + jnp.asarray(offsets)  # (B, K, 2)
-        outside = jnp.sum(cells.free & (free_tile == kk)) + jnp.sum(cells.returned & (end_tile == kk))
-
-        # The tiles the scan touches, from a few points per beam instead of every sample: cells
-        # along a ray move monotonically in row and column, so the samples between two points
-        # under a tile side apart lie in the tiles of the four (row, column) combinations of the
-        # two points' tiles. Marked where any sample between them is free (a superset is
-        # harmless: an extra tile copied). An endpoint's field splat (radius < a tile side) lies
-        # in the tiles of its box's four corners.
-        num_points = -(-(cells.free.shape[1] - 1) // stride) + 1
-        index = jnp.minimum(jnp.arange(num_points) * stride, cells.free.shape[1] - 1)
-        points = cells.free_cells[:, index]  # (B, P, 2)
-        padded = jnp.pad(cells.free, ((0, 0), (0, (num_points - 1) * stride + 1 - cells.free.shape[1])))
-        # Segment i spans samples i * stride .. (i + 1) * stride, both ends included.
-        starts_of_segments = padded[:, :-1].reshape(padded.shape[0], num_points - 1, stride)
-        segment_free = jnp.any(starts_of_segments, axis=2) | padded[:, stride::stride]
-        a, b = points[:, :-1], points[:, 1:]
-        corners = [jnp.stack([x[..., 0], y[..., 1]], -1) for x in (a, b) for y in (a, b)]
-        free_touched = jnp.stack([tile_of(c, segment_free) for c in corners], -1)  # (B, P - 1, 4)
-        r = jnp.asarray([field_radius, -field_radius])
-        box = [cells.end_cells + jnp.stack([dr, dc]) for dr in r for dc in r]
-        splat_touched = jnp.stack([tile_of(c, cells.returned) for c in box], -1)  # (B, 4)
-        touched = (jnp.zeros(kk + 1, bool).at[free_touched.reshape(-1)].set(True)
-                   .at[splat_touched.reshape(-1)].set(True)[:kk])
-        return ((free_tile + base, place_of(cells.free_cells)), (end_tile + base, place_of(cells.end_cells)),
-                (tile_of(splat_cells, cells.returned[:, None]) + base, place_of(splat_cells)), touched, start,
-                outside)
-
-    (free_tile, free_within), (end_tile, end_within), (splat_tile, splat_within), touched, starts, outside = (
-        computed_once(jax.vmap(where_cells_go), poses, jnp.arange(n, dtype=jnp.int32)))
-    touched = touched & active[:, None]
-
-    # Where each window tile lies: its block in the particle's window of kb x kb blocks, and its
-    # place in that block.
-    window = jnp.arange(k)
-    tile_rows, tile_cols = starts[:, :1] + window, starts[:, 1:] + window  # (N, K)
-    block_start = starts >> bshift  # (N, 2)
-    tile_block = (((tile_rows >> bshift) - block_start[:, :1])[:, :, None] * kb
-                  + ((tile_cols >> bshift) - block_start[:, 1:])[:, None, :]).reshape(n, kk)
-    in_block = ((tile_rows & (s - 1))[:, :, None] * s + (tile_cols & (s - 1))[:, None, :]).reshape(n, kk)
-    block_rows, block_cols = block_start[:, :1] + jnp.arange(kb), block_start[:, 1:] + jnp.arange(kb)  # (N, kb)
-    in_directory = ((block_rows < dy)[:, :, None] & (block_cols < dx)[:, None, :]).reshape(n, kbb)
-    blocks_now = jax.vmap(lambda d, r, c: d[jnp.minimum(r, dy - 1)[:, None], jnp.minimum(c, dx - 1)[None, :]])(
-        maps.directory, block_rows, block_cols).reshape(n, kbb)
-    blocks_now = jnp.where(in_directory, blocks_now, UNWRITTEN)
-    block_owned = (blocks_now >= 0) & (maps.block_refcount[jnp.maximum(blocks_now, 0)] == 1)
-    blocks_before = maps.blocks.reshape(block_capacity, s * s)
-    block_of_tile = jnp.take_along_axis(blocks_now, tile_block, axis=1)
-    slots = jnp.where(block_of_tile >= 0, blocks_before[jnp.maximum(block_of_tile, 0), in_block], UNWRITTEN)
-    # A tile is the particle's own when its block is (no other particle's directory points at it)
-    # and no other block points at the tile.
-    owned = (jnp.take_along_axis(block_owned, tile_block, axis=1) & (slots >= 0)
-             & (maps.refcount[jnp.maximum(slots, 0)] == 1))
-    need = touched & ~owned  # (N, K K)
-    # A block must be made the particle's own when a tile in it is to be replaced.
-    need_block = jnp.any(need[:, :, None] & (tile_block[:, :, None] == jnp.arange(kbb)), axis=1) & ~block_owned
-
-    # The j-th request (in particle order) gets free_slots[j] (free_blocks[j]): a copy of the old
-    # tile (block), or a fresh one. All or nothing: an insertion that needs more new tiles or
-    # blocks than it may take or than are free writes nothing at all and sets ``overflow``.
-    def grant(wanted, free, size, limit):
-        wanted = wanted.reshape(-1)
-        count = jnp.sum(wanted).astype(jnp.int32)
-        fits = ((count <= limit) & (free[jnp.clip(count - 1, 0, limit - 1)] < size)) | (count == 0)
-        return count, fits, free[jnp.clip(jnp.cumsum(wanted) - 1, 0, limit - 1)]
-
-    num_requests, tiles_fit, tile_grants = grant(need, maps.free_slots, capacity, m)
-    num_block_requests, blocks_fit, block_grants = grant(need_block, maps.free_blocks, block_capacity, mb)
-    fits = tiles_fit & blocks_fit
-    placed, placed_block = need.reshape(-1) & fits, need_block.reshape(-1) & fits
-    old_slots, old_blocks = slots.reshape(-1), blocks_now.reshape(-1)
-    granted = jnp.where(placed, tile_grants, capacity)
-    granted_block = jnp.where(placed_block, block_grants, block_capacity)
-
-    # Blocks first: a copy points at the same tiles (each gains a reference), a fresh one at none.
-    block_requests = jnp.nonzero(placed_block, size=mb, fill_value=n * kbb)[0]
-    block_source = jnp.concatenate([old_blocks, jnp.full((1,), UNWRITTEN, old_blocks.dtype)])[block_requests]
-    block_target = jnp.where(block_requests < n * kbb, maps.free_blocks, block_capacity)
-    copied = jnp.where((block_source >= 0)[:, None], blocks_before[jnp.maximum(block_source, 0)], UNWRITTEN)
-    flat_blocks = blocks_before.at[block_target].set(copied, mode="drop")
-    refcount = maps.refcount.at[jnp.where((block_target < block_capacity)[:, None] & (copied >= 0), copied,
-                                          capacity)].add(1, mode="drop")
-    block_refcount = (maps.block_refcount.at[jnp.where(placed_block & (old_blocks >= 0), old_blocks, block_capacity)]
-                      .add(-1, mode="drop").at[granted_block].add(1, mode="drop"))
-    # A shared block every holder of which made its own copy is free now: its tiles lose its reference.
-    freed = (maps.block_refcount > 0) & (block_refcount == 0)
-    refcount = refcount.at[jnp.where(freed[:, None] & (blocks_before >= 0), blocks_before, capacity)].add(
-        -1, mode="drop")
-    new_blocks = jnp.where(placed_block, granted_block, old_blocks).reshape(n, kbb)
-    particle = jnp.arange(n)[:, None, None]
-    directory = maps.directory.at[particle, jnp.where(block_rows < dy, block_rows, dy)[:, :, None],
-                                  block_cols[:, None, :]].set(new_blocks.reshape(n, kb, kb), mode="drop")
-
-    # Then tiles: copies of the replaced tiles (or fresh ones) into their new slots, which the
-    # particle's own blocks now point at.
-    requests = jnp.nonzero(placed, size=m, fill_value=n * kk)[0]
-    source = jnp.concatenate([old_slots, jnp.full((1,), UNWRITTEN, old_slots.dtype)])[requests]
-    target = jnp.where(requests < n * kk, maps.free_slots, capacity)
-    logodds = maps.logodds.at[target].set(_tile_values(maps.logodds, source, 0.0), mode="drop")
-    hit_dist2 = maps.hit_dist2.at[target].set(_tile_values(maps.hit_dist2, source, FAR), mode="drop")
-    refcount = (refcount.at[jnp.where(placed & (old_slots >= 0), old_slots, capacity)].add(-1, mode="drop")
-                .at[granted].add(1, mode="drop"))
-    writer_block = jnp.take_along_axis(new_blocks, tile_block, axis=1).reshape(-1)
-    flat_blocks = flat_blocks.at[jnp.where(placed, writer_block, block_capacity), in_block.reshape(-1)].set(
-        granted, mode="drop")
-
-    # Pool index of every updated cell: the slot of its tile (the particle's own, after the
-    # copies above), or the pool's size (dropped) where its tile got no slot.
-    new_slots = jnp.where(placed, granted, old_slots)
-    writable = (owned.reshape(-1) & fits) | placed
-    writable_slot = jnp.where(writable & jnp.repeat(active, kk), new_slots, capacity).reshape(n, kk)
-    writable_slot = jnp.concatenate([writable_slot, jnp.full((n, 1), capacity, jnp.int32)], axis=1).reshape(-1)
-
-    def pool_index(tile, place):
-        slot = writable_slot[tile]
-        return jnp.where(slot < capacity, slot * (t * t) + place, capacity * t * t)
-
-    flat_logodds, flat_field = update_cells(
-        logodds.reshape(-1), hit_dist2.reshape(-1), pool_index(free_tile, free_within),
-        pool_index(end_tile, end_within), pool_index(splat_tile, splat_within), d2, params)
+    window = _window_shape(spec, max_insert_range, field_radius)
+    active = jnp.ones((poses.shape[0],), bool) if active is None else jnp.asarray(active, bool)
+    targets = _scan_targets(spec, window, poses, ranges, sensor, params, max_insert_range, field_radius)
+    layout = _window_layout(spec, window, targets.window_start)
+    pages = _window_pages(spec, maps, layout)
+    grants = _grant_slots(maps, _requests(targets.touched, active, layout, pages))
+    blocks = _copy_blocks(spec, maps, layout, pages, grants)
+    tiles = _copy_tiles(maps, layout, pages, grants, blocks)
+    logodds, hit_dist2 = _write_cells(spec, tiles, targets, pages, grants, active, params, field_radius)
     new_maps = PagedMaps(
-        directory=directory,
-        blocks=flat_blocks.reshape(maps.blocks.shape),
-        block_refcount=block_refcount,
-        logodds=flat_logodds.reshape(logodds.shape),
-        hit_dist2=flat_field.reshape(hit_dist2.shape),
-        refcount=refcount,
-        free_slots=first_free(refcount, m),
-        free_blocks=first_free(block_refcount, mb),
-        overflow=~fits,
-        peak_request=jnp.maximum(maps.peak_request, num_requests),
-        peak_block_request=jnp.maximum(maps.peak_block_request, num_block_requests),
+        directory=blocks.directory,
+        blocks=tiles.entries.reshape(maps.blocks.shape),
+        block_refcount=blocks.block_refcount,
+        logodds=logodds,
+        hit_dist2=hit_dist2,
+        refcount=tiles.refcount,
+        free_slots=first_free(tiles.refcount, maps.max_new_tiles),
+        free_blocks=first_free(blocks.block_refcount, maps.pool_size.max_new_blocks),
+        overflow=~grants.fits,
+        peak_request=jnp.maximum(maps.peak_request, grants.tile_count),
+        peak_block_request=jnp.maximum(maps.peak_block_request, grants.block_count),
     )
-    return new_maps, outside.astype(jnp.int32)
+    return new_maps, targets.outside.astype(jnp.int32)
 
 
 def resample(maps: PagedMaps, ancestors: Int[Array, "N2"]) -> PagedMaps:
@@ -626,3 +859,174 @@ def to_dense(spec: PagedGridSpec, maps: PagedMaps, particle: int) -> tuple[np.nd
     box = GridSpec(((r1 - r0) * t, (c1 - c0) * t), spec.resolution,
                    (spec.origin[0] + c0 * t * spec.resolution, spec.origin[1] + r0 * t * spec.resolution))
     return dense(logodds_pool, 0.0), dense(field_pool, FAR), box
+
+
+def check_invariants(spec: PagedGridSpec, maps: PagedMaps, before_insertion: PagedMaps | None = None) -> None:
+    """Check on the host that ``maps`` are consistent; raise AssertionError naming the first
+    broken invariant (ValueError if the arrays are not shaped as ``spec``'s maps are).
+
+    These hold after :func:`empty`, :func:`insert_scans`, :func:`resample` and :func:`grow`:
+
+    1. *directory entries*: every directory entry is :data:`UNWRITTEN` or a block slot (0 <= b < B).
+    2. *block references*: ``block_refcount[b]`` is the number of directory entries equal to b
+       (a block is *in use* when it is > 0; a free block slot is in no directory).
+    3. *block entries*: every entry of a block in use is :data:`UNWRITTEN` or a tile slot
+       (0 <= c < C). A free block's entries are stale: never read, overwritten whole when granted.
+    4. *tile references*: ``refcount[c]`` is the number of entries of blocks in use equal to c
+       (blocks, not particles: particles sharing a block share its tiles' references); a free
+       tile slot is in no block in use. A free tile's cells are stale likewise.
+    5. *one place per block*: a block in use sits at the same directory entry (row, col) in every
+       directory that points at it (a copy is made for the place of the block it replaces).
+    6. *tiles beyond the grid*: the entries of a block in use for tiles past the virtual grid's
+       last row or column (where the block size does not divide the tile counts) are
+       :data:`UNWRITTEN`.
+    7. *one place per tile*: every block entry that points at a tile slot stands for the same
+       (row, col) tile of the virtual grid.
+    8. *free lists*: ``free_slots`` is the first M slots of refcount 0 in order, padded with C;
+       ``free_blocks`` the first MB of block refcount 0, padded with B.
+    9. *peak requests*: ``peak_request`` and ``peak_block_request`` are not negative.
+
+    With ``before_insertion``, the maps the :func:`insert_scans` call that gave ``maps`` started
+    from (not across a :func:`resample`, which keeps ``overflow`` as it was), also:
+
+    10. *peaks never fall*: each peak request is at least its value before.
+    11. *peaks cover the growth*: the tiles (blocks) in use grew by at most ``peak_request``
+        (``peak_block_request``): every slot newly in use was requested.
+    12. *all or nothing*: with ``overflow`` set, the directories, pools, reference counts and
+        free lists are exactly those before, and a request did not fit: ``peak_request`` exceeds
+        M or the free tile slots before, or ``peak_block_request`` MB or the free block slots.
+    """
+    _check_shapes(spec, maps)
+    blocks_in_use = _check_references(maps)
+    _check_places(spec, maps, blocks_in_use)
+    _check_free_lists_and_peaks(maps)
+    if before_insertion is not None:
+        _check_insertion(spec, before_insertion, maps)
+
+
+def _broken(invariant: str, detail: str):
+    """Fail with the invariant's name (as :func:`check_invariants` lists it) and what broke it."""
+    raise AssertionError(f"paged maps: invariant '{invariant}' is broken: {detail}")
+
+
+def _check_shapes(spec: PagedGridSpec, maps: PagedMaps) -> None:
+    """ValueError unless every array of ``maps`` has the shape and type of ``spec``'s maps."""
+    n, t, s = maps.directory.shape[0], spec.tile_size, spec.block_size
+    capacity, block_capacity = maps.refcount.shape[0], maps.block_refcount.shape[0]
+    expected = {"directory": ((n,) + spec.num_blocks, np.int32), "blocks": ((block_capacity, s, s), np.int32),
+                "block_refcount": ((block_capacity,), np.int32), "logodds": ((capacity, t, t), LOGODDS_DTYPE),
+                "hit_dist2": ((capacity, t, t), np.uint8), "refcount": ((capacity,), np.int32),
+                "free_slots": ((maps.free_slots.shape[0],), np.int32),
+                "free_blocks": ((maps.free_blocks.shape[0],), np.int32), "overflow": ((), np.bool_),
+                "peak_request": ((), np.int32), "peak_block_request": ((), np.int32)}
+    for name, (shape, dtype) in expected.items():
+        value = getattr(maps, name)
+        if tuple(value.shape) != shape or np.dtype(value.dtype) != np.dtype(dtype):
+            raise ValueError(f"paged maps: {name} is {np.dtype(value.dtype)}{tuple(value.shape)}, expected "
+                             f"{np.dtype(dtype)}{shape} for {spec}")
+    if maps.max_new_tiles > capacity or maps.pool_size.max_new_blocks > block_capacity:
+        raise ValueError(f"paged maps: free lists longer than their pools ({maps.pool_size})")
+
+
+def _check_references(maps: PagedMaps) -> np.ndarray:
+    """Invariants 1 to 4: entries in range, reference counts equal to a recount. Returns the
+    block slots in use."""
+    directory, blocks = np.asarray(maps.directory), np.asarray(maps.blocks)
+    refcount, block_refcount = np.asarray(maps.refcount), np.asarray(maps.block_refcount)
+    capacity, block_capacity = refcount.size, block_refcount.size
+    bad = (directory < UNWRITTEN) | (directory >= block_capacity)
+    if bad.any():
+        _broken("directory entries", f"{np.count_nonzero(bad)} entries neither UNWRITTEN nor in [0, "
+                f"{block_capacity}), e.g. {directory[bad][:4]}")
+    counted = np.bincount(directory[directory >= 0], minlength=block_capacity)
+    if not np.array_equal(block_refcount, counted):
+        wrong = np.flatnonzero(block_refcount != counted)[:4]
+        _broken("block references", f"block slots {wrong} have refcount {block_refcount[wrong]}, but "
+                f"{counted[wrong]} directory entries point at them")
+    in_use = np.flatnonzero(counted > 0)
+    entries = blocks[in_use]
+    bad = (entries < UNWRITTEN) | (entries >= capacity)
+    if bad.any():
+        _broken("block entries", f"{np.count_nonzero(bad)} entries of blocks in use neither UNWRITTEN nor in "
+                f"[0, {capacity}), e.g. {entries[bad][:4]}")
+    counted = np.bincount(entries[entries >= 0], minlength=capacity)
+    if not np.array_equal(refcount, counted):
+        wrong = np.flatnonzero(refcount != counted)[:4]
+        _broken("tile references", f"tile slots {wrong} have refcount {refcount[wrong]}, but {counted[wrong]} "
+                "entries of blocks in use point at them")
+    return in_use
+
+
+def _one_place_each(slots: np.ndarray, places: np.ndarray, num_slots: int) -> np.ndarray:
+    """Per slot: every occurrence of it in ``slots`` (>= 0) comes with the same value of ``places``."""
+    used = slots >= 0
+    low, high = np.full(num_slots, np.iinfo(np.int64).max), np.full(num_slots, -1)
+    np.minimum.at(low, slots[used], places[used])
+    np.maximum.at(high, slots[used], places[used])
+    return (high < 0) | (low == high)
+
+
+def _check_places(spec: PagedGridSpec, maps: PagedMaps, in_use: np.ndarray) -> None:
+    """Invariants 5 to 7: each block and tile slot in use stands for one place of the grid."""
+    directory, entries = np.asarray(maps.directory), np.asarray(maps.blocks)[in_use]
+    s, (ty, tx), (dy, dx) = spec.block_size, spec.num_tiles, spec.num_blocks
+    place = np.broadcast_to(np.arange(dy * dx).reshape(dy, dx), directory.shape)
+    one_place = _one_place_each(directory, place, maps.block_refcount.shape[0])
+    if not one_place.all():
+        _broken("one place per block", f"block slots {np.flatnonzero(~one_place)[:4]} sit at different "
+                "directory entries in different directories")
+    block_place = np.zeros(maps.block_refcount.shape[0], np.int64)
+    block_place[directory[directory >= 0]] = place[directory >= 0]
+    tile_rows = (block_place[in_use] // dx)[:, None, None] * s + np.arange(s)[None, :, None]  # (U, S, 1)
+    tile_cols = (block_place[in_use] % dx)[:, None, None] * s + np.arange(s)[None, None, :]  # (U, 1, S)
+    bad = ((tile_rows >= ty) | (tile_cols >= tx)) & (entries != UNWRITTEN)
+    if bad.any():
+        _broken("tiles beyond the grid", f"blocks in use point at tile slots {entries[bad][:4]} for tiles past the "
+                "virtual grid's edge")
+    one_place = _one_place_each(entries, np.broadcast_to(tile_rows * (dx * s) + tile_cols, entries.shape),
+                                maps.capacity)
+    if not one_place.all():
+        _broken("one place per tile", f"tile slots {np.flatnonzero(~one_place)[:4]} stand for different tiles of "
+                "the virtual grid in different block entries")
+
+
+def _check_free_lists_and_peaks(maps: PagedMaps) -> None:
+    """Invariants 8 and 9."""
+    for name, free, refcount in (("free_slots", maps.free_slots, maps.refcount),
+                                 ("free_blocks", maps.free_blocks, maps.block_refcount)):
+        refcount = np.asarray(refcount)
+        expected = np.flatnonzero(refcount == 0)[:free.shape[0]]
+        expected = np.concatenate([expected, np.full(free.shape[0] - expected.size, refcount.size)])
+        if not np.array_equal(np.asarray(free), expected):
+            _broken("free lists", f"{name} is {np.asarray(free)}, but the first slots of refcount 0 are {expected}")
+    peaks = int(maps.peak_request), int(maps.peak_block_request)
+    if min(peaks) < 0:
+        _broken("peak requests", f"negative peak requests {peaks}")
+
+
+def _check_insertion(spec: PagedGridSpec, before: PagedMaps, after: PagedMaps) -> None:
+    """Invariants 10 to 12 of :func:`check_invariants`, across one insertion."""
+    _check_shapes(spec, before)
+    if before.pool_size != after.pool_size or before.directory.shape != after.directory.shape:
+        raise ValueError(f"paged maps: an insertion keeps the pools' sizes and the particles, but "
+                         f"{before.pool_size} became {after.pool_size}")
+    peaks = int(after.peak_request), int(after.peak_block_request)
+    peaks_before = int(before.peak_request), int(before.peak_block_request)
+    if peaks[0] < peaks_before[0] or peaks[1] < peaks_before[1]:
+        _broken("peaks never fall", f"peak requests (tiles, blocks) {peaks_before} fell to {peaks}")
+    growth = (int(tiles_in_use(after)) - int(tiles_in_use(before)),
+              int(blocks_in_use(after)) - int(blocks_in_use(before)))
+    if growth[0] > peaks[0] or growth[1] > peaks[1]:
+        _broken("peaks cover the growth", f"(tiles, blocks) in use grew by {growth}, more than the peak requests "
+                f"{peaks}")
+    if bool(after.overflow):
+        for name in ("directory", "blocks", "block_refcount", "logodds", "hit_dist2", "refcount", "free_slots",
+                     "free_blocks"):
+            if not np.array_equal(np.asarray(getattr(after, name)), np.asarray(getattr(before, name))):
+                _broken("all or nothing", f"overflow is set, but the insertion changed {name}")
+        _, max_new_tiles, _, max_new_blocks = after.pool_size
+        free_tiles = int(np.count_nonzero(np.asarray(before.refcount) == 0))
+        free_blocks = int(np.count_nonzero(np.asarray(before.block_refcount) == 0))
+        if peaks[0] <= min(max_new_tiles, free_tiles) and peaks[1] <= min(max_new_blocks, free_blocks):
+            _broken("all or nothing", f"overflow is set, but peak requests {peaks} fit (at most "
+                    f"{min(max_new_tiles, free_tiles)} tiles and {min(max_new_blocks, free_blocks)} blocks)")

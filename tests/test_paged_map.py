@@ -1,6 +1,8 @@
 """Paged maps against a dense NumPy-checked reference: identical log-odds and field in every
-cell through random insertions and resamplings; reference counts against a recount of the
-directories and blocks; copy on write of blocks and tiles; inactive particles; pool growth."""
+cell through random insertions and resamplings; the pools' invariants (``check_invariants``:
+reference counts against a recount of the directories and blocks, free lists, all or nothing)
+after every step, and a corrupted pool caught; copy on write of blocks and tiles, as the module
+docstring's worked example tells it; inactive particles; pool growth."""
 
 from __future__ import annotations
 
@@ -59,7 +61,9 @@ def test_paged_maps_equal_dense_maps_through_insertions_and_resamplings(seed):
         poses, ranges = random_scan(rng, N)
         if step % 3 == 1:  # particles close together: their windows overlap and share tiles
             poses = poses.at[1:].set(poses[0] + jnp.asarray(rng.normal(0, 0.2, (N - 1, 3)), jnp.float32))
+        before = maps
         maps, outside = insert_paged(SPEC, maps, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+        P.check_invariants(SPEC, maps, before_insertion=before)
         dense, dense_outside = insert_dense(SPEC.grid, dense, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
         np.testing.assert_array_equal(np.asarray(outside), np.asarray(dense_outside))
         if step % 2 == 1:
@@ -68,23 +72,7 @@ def test_paged_maps_equal_dense_maps_through_insertions_and_resamplings(seed):
             dense = jax.tree.map(lambda a: a[ancestors], dense)
         assert not bool(maps.overflow)
         assert_same(maps, dense)
-        assert_counts_match_the_maps(maps)
-
-
-def assert_counts_match_the_maps(maps):
-    """Block references are the directories' entries, tile references the entries of the blocks
-    in use, and the free lists the first slots with no reference."""
-    directory, blocks = np.asarray(maps.directory), np.asarray(maps.blocks)
-    block_counts = np.bincount(directory[directory >= 0], minlength=blocks.shape[0])
-    np.testing.assert_array_equal(np.asarray(maps.block_refcount), block_counts)
-    entries = blocks[block_counts > 0]
-    counts = np.bincount(entries[entries >= 0], minlength=maps.capacity)
-    np.testing.assert_array_equal(np.asarray(maps.refcount), counts)
-    for got, used in ((maps.free_slots, counts), (maps.free_blocks, block_counts)):
-        free = np.flatnonzero(used == 0)[:got.shape[0]]
-        expected = np.full(got.shape[0], used.shape[0])
-        expected[:free.size] = free
-        np.testing.assert_array_equal(np.asarray(got), expected)
+        P.check_invariants(SPEC, maps)
 
 
 def test_writing_a_shared_tile_copies_it_for_the_writer_only():
@@ -95,11 +83,12 @@ def test_writing_a_shared_tile_copies_it_for_the_writer_only():
     maps = resample_paged(maps, jnp.array([0, 0], jnp.int32))  # both particles now share particle 0's map
     shared = int(P.tiles_in_use(maps))
     np.testing.assert_array_equal(np.asarray(maps.directory[0]), np.asarray(maps.directory[1]))
-    assert_counts_match_the_maps(maps)
+    P.check_invariants(SPEC, maps)
     before = dense_view(maps, 0)
     # Particle 1 alone inserts a scan near particle 0's; particle 0's scan lies outside the grid.
     nearby = jnp.stack([jnp.array([100.0, 100.0, 0.0]), poses[0] + jnp.array([0.3, -0.2, 0.5])])
     after_insert, outside = insert_paged(SPEC, maps, nearby, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+    P.check_invariants(SPEC, after_insert, before_insertion=maps)
     assert int(outside[0]) > 0
     after = dense_view(after_insert, 0)
     np.testing.assert_array_equal(after[0], before[0])  # particle 0's map did not change
@@ -108,7 +97,6 @@ def test_writing_a_shared_tile_copies_it_for_the_writer_only():
     assert changed.any()  # particle 1 got copies of the tiles it wrote
     assert (np.asarray(after_insert.directory[1]) != np.asarray(after_insert.directory[0])).any()  # and blocks
     assert int(P.tiles_in_use(after_insert)) > shared
-    assert_counts_match_the_maps(after_insert)
 
 
 @pytest.mark.parametrize("limit", ["capacity", "max_new_tiles", "max_new_blocks"])
@@ -124,9 +112,7 @@ def test_a_small_pool_overflows_and_a_grown_one_gives_the_same_maps(limit):
     attempt, _ = insert_paged(SPEC, state, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
     assert bool(attempt.overflow)
     # All or nothing: the maps are as they were (and the host can insert again after growing).
-    for name in ("directory", "blocks", "block_refcount", "logodds", "hit_dist2", "refcount", "free_slots",
-                 "free_blocks"):
-        np.testing.assert_array_equal(np.asarray(getattr(attempt, name)), np.asarray(getattr(state, name)), name)
+    P.check_invariants(SPEC, attempt, before_insertion=state)
     assert int(attempt.peak_request) == needed
     # The host grows the pool and repeats the step from the state before it.
     grown = P.grow(SPEC, state, P.PoolSize(max(needed + 10, state.capacity), needed + 10, 400, 400))
@@ -135,7 +121,7 @@ def test_a_small_pool_overflows_and_a_grown_one_gives_the_same_maps(limit):
     for n in range(N):
         for a, b in zip(dense_view(again, n), dense_view(big, n)):
             np.testing.assert_array_equal(a, b)
-    assert_counts_match_the_maps(again)
+    P.check_invariants(SPEC, again)
     with pytest.raises(ValueError, match="smaller"):
         P.grow(SPEC, grown, P.PoolSize(5, 5, 400, 400))
 
@@ -208,7 +194,7 @@ def test_inactive_particles_keep_their_maps_and_take_no_tiles():
         for got, want in zip(dense_view(part, n), expected):
             np.testing.assert_array_equal(got, want, err_msg=f"particle {n}")
     assert int(P.tiles_in_use(part)) < int(P.tiles_in_use(full)) and int(P.blocks_in_use(part)) < int(P.blocks_in_use(full))
-    assert_counts_match_the_maps(part)
+    P.check_invariants(SPEC, part, before_insertion=start)
 
 
 def test_a_dropped_block_frees_the_tiles_only_it_held():
@@ -217,6 +203,164 @@ def test_a_dropped_block_frees_the_tiles_only_it_held():
     maps, _ = insert_paged(SPEC, P.empty(SPEC, 2, 600), poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
     before = int(P.tiles_in_use(maps))
     only_first = resample_paged(maps, jnp.array([0, 0], jnp.int32))  # particle 1's own tiles and blocks go
-    assert_counts_match_the_maps(only_first)
+    P.check_invariants(SPEC, only_first)
     np.testing.assert_array_equal(np.asarray(only_first.directory[0]), np.asarray(only_first.directory[1]))
     assert int(P.tiles_in_use(only_first)) == int(np.count_nonzero(P.page_table(SPEC, maps, 0) >= 0)) < before
+
+
+def test_copy_on_write_as_the_module_docstring_tells_it():
+    """Three particles share one map; particle 2 alone writes near it. Its copies of the shared
+    blocks point at the same tiles (one more reference each) except the tiles it wrote, which
+    are copies of their own; the others' maps are unchanged. Writing again copies nothing, and
+    keeping only particle 2's descendants frees the blocks and tiles it replaced."""
+    rng = np.random.default_rng(19)
+    poses, ranges = random_scan(rng, 3)
+    only_0 = jnp.array([True, False, False])
+    first, _ = insert_paged(SPEC, P.empty(SPEC, 3, 300), poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS, only_0)
+    shared = resample_paged(first, jnp.zeros((3,), jnp.int32))
+    P.check_invariants(SPEC, shared)
+    moved = poses.at[2].set(poses[0] + jnp.array([0.2, -0.1, 0.3]))
+    only_2 = jnp.array([False, False, True])
+    after, _ = insert_paged(SPEC, shared, moved, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS, only_2)
+    P.check_invariants(SPEC, after, before_insertion=shared)
+    for n in (0, 1):
+        np.testing.assert_array_equal(np.asarray(after.directory[n]), np.asarray(shared.directory[n]))
+        for got, want in zip(dense_view(after, n), dense_view(shared, n)):
+            np.testing.assert_array_equal(got, want)
+    old_dir, new_dir = np.asarray(shared.directory[2]), np.asarray(after.directory[2])
+    blocks_before, blocks_after = np.asarray(shared.blocks), np.asarray(after.blocks)
+    refs_before, refs_after = np.asarray(shared.refcount), np.asarray(after.refcount)
+    block_refs_before, block_refs_after = np.asarray(shared.block_refcount), np.asarray(after.block_refcount)
+    copied_blocks = [(o, w) for o, w in zip(old_dir.ravel(), new_dir.ravel()) if o >= 0 and o != w]
+    assert copied_blocks, "particle 2 wrote no shared block"
+    kept_tiles, replaced_tiles = [], []  # (old tile slot, new tile slot) of the copied blocks' entries
+    for old, new in copied_blocks:
+        assert (block_refs_before[old], block_refs_after[old], block_refs_after[new]) == (3, 2, 1)
+        for old_tile, new_tile in zip(blocks_before[old].ravel(), blocks_after[new].ravel()):
+            if old_tile >= 0:
+                (kept_tiles if new_tile == old_tile else replaced_tiles).append((old_tile, new_tile))
+    assert kept_tiles and replaced_tiles
+    for old_tile, _ in kept_tiles:  # block 5 and its copy 7 both point at it
+        assert (refs_before[old_tile], refs_after[old_tile]) == (1, 2)
+    for old_tile, new_tile in replaced_tiles:  # tile 9 stays block 5's, tile 12 is block 7's
+        assert (refs_before[old_tile], refs_after[old_tile], refs_after[new_tile]) == (1, 1, 1)
+    # Writing the same scan again: block 7 and tile 12 are particle 2's own, written in place.
+    again, _ = insert_paged(SPEC, after, moved, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS, only_2)
+    np.testing.assert_array_equal(np.asarray(again.directory), np.asarray(after.directory))
+    np.testing.assert_array_equal(np.asarray(again.blocks), np.asarray(after.blocks))
+    np.testing.assert_array_equal(np.asarray(again.refcount), np.asarray(after.refcount))
+    # Keeping only particle 2's descendants: block 5 and tile 9 are free, the kept tiles back to 1.
+    descendants = resample_paged(after, jnp.full((3,), 2, jnp.int32))
+    P.check_invariants(SPEC, descendants)
+    refs = np.asarray(descendants.refcount)
+    assert all(np.asarray(descendants.block_refcount)[old] == 0 for old, _ in copied_blocks)
+    assert all(refs[old_tile] == 0 and refs[new_tile] == 1 for old_tile, new_tile in replaced_tiles)
+    assert all(refs[old_tile] == 1 for old_tile, _ in kept_tiles)
+
+
+@pytest.fixture(scope="module")
+def cow_maps():
+    """Four particles' maps after an insertion, a resampling to two ancestors and another
+    insertion (shared, copied and fresh blocks and tiles), and the maps before that insertion."""
+    rng = np.random.default_rng(23)
+    poses, ranges = random_scan(rng, N)
+    maps, _ = insert_paged(SPEC, P.empty(SPEC, N, 600), poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+    before = resample_paged(maps, jnp.array([0, 0, 1, 1], jnp.int32))
+    moved = poses[jnp.array([0, 0, 1, 1])] + jnp.asarray(rng.normal(0, 0.3, (N, 3)), jnp.float32)
+    after, _ = insert_paged(SPEC, before, moved, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+    P.check_invariants(SPEC, after, before_insertion=before)
+    return before, after
+
+
+def recounted(maps):
+    """``maps`` with the reference counts and free lists recomputed from the directories and
+    blocks: a corruption of where things point then breaks only the invariant it is meant to."""
+    directory, blocks = np.asarray(maps.directory), np.asarray(maps.blocks)
+    block_refcount = np.bincount(directory[directory >= 0], minlength=blocks.shape[0]).astype(np.int32)
+    entries = blocks[block_refcount > 0]
+    refcount = np.bincount(entries[entries >= 0], minlength=maps.capacity).astype(np.int32)
+    return maps._replace(block_refcount=jnp.asarray(block_refcount), refcount=jnp.asarray(refcount),
+                         free_slots=P.first_free(jnp.asarray(refcount), maps.max_new_tiles),
+                         free_blocks=P.first_free(jnp.asarray(block_refcount), maps.pool_size.max_new_blocks))
+
+
+def _set(maps, name, index, value):
+    return maps._replace(**{name: getattr(maps, name).at[index].set(value)})
+
+
+def _in_use(maps):
+    """A tile slot and a block slot in use, and the directory position (particle, row, col) of that block."""
+    directory = np.asarray(maps.directory)
+    particle, row, col = np.argwhere(directory >= 0)[0]
+    block = directory[particle, row, col]
+    tile = np.asarray(maps.blocks[block])[np.asarray(maps.blocks[block]) >= 0][0]
+    return int(tile), int(block), (int(particle), int(row), int(col))
+
+
+def _moved_block(maps):
+    """A directory pointing at a block in use from another position."""
+    _, block, (particle, row, col) = _in_use(maps)
+    directory = np.asarray(maps.directory)
+    other = np.argwhere((directory[particle] != block))[0]
+    return recounted(_set(maps, "directory", (particle, other[0], other[1]), block))
+
+
+def _moved_tile(maps):
+    """A block in use pointing at one of its tiles from a second entry."""
+    _, block, _ = _in_use(maps)
+    entries = np.asarray(maps.blocks[block]).ravel()
+    tile, unwritten = entries[entries >= 0][0], np.flatnonzero(entries < 0)[0]
+    return recounted(_set(maps, "blocks", (block,) + divmod(int(unwritten), SPEC.block_size), tile))
+
+
+def _tile_beyond_the_grid():
+    """A block at the directory's last corner pointing at a tile past the grid's edge."""
+    spec = P.PagedGridSpec(0.05, 16, (10, 10), (-4.0, -4.0), 4)  # 3 x 3 blocks: tiles 10 and 11 are beyond
+    maps = _set(P.empty(spec, 1, 10, block_capacity=4), "directory", (0, 2, 2), 0)
+    return spec, recounted(_set(maps, "blocks", (0, 3, 3), 0))
+
+
+CORRUPTIONS = {
+    "a tile refcount one too high": ("tile references",
+                                     lambda m: _set(m, "refcount", _in_use(m)[0], m.refcount[_in_use(m)[0]] + 1)),
+    "a tile refcount one too low": ("tile references",
+                                    lambda m: _set(m, "refcount", _in_use(m)[0], m.refcount[_in_use(m)[0]] - 1)),
+    "a block refcount one too high": ("block references",
+                                      lambda m: _set(m, "block_refcount", _in_use(m)[1],
+                                                     m.block_refcount[_in_use(m)[1]] + 1)),
+    "a block pointing at a free tile": ("tile references",
+                                        lambda m: _set(m, "blocks", (_in_use(m)[1], 0, 0), m.free_slots[0])),
+    "a directory entry past the block pool": ("directory entries",
+                                              lambda m: _set(m, "directory", _in_use(m)[2], m.block_refcount.shape[0])),
+    "a block entry below UNWRITTEN": ("block entries", lambda m: _set(m, "blocks", (_in_use(m)[1], 0, 0), -2)),
+    "a free list out of order": ("free lists", lambda m: m._replace(free_slots=m.free_slots[::-1])),
+    "a block in two places": ("one place per block", _moved_block),
+    "a tile in two places": ("one place per tile", _moved_tile),
+    "a negative peak": ("peak requests", lambda m: m._replace(peak_block_request=jnp.int32(-1))),
+}
+
+
+@pytest.mark.parametrize("corruption", list(CORRUPTIONS))
+def test_the_checker_names_the_invariant_a_corrupted_pool_breaks(cow_maps, corruption):
+    _, maps = cow_maps
+    invariant, corrupt = CORRUPTIONS[corruption]
+    with pytest.raises(AssertionError, match=f"invariant '{invariant}'"):
+        P.check_invariants(SPEC, corrupt(maps))
+
+
+def test_the_checker_catches_a_broken_insertion(cow_maps):
+    before, after = cow_maps
+    spec, beyond = _tile_beyond_the_grid()
+    with pytest.raises(AssertionError, match="'tiles beyond the grid'"):
+        P.check_invariants(spec, beyond)
+    with pytest.raises(AssertionError, match="'all or nothing'"):  # an overflow that wrote
+        P.check_invariants(SPEC, after._replace(overflow=jnp.bool_(True)), before_insertion=before)
+    with pytest.raises(AssertionError, match="'all or nothing'"):  # an overflow of requests that fit
+        P.check_invariants(SPEC, before._replace(overflow=jnp.bool_(True)), before_insertion=before)
+    with pytest.raises(AssertionError, match="'peaks never fall'"):
+        P.check_invariants(SPEC, after._replace(peak_request=before.peak_request - 1), before_insertion=before)
+    no_peaks = {"peak_request": jnp.int32(0), "peak_block_request": jnp.int32(0)}
+    with pytest.raises(AssertionError, match="'peaks cover the growth'"):
+        P.check_invariants(SPEC, after._replace(**no_peaks), before_insertion=before._replace(**no_peaks))
+    with pytest.raises(ValueError, match="logodds"):
+        P.check_invariants(SPEC, after._replace(logodds=after.logodds.astype(jnp.float32)))
