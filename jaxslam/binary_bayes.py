@@ -50,12 +50,15 @@ def predict_n(p, p_stay, p_enter, steps):
     return s + (p - s) * lam**steps
 
 
+@jax.custom_jvp
 def update(p_prior, log_lik_true, log_lik_false):
     """Measurement update in probability space, from log-likelihoods of the two states.
 
     Returns ``(posterior, log_evidence)`` with posterior = L1 p / (L1 p + L0 (1 - p)) and
     log_evidence = log(L1 p + L0 (1 - p)) (Avots et al., Eqs. 27-28 and 33). Computed in
-    log space, so that tiny likelihoods neither underflow nor produce NaN.
+    log space, so that tiny likelihoods neither underflow nor produce NaN. The derivatives are
+    written out (:func:`_update_jvp`): through ``log(p)`` autodiff would give NaN at a belief of
+    exactly 0 or 1 (a door known not to move), where the update's derivatives are finite.
     """
     a = log_lik_true + jnp.log(p_prior)
     b = log_lik_false + jnp.log1p(-p_prior)
@@ -63,3 +66,19 @@ def update(p_prior, log_lik_true, log_lik_false):
     posterior = jnp.exp(a - jnp.where(jnp.isfinite(log_evidence), log_evidence, 0.0))
     posterior = jnp.where(jnp.isfinite(log_evidence), posterior, p_prior)
     return posterior, log_evidence
+
+
+@update.defjvp
+def _update_jvp(primals, tangents):
+    p, l1, l0 = primals
+    dp, dl1, dl0 = tangents
+    posterior, log_evidence = update(p, l1, l0)
+    finite = jnp.isfinite(log_evidence)
+    ev = jnp.where(finite, log_evidence, 0.0)
+    # L1 / ev and L0 / ev, finite whenever the evidence is (p at 0 or 1 included).
+    r1 = jnp.where(finite, jnp.exp(jnp.where(finite, l1 - ev, 0.0)), 0.0)
+    r0 = jnp.where(finite, jnp.exp(jnp.where(finite, l0 - ev, 0.0)), 0.0)
+    spread = posterior * (1.0 - posterior)
+    d_log_evidence = (r1 - r0) * dp + posterior * dl1 + (1.0 - posterior) * dl0
+    d_posterior = jnp.where(finite, r1 * r0 * dp + spread * (dl1 - dl0), dp)
+    return (posterior, log_evidence), (d_posterior, jnp.where(finite, d_log_evidence, 0.0))

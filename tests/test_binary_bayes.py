@@ -131,3 +131,25 @@ def test_update_is_the_door_weight_of_eq_33():
     post, ev = update(jnp.float32(p_plus), jnp.float32(np.log(0.6)), jnp.float32(np.log(0.15)))
     assert float(jnp.exp(ev)) == pytest.approx(0.6 * p_plus + 0.15 * (1 - p_plus), rel=1e-6)
     assert float(post) == pytest.approx(0.6 * p_plus / (0.6 * p_plus + 0.15 * (1 - p_plus)), rel=1e-6)
+
+
+@pytest.mark.parametrize("p", [0.0, 1.0, 0.3])
+def test_update_derivatives_are_finite_and_right_at_saturated_beliefs(p):
+    """A belief of exactly 0 or 1 (a door known not to move) has finite derivatives: checked
+    against central differences of the update written in NumPy (one-sided at the ends)."""
+    l1, l0, h = -1.0, -2.0, 1e-6
+
+    def reference(x):
+        ev = np.exp(x[1]) * x[0] + np.exp(x[2]) * (1.0 - x[0])
+        return np.array([np.exp(x[1]) * x[0] / ev, np.log(ev)])
+
+    for k in (0, 1):
+        grad = jax.grad(lambda *a: BB.update(*a)[k], argnums=(0, 1, 2))(
+            jnp.float32(p), jnp.float32(l1), jnp.float32(l0))
+        for i in range(3):
+            hi, lo = np.array([p, l1, l0]), np.array([p, l1, l0])
+            hi[i] = min(1.0, p + h) if i == 0 else hi[i] + h
+            lo[i] = max(0.0, p - h) if i == 0 else lo[i] - h
+            expected = (reference(hi)[k] - reference(lo)[k]) / (hi[i] - lo[i])
+            assert np.isfinite(float(grad[i]))
+            assert float(grad[i]) == pytest.approx(expected, abs=1e-4)
