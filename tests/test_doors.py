@@ -328,3 +328,23 @@ def test_the_experiment_harness_composes_the_library_filters():
     assert batch.position_error.shape == (2, inputs.motion.shape[0])
     with pytest.raises(ValueError, match="filter_kind"):
         door_harness.run_filter(key, inputs, truth, regions, door_map, sensor, params, config, "nope")
+
+
+def test_static_doors_have_finite_gradients():
+    """Doors known not to move (p(open|open) = 1, p(open|closed) = 0) saturate the beliefs at 0
+    or 1; the filter's value and every gradient stay finite (the update's derivatives are written
+    out, binary_bayes.update), with the untempered likelihood a fit uses."""
+    from jaxslam.sim.door_worlds import corridors_scenario, filter_settings
+
+    scenario = corridors_scenario(jax.random.key(0))
+    config, params = filter_settings(scenario, num_particles=64)
+    k = params.p_open_open.shape[0]
+    params = params._replace(p_open_open=jnp.ones(k), p_open_closed=jnp.zeros(k), likelihood_gain=jnp.float32(1.0))
+    inputs = jax.tree.map(lambda a: a[:30], mcl.log_inputs(scenario.log))
+    start = mcl.init_global(jax.random.key(1), scenario.start_regions, config.mcl, scenario.heading_range)
+    state = doors.init(start, scenario.door_map)
+    value, grads = jax.value_and_grad(lambda p: doors.filter(jax.random.key(2), state, inputs, scenario.door_map,
+                                                             scenario.log.sensor, p, config).marginal_loglik)(params)
+    assert np.isfinite(float(value))
+    for name, leaf in zip(("motion", "beam", "gain", "threshold", "p_open_open", "p_open_closed"), grads):
+        assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(leaf)), name
