@@ -114,6 +114,7 @@ def fit(
     transforms: dict[str, Transform] | None = None,
     initial_state: AdamState | None = None,
     progress: bool = True,
+    check_gradients: bool = True,
 ) -> FitResult:
     """Maximise ``objective_fn(key, params)`` (a log-likelihood estimate) with Adam.
 
@@ -133,10 +134,13 @@ def fit(
         given is POSITIVE.
       initial_state: an earlier fit's ``optimizer_state`` to resume it.
       progress: show a tqdm bar with the objective.
+      check_gradients: refuse trainable names whose gradient is zero by construction
+        (:func:`structurally_zero`; costs one trace of the gradient).
 
     Raises:
       ValueError: before any work, for an unknown trainable name, a starting value outside its
-        transform's domain (a zero noise under log), or ``num_steps < 1``.
+        transform's domain (a zero noise under log), a trainable name the objective's gradient
+        cannot reach (``check_gradients``), or ``num_steps < 1``.
       FitError: at the first step whose objective or gradient is not finite (a filter's step
         that lost every particle, or whose map pools overflowed: ``rbpf.filter``), naming the
         parameters whose gradient is not; its ``result`` is the fit up to the step before.
@@ -165,6 +169,12 @@ def fit(
 
     coords = {name: transforms[name].to_unconstrained_fn(jnp.asarray(leaves[i], jnp.float32))
               for name, i in index.items()}
+    if check_gradients:
+        dead = structurally_zero(lambda c: objective_fn(key, to_params(c)), coords)
+        if dead:
+            raise ValueError(f"the objective's gradient is zero by construction in {dead}: nothing can be learned "
+                             f"for them (they act through comparisons or a non-differentiable step, such as the "
+                             f"map insertion or a resampling threshold); leave them out of trainable")
     optimizer = adam(learning_rate)
     state = optimizer.init(coords) if initial_state is None else initial_state
 
@@ -193,6 +203,17 @@ def fit(
         coords, state = new_coords, new_state
         bar.set_postfix(objective=f"{float(value):.3f}")
     return FitResult(to_params(coords), {k: np.asarray(v) for k, v in history.items()}, state)
+
+
+def structurally_zero(objective_fn: Callable[[dict], Float[Array, ""]], coords: dict) -> list[str]:
+    """The names in ``coords`` (a dict of scalars) on which ``objective_fn(coords)`` cannot depend
+    differentiably: autodiff's gradient for them is the constant 0 of the traced program, not a
+    value that happens to be 0 (found by tracing the gradient, without running it)."""
+    from jax.extend.core import Literal
+
+    jaxpr = jax.make_jaxpr(jax.grad(objective_fn))(coords)
+    names = sorted(coords)  # a dict's leaves come in key order
+    return [name for name, var in zip(names, jaxpr.jaxpr.outvars) if isinstance(var, Literal)]
 
 
 class FitError(FloatingPointError):

@@ -89,3 +89,28 @@ def test_fit_refuses_bad_input_before_any_work():
     with pytest.raises(ValueError, match="num_steps must be a positive integer"):
         fit(jax.random.key(0), objective, params, num_steps=0)
 
+
+
+def test_fit_refuses_parameters_the_gradient_cannot_reach():
+    """The SLAM filter's map insertion and resampling threshold act through non-differentiable
+    steps: fit names them before any work instead of keeping them at their start silently."""
+    from jaxslam import rbpf
+    from jaxslam.config import RunSettings, SlamConfig
+    from jaxslam.learning import structurally_zero
+    from jaxslam.sim import office_scenario
+
+    log = office_scenario(jax.random.key(3)).log.subset(np.arange(30))
+    config = SlamConfig(num_particles=2, proposal="op", max_insert_range=10.0, beam_stride=8, map_extent=128.0,
+                        likelihood_lookup="bilinear")
+    prepared, _, _ = rbpf.prepare(log, config, RunSettings(linear_update=0.3, angular_update=0.25))
+
+    def objective(key, params):
+        return rbpf.filter(key, prepared, params, config).marginal_loglik
+
+    trainable = ["motion.srr", "likelihood.sigma", "insertion.logodds_occupied", "resample_threshold"]
+    with pytest.raises(ValueError, match=r"zero by construction in \['insertion.logodds_occupied', "
+                                         r"'resample_threshold'\]"):
+        fit(jax.random.key(0), objective, default_params(**{"likelihood.gain": 1.0}), num_steps=1,
+            trainable=trainable, progress=False)
+    # A gradient that is 0 in value but not by construction is not refused.
+    assert structurally_zero(lambda c: c["a"] * 0.0 + jnp.where(c["b"] > 0, 1.0, 0.0), {"a": 1.0, "b": 1.0}) == ["b"]
