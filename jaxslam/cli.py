@@ -542,8 +542,9 @@ def make_parser() -> argparse.ArgumentParser:
     p_map = sub.add_parser("map", help="build a map from a log (ROS 1/2 bag or CARMEN log)")
     p_map.add_argument("log", help="path of the log; the format is read from the file")
     p_map.add_argument("--scan-topic", help="bag topic of sensor_msgs/LaserScan (default /scan)")
-    p_map.add_argument("--odom-topic", help="bag topic of nav_msgs/Odometry (default /odom); where the bag has "
-                                            "none, the odometry is the --odom-frame -> --base-frame transform in /tf")
+    p_map.add_argument("--odom-topic", help="bag topic of nav_msgs/Odometry, or of transforms read as /tf is "
+                                            "(default /odom); where the bag has none, the odometry is the "
+                                            "--odom-frame -> --base-frame transform in /tf")
     p_map.add_argument("--odom-frame", help="bags: the odometry's frame in /tf, used where the bag has no odometry "
                                             "topic (default odom)")
     p_map.add_argument("--base-frame", help="bags: the robot's frame (default base_link): its pose in --odom-frame "
