@@ -5,7 +5,7 @@ What a bag needs: ``sensor_msgs/LaserScan`` on ``/scan`` and odometry, either
 base_link`` transform in ``/tf`` (a chain such as odom -> base_footprint -> base_link
 works where one link moves). The laser's mounting on the robot (the transform from
 the base frame to the scans' ``header.frame_id``) is read from ``/tf_static`` (from
-``/tf`` where a bag has no ``/tf_static``), through intermediate frames; a laser
+``/tf`` where ``/tf_static`` lacks it), through intermediate frames; a laser
 mounted upside down has its beam angles mirrored. Topics, frames and the mounting
 can be given instead: ``scan_topic``, ``odom_topic``, ``odom_frame``, ``base_frame``
 and ``laser_pose`` (``jaxslam map --scan-topic --odom-topic --odom-frame --base-frame
@@ -87,8 +87,8 @@ def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_
 
     The laser's mounting, ``SensorSpec.laser_pose`` (x, y, theta of the laser in
     ``base_frame``), is the transform from ``base_frame`` to the first scan's
-    ``header.frame_id`` in ``/tf_static`` (or in ``/tf`` where the bag has no ``/tf_static``;
-    its first value), composed through intermediate frames and projected on the plane. A
+    ``header.frame_id`` in ``/tf_static`` (or, where ``/tf_static`` does not reach that frame,
+    in ``/tf``: its first value), composed through intermediate frames and projected on the plane. A
     laser mounted upside down (its z axis pointing down: rolled 180 degrees, a quaternion
     with x=1 or y=1) sees its beams the other way round: each beam angle ``a`` becomes
     ``-a`` and the beams are reversed (angles and ranges together), so that they keep their
