@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
@@ -156,6 +157,12 @@ def _cmd_map(args: argparse.Namespace) -> int:
         kwargs["odom_topic"] = args.odom_topic
     if args.odometry:
         kwargs["odometry_source"] = args.odometry
+    if args.odom_frame:
+        kwargs["odom_frame"] = args.odom_frame
+    if args.base_frame:
+        kwargs["base_frame"] = args.base_frame
+    if args.laser_pose is not None:
+        kwargs["laser_pose"] = parse_laser_pose(args.laser_pose)
     _check_filter_args(args)
     _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
     setup = build_setup_from_args(args, MAP_DEFAULTS)
@@ -169,6 +176,19 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
     log = check_log(log)  # repeated timestamps (the last kept), dead scans, gaps: log.warnings
     return _map_and_write(log, setup, args, source=str(args.log))
+
+
+def parse_laser_pose(text: str) -> tuple[float, float, float]:
+    """``"x,y,theta"`` (``--laser-pose``) -> three floats; anything else raises ``ConfigError``."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(part) for part in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"--laser-pose expects x,y,theta: three finite numbers (m, m, rad) separated by commas, "
+                          f"e.g. 0.25,0,0.1 (a negative first one as --laser-pose=-0.25,0,0), got {text!r}")
+    return values
 
 
 MAP_DEFAULTS = {"proposal": "smp", "num_particles": 30}
@@ -522,7 +542,18 @@ def make_parser() -> argparse.ArgumentParser:
     p_map = sub.add_parser("map", help="build a map from a log (ROS 1/2 bag or CARMEN log)")
     p_map.add_argument("log", help="path of the log; the format is read from the file")
     p_map.add_argument("--scan-topic", help="bag topic of sensor_msgs/LaserScan (default /scan)")
-    p_map.add_argument("--odom-topic", help="bag topic of nav_msgs/Odometry (default /odom)")
+    p_map.add_argument("--odom-topic", help="bag topic of nav_msgs/Odometry, or of transforms read as /tf is "
+                                            "(default /odom); where the bag has none, the odometry is the "
+                                            "--odom-frame -> --base-frame transform in /tf")
+    p_map.add_argument("--odom-frame", help="bags: the odometry's frame in /tf, used where the bag has no odometry "
+                                            "topic (default odom)")
+    p_map.add_argument("--base-frame", help="bags: the robot's frame (default base_link): its pose in --odom-frame "
+                                            "is the /tf odometry, and the laser's mounting is read from the "
+                                            "transform base frame -> the scans' frame in /tf_static")
+    p_map.add_argument("--laser-pose", metavar="X,Y,THETA",
+                       help="the laser's mounting on the robot (m, m, rad), instead of the log's (bags: /tf_static; "
+                            "CARMEN: ROBOTLASER1 lines), e.g. 0.25,0,0.1; a negative first value as "
+                            "--laser-pose=-0.25,0,0")
     p_map.add_argument("--odometry", choices=("laser", "odom"),
                        help="CARMEN logs: the odometry inside the laser lines (default) or the ODOM lines "
                             "(interpolated at the laser timestamps); the two are compared and a disagreement warned of")

@@ -49,14 +49,17 @@ def read_log(path, **kwargs) -> LaserLog:
     A ``.bag`` file or a folder holding ``metadata.yaml`` goes to :func:`read_rosbag`; a
     text file whose first non-comment lines are CARMEN messages, the first data one
     ``FLASER``, ``ROBOTLASER1`` or ``ODOM`` (PARAM, SYNC, ... lines may come first), goes
-    to :func:`read_carmen`. ``kwargs`` are passed on to that reader.
+    to :func:`read_carmen`. ``kwargs`` are passed on to that reader: for a bag
+    ``scan_topic``, ``odom_topic``, ``odom_frame``, ``base_frame``, ``laser_pose`` and
+    ``max_scans``; for a CARMEN log ``range_max``, ``odometry_source`` and ``laser_pose``.
 
     Returns:
         The :class:`~jaxslam.laserlog.LaserLog` of the reader.
 
     Raises:
         LogError: the path does not exist or is none of those kinds (the message names the
-            path and what was expected), or the reader's own errors.
+            path and what was expected), an option that the file's reader does not take (named
+            by its ``jaxslam map`` flag), or the reader's own errors.
     """
     src = os.fspath(path)
     target = Path(src)
@@ -64,18 +67,21 @@ def read_log(path, **kwargs) -> LaserLog:
         raise LogError(f"{src}: no such file or folder; expected {_EXPECTED}")
     if target.is_dir():
         if (target / "metadata.yaml").is_file():
+            _check_kwargs(src, kwargs, _BAG_OPTIONS, "a bag")
             return read_rosbag(target, **kwargs)
         raise LogError(f"{src}: a folder without metadata.yaml; expected {_EXPECTED}")
     if target.suffix == ".bag":
-        _check_kwargs(src, kwargs, ("scan_topic", "odom_topic", "max_scans"), "a bag")
+        _check_kwargs(src, kwargs, _BAG_OPTIONS, "a bag")
         return read_rosbag(target, **kwargs)
     if _looks_like_carmen(src):
-        _check_kwargs(src, kwargs, ("range_max", "odometry_source"), "a CARMEN log")
+        _check_kwargs(src, kwargs, ("range_max", "odometry_source", "laser_pose"), "a CARMEN log")
         return read_carmen(target, **kwargs)
     raise LogError(f"{src}: unrecognised log format; expected {_EXPECTED}")
 
 
-_OPTION_NAMES = {"scan_topic": "--scan-topic", "odom_topic": "--odom-topic", "odometry_source": "--odometry"}
+_BAG_OPTIONS = ("scan_topic", "odom_topic", "odom_frame", "base_frame", "laser_pose", "max_scans")
+_OPTION_NAMES = {"scan_topic": "--scan-topic", "odom_topic": "--odom-topic", "odometry_source": "--odometry",
+                 "odom_frame": "--odom-frame", "base_frame": "--base-frame", "laser_pose": "--laser-pose"}
 
 
 def _check_kwargs(src: str, kwargs: dict, allowed: tuple[str, ...], kind: str) -> None:

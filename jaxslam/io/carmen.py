@@ -34,7 +34,7 @@ import warnings
 import numpy as np
 
 from jaxslam.geometry import between
-from jaxslam.io.rosbag import BeamLayout, pad_beam_layouts
+from jaxslam.io.rosbag import BeamLayout, check_laser_pose, pad_beam_layouts
 from jaxslam.io.trajectory import poses_at
 from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp
 from jaxslam.laser import make_sensor, uniform_beams
@@ -61,7 +61,7 @@ _LASER_POSE_TOLERANCE = 0.01
 _ODOM_TOLERANCE = 0.05
 
 
-def read_carmen(path, range_max: float | None = None, odometry_source: str = "laser") -> LaserLog:
+def read_carmen(path, range_max: float | None = None, odometry_source: str = "laser", laser_pose=None) -> LaserLog:
     """Read a CARMEN log with ``FLASER`` or ``ROBOTLASER1`` laser lines.
 
     Args:
@@ -72,6 +72,9 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
         odometry_source: ``"laser"`` takes the odometry written in each laser line;
             ``"odom"`` interpolates the ``ODOM`` lines at the laser timestamps (laser lines
             outside the ODOM time span are dropped with a ``UserWarning`` naming how many).
+        laser_pose: None takes the laser's mounting from the log (ROBOTLASER1 lines; zero for
+            FLASER); ``(x, y, theta)`` (m, m, rad) in the robot frame is used instead
+            (``jaxslam map --laser-pose x,y,theta``).
 
     Returns:
         A :class:`~jaxslam.laserlog.LaserLog`: timestamps (T,) s (``ipc_timestamp``),
@@ -94,6 +97,7 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
     """
     if odometry_source not in ("laser", "odom"):
         raise ValueError(f"odometry_source must be 'laser' or 'odom', got {odometry_source!r}")
+    mount = None if laser_pose is None else check_laser_pose(laser_pose)
     src = os.fspath(path)
     try:
         with open(src, "rb") as f:
@@ -129,7 +133,7 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
         if not any(line.split() and not line.split()[0].startswith("#") for line in lines):
             raise LogError(f"{src}: {ONLY_COMMENTS}")
         raise LogError(f"{src}: no laser lines (expected {' or '.join(LASER_MESSAGES)})")
-    return laser.build(range_max, odometry_source, odom, truth)
+    return laser.build(range_max, odometry_source, odom, truth, mount)
 
 
 ONLY_COMMENTS = "holds only comments: no FLASER, ROBOTLASER1 or ODOM line"
@@ -313,7 +317,7 @@ class _LaserLines:
                 self.laser_pose_varies = where
         return ranges, robot_world, float(numbers[11]), geometry[:2]
 
-    def build(self, range_max, odometry_source, odom: _PoseStream, truth: _PoseStream) -> LaserLog:
+    def build(self, range_max, odometry_source, odom: _PoseStream, truth: _PoseStream, mount=None) -> LaserLog:
         src = self.src
         found = []
         last = last_of_each_timestamp(self.times)
@@ -335,12 +339,14 @@ class _LaserLines:
         else:
             default_max = self.geometry[2]
             laser_pose = tuple(self.laser_pose)
-            if self.laser_pose_varies:
+            if self.laser_pose_varies and mount is None:
                 warnings.warn(
                     f"{self.laser_pose_varies}: the laser's pose on the robot differs by more than "
                     f"{_LASER_POSE_TOLERANCE} from the first line's; the first line's is used",
                     stacklevel=3,
                 )
+        if mount is not None:
+            laser_pose = mount
         limit = default_max if range_max is None else float(range_max)
         if not limit > 0:
             raise ValueError(f"range_max must be positive, got {range_max!r}")
