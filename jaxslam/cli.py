@@ -388,8 +388,19 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     setup = build_setup_from_args(args, DEMO_DEFAULTS)
     _check_out_folder(args.out)
     scenario = office_scenario(jax.random.key(args.seed), num_scans=args.scans)
-    return _map_and_write(scenario.log, setup, args, source="simulated office (jaxslam.sim.office_scenario)",
-                          world=scenario.world)
+    status = _map_and_write(scenario.log, setup, args, source="simulated office (jaxslam.sim.office_scenario)",
+                            world=scenario.world)
+    if status == 0:
+        summary = json.loads((Path(args.out) / "summary.json").read_text())
+        print(_ground_truth_error_line(summary["ground_truth_error"]))
+    return status
+
+
+def _ground_truth_error_line(error: dict) -> str:
+    """The demo's line on its ``summary.json`` ``ground_truth_error`` (position errors, m)."""
+    return (f"ground truth error at the {error['scans']} processed scans: best path mean "
+            f"{error['best_path_mean_m']:.3f} m, max {error['best_path_max_m']:.3f} m; odometry mean "
+            f"{error['odometry_mean_m']:.3f} m, max {error['odometry_max_m']:.3f} m (summary.json: ground_truth_error)")
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:

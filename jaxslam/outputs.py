@@ -44,10 +44,30 @@ def run_warnings(result) -> list[str]:
     return out
 
 
+def ground_truth_error(log, result) -> dict | None:
+    """Position errors (m) of the best particle's path and of the odometry against the log's
+    ground truth at the processed scans, or None for a log without ground truth (a real one).
+
+    No alignment: the filter starts at the log's first odometry pose, which a simulated log
+    (:mod:`jaxslam.sim`) puts at the true one. Returns ``{"scans", "best_path_mean_m",
+    "best_path_max_m", "odometry_mean_m", "odometry_max_m"}``.
+    """
+    if getattr(log, "ground_truth", None) is None:
+        return None
+    idx = np.asarray(result.selection.indices)
+    truth = np.asarray(log.ground_truth, np.float64)[idx, :2]
+    best = np.hypot(*(np.asarray(result.best_path, np.float64)[:, :2] - truth).T)
+    odometry = np.hypot(*(np.asarray(log.odometry, np.float64)[idx, :2] - truth).T)
+    return {"scans": int(idx.size), "best_path_mean_m": float(best.mean()), "best_path_max_m": float(best.max()),
+            "odometry_mean_m": float(odometry.mean()), "odometry_max_m": float(odometry.max())}
+
+
 def summarize(log, result, params, seed: int, source: str) -> dict:
-    """The ``summary.json`` content of a run."""
+    """The ``summary.json`` content of a run; with ``ground_truth_error`` (:func:`ground_truth_error`)
+    when the log has ground truth (a simulated log)."""
     info = result.info
     config = config_to_dict(result.config) | config_to_dict(result.settings)
+    truth_error = ground_truth_error(log, result)
     return {
         "source": source,
         "seed": seed,
@@ -68,7 +88,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         + [f"the map pools grew to {g['capacity']} tiles and {g['block_capacity']} blocks at step {g['step']} "
            "(that chunk was repeated and recompiled)" for g in result.map_pool.get("growths", ())],
         "log_notes": list(getattr(log, "notes", ())),
-    }
+    } | ({} if truth_error is None else {"ground_truth_error": truth_error})
 
 
 SLAM_OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.txt", "trajectory_refined.txt",
@@ -93,7 +113,9 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     has one pose per scan of the log.
     With ``refined`` (a :class:`jaxslam.refine.RefinedTrajectory`) also ``trajectory_refined.txt``,
     and the summary's ``refinement`` gives the fraction of scans whose match held (and, when
-    given, ``refine_seconds``: the refinement's wall time).
+    given, ``refine_seconds``: the refinement's wall time). For a log with ground truth (a
+    simulated one) the summary's ``ground_truth_error`` holds :func:`ground_truth_error`.
+    The figure is drawn without pyplot, so a notebook's plotting backend is left as it is.
 
     The folder is replaced atomically (:func:`publish_folder`): all files are written into a
     temporary folder beside it first. If ``out_dir`` holds an earlier run, this run's files
@@ -107,10 +129,7 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     ``null_reasons`` is ``{}`` when nothing was nulled.
     Returns the summary as written.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: a notebook's backend is left as it is
 
     from jaxslam.diagnose import STEPS_FILE, step_record, write_step_record
     from jaxslam.io.maps import crop_to_known, write_map
@@ -132,12 +151,10 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     def write(out: Path) -> None:
         write_map(out / "map", cropped, spec)
         write_trajectory(out / "trajectory.txt", log.timestamps, result.trajectory)
-        fig = plot_slam_result(result, log, world=world)
-        try:
-            _limit_to_map(fig.axes[0], spec, result.best_path)
-            fig.savefig(out / "slam.png", dpi=150)
-        finally:
-            plt.close(fig)
+        fig = Figure(figsize=(8, 8))
+        plot_slam_result(result, log, world=world, ax=fig.subplots())
+        _limit_to_map(fig.axes[0], spec, result.best_path)
+        fig.savefig(out / "slam.png", dpi=150)
         if refined is not None:
             write_trajectory(out / "trajectory_refined.txt", log.timestamps, refined.poses)
         (out / "summary.json").write_text(text)

@@ -116,12 +116,42 @@ def test_missing_file_is_a_clear_error(tmp_path, capsys):
 
 
 @pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
-def test_demo_runs(tmp_path):
+def test_demo_runs(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--scans", "60", "--particles", "4", "--no-progress", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scans_processed"] > 10
     assert (out / "map.png").is_file()
+    # The simulated office's truth is known: the demo stores and prints its error against it.
+    error = summary["ground_truth_error"]
+    assert error["scans"] == summary["scans_processed"]
+    for what in ("best_path", "odometry"):
+        assert 0.0 <= error[f"{what}_mean_m"] <= error[f"{what}_max_m"] < float("inf")
+    printed = [line for line in capsys.readouterr().out.splitlines() if line.startswith("ground truth error")]
+    assert len(printed) == 1
+    assert f"{error['best_path_mean_m']:.3f} m" in printed[0] and f"{error['odometry_max_m']:.3f} m" in printed[0]
+
+
+def test_ground_truth_error_is_of_the_processed_scans_and_printed_in_one_line():
+    """What the demo stores (summary.json's ground_truth_error) and prints, on made-up paths:
+    the best path 0.1 m beside the truth, the odometry 0 to 0.4 m; a real log has no entry."""
+    from types import SimpleNamespace
+
+    from jaxslam.cli import _ground_truth_error_line
+    from jaxslam.outputs import ground_truth_error
+
+    truth = np.stack([np.arange(10.0), np.zeros(10), np.zeros(10)], axis=1)
+    odometry = truth + np.stack([np.zeros(10), np.linspace(0.0, 0.9, 10), np.zeros(10)], axis=1)
+    idx = np.array([0, 2, 4])
+    log = SimpleNamespace(ground_truth=truth, odometry=odometry)
+    result = SimpleNamespace(selection=SimpleNamespace(indices=idx), best_path=truth[idx] + [0.0, 0.1, 0.0])
+    error = ground_truth_error(log, result)
+    assert error == pytest.approx({"scans": 3, "best_path_mean_m": 0.1, "best_path_max_m": 0.1,
+                                   "odometry_mean_m": 0.2, "odometry_max_m": 0.4})
+    line = _ground_truth_error_line(error)
+    assert line.startswith("ground truth error at the 3 processed scans") and "ground_truth_error" in line
+    assert "mean 0.100 m, max 0.100 m" in line and "odometry mean 0.200 m, max 0.400 m" in line
+    assert ground_truth_error(SimpleNamespace(ground_truth=None, odometry=odometry), result) is None
 
 
 def test_eval_prints_and_writes_the_error_table(tmp_path, capsys):
