@@ -37,7 +37,16 @@ def unexecuted(notebook: dict) -> list[str]:
             problems.append(f"code cell {index} holds an error")
     if counts != sorted(counts) or len(set(counts)) != len(counts):
         problems.append(f"execution counts {counts} are not one top-to-bottom run")
+    for index, cell in enumerate(code):
+        text = json.dumps(cell.get("outputs", []))
+        for prefix in MACHINE_PATHS:
+            if prefix in text:
+                problems.append(f"code cell {index}'s output names a path of the machine it ran on ({prefix}...)")
     return problems
+
+
+MACHINE_PATHS = ("/root/", "/home/", "/work/", "/tmp/", "/Users/", "C:\\\\Users")
+"""Output text that would point outside the repository (a warning's file name, a data folder)."""
 
 
 def test_there_are_notebooks():
@@ -73,6 +82,12 @@ def test_the_check_fails_on_a_stripped_copy(path):
     first = [cell for cell in errored["cells"] if cell["cell_type"] == "code" and "".join(cell["source"]).strip()][0]
     first["outputs"] = [{"output_type": "error", "ename": "E", "evalue": "", "traceback": []}]
     assert any("error" in p for p in unexecuted(errored))
+
+    pathful = json.loads(json.dumps(notebook))
+    first = [cell for cell in pathful["cells"] if cell["cell_type"] == "code" and "".join(cell["source"]).strip()][0]
+    first["outputs"] = first["outputs"] + [{"output_type": "stream", "name": "stderr",
+                                            "text": ["/home/me/lib/tqdm/auto.py:21: TqdmWarning"]}]
+    assert any("path of the machine" in p for p in unexecuted(pathful))
 
     if len(code) > 1:
         reordered = json.loads(json.dumps(notebook))
