@@ -6,9 +6,11 @@ Intel / ACES bags when ../shared/data is present."""
 from __future__ import annotations
 
 import math
+import os
 import re
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -809,10 +811,12 @@ def mounted_office():
     return sim, np.asarray(mounted), np.asarray(plain)
 
 
-def _office_bag(path, sim, ranges, mount_quat=None, mount_xyz=(0.0, 0.0, 0.0), upside_down=False):
-    """The office log as a ROS 1 bag: /odom and /scan at the scan times, /tf_static base_link ->
-    laser (``mount_quat``; none when None). An upside-down laser's beams run the other way:
-    its message holds the ranges reversed (the office's beams are symmetric about 0)."""
+def _office_bag(path, sim, ranges, mount_quat=None, mount_xyz=(0.0, 0.0, 0.0), upside_down=False,
+                odometry_in_tf=False):
+    """The office log as a ROS 1 bag: /odom (or, ``odometry_in_tf``, only /tf odom -> base_link)
+    and /scan at the scan times, /tf_static base_link -> laser (``mount_quat``; none when None).
+    An upside-down laser's beams run the other way: its message holds the ranges reversed (the
+    office's beams are symmetric about 0)."""
     ts = _store("ros1")
     messages = []
     range_max = float(sim.sensor.range_max)
@@ -821,12 +825,14 @@ def _office_bag(path, sim, ranges, mount_quat=None, mount_xyz=(0.0, 0.0, 0.0), u
         messages.append(("/odom", t, odom_msg(ts, t, *map(float, sim.odometry[k]))))
         scan = np.ascontiguousarray(ranges[k][::-1]) if upside_down else ranges[k]
         messages.append(("/scan", t, scan_msg(ts, t, scan, increment=math.pi / 180, range_max=range_max)))
+    if odometry_in_tf:
+        messages = odometry_as_tf(ts, messages)
     if mount_quat is not None:
         messages = _with_static(ts, messages, transform(ts, T0, "base_link", "laser", mount_xyz, mount_quat))
     return write_bag(path, messages)
 
 
-def _map_errors(log, truth, key=0):
+def _map_errors(log, truth, key=0, figure=None):
     """Position errors (m) of the best path against the truth at the processed scans, and the
     per-scan trajectory: jaxslam.slam.run with 4 particles, a scan every 0.3 m."""
     import jax
@@ -838,7 +844,8 @@ def _map_errors(log, truth, key=0):
     result = slam.run(jax.random.key(key), log, config, default_params(),
                       RunSettings(linear_update=0.3, angular_update=0.25), progress=False)
     idx = result.selection.indices
-    return np.hypot(*(result.best_path[:, :2] - truth[idx, :2]).T), result.trajectory
+    errors = np.hypot(*(result.best_path[:, :2] - truth[idx, :2]).T)
+    return (errors, result.trajectory, result) if figure else (errors, result.trajectory)
 
 
 @pytest.fixture(scope="module")
@@ -847,11 +854,40 @@ def mounted_maps(mounted_office, tmp_path_factory):
     and the mounted laser's bag read with laser_pose=(0, 0, 0) (the mount ignored)."""
     sim, mounted, plain = mounted_office
     folder = tmp_path_factory.mktemp("mounted")
-    mounted_bag = _office_bag(folder / "mounted.bag", sim, mounted, quaternion(yaw=MOUNT[2]), (MOUNT[0], MOUNT[1], 0.3))
+    # As many robots record it: no /odom topic, the odometry only in /tf, the mount in /tf_static.
+    mounted_bag = _office_bag(folder / "mounted.bag", sim, mounted, quaternion(yaw=MOUNT[2]), (MOUNT[0], MOUNT[1], 0.3),
+                              odometry_in_tf=True)
     logs = {"mounted": read_rosbag(mounted_bag),
             "plain": read_rosbag(_office_bag(folder / "plain.bag", sim, plain, quaternion())),
             "ignored": read_rosbag(mounted_bag, laser_pose=(0.0, 0.0, 0.0))}
-    return logs, {name: _map_errors(log, sim.ground_truth) for name, log in logs.items()}
+    maps = {name: _map_errors(log, sim.ground_truth, figure=name) for name, log in logs.items()}
+    figures = os.environ.get("JAXSLAM_TEST_FIGURES")
+    if figures:  # the maps side by side, for the docs: JAXSLAM_TEST_FIGURES=FOLDER pytest -k mounted
+        _plot_mounted_maps(Path(figures) / "mounted_laser_bag.png", maps, sim)
+    return logs, {name: (errors, trajectory) for name, (errors, trajectory, _) in maps.items()}
+
+
+def _plot_mounted_maps(path, maps, sim):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxslam.plotting import plot_map
+
+    titles = {"mounted": "odometry in /tf, laser mount in /tf_static", "plain": "the laser at the robot's origin",
+              "ignored": "the mount ignored (--laser-pose 0,0,0)"}
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5))
+    for ax, (name, (errors, trajectory, result)) in zip(axes, maps.items()):
+        logodds, _, grid = result.dense_map()
+        plot_map(ax, logodds, grid)
+        ax.plot(sim.ground_truth[:, 0], sim.ground_truth[:, 1], "g-", lw=1, label="truth")
+        ax.plot(trajectory[:, 0], trajectory[:, 1], "r-", lw=1, label="best path")
+        ax.set_title(f"{titles[name]}\nmean error {errors.mean():.3f} m")
+    axes[0].legend(loc="lower right")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
 
 
 def test_a_mounted_laser_maps_as_one_at_the_origin(mounted_office, mounted_maps):
