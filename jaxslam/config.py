@@ -110,11 +110,7 @@ class SlamConfig:
             (self.map_extent > 0, f"map_extent must be > 0 (m), got {self.map_extent}"),
             (self.tile_size in (8, 16, 32, 64, 128, 256, 512, 1024),
              f"tile_size must be a power of two in 8..1024 (cells), got {self.tile_size}"),
-            (self.map_extent / self.resolution <= 46340,
-             f"map_extent / resolution must be at most 46,340 cells a side (int32 cell indices), got "
-             f"{self.map_extent} m / {self.resolution} m"),
             (self.max_insert_range > 0, f"max_insert_range must be > 0 (m), got {self.max_insert_range}"),
-
             (1 <= self.field_radius <= 11,
              f"field_radius must be in 1..11 (its squared distances fit uint8), got {self.field_radius}"),
             (self.likelihood_lookup in FIELD_LOOKUPS,
@@ -132,6 +128,11 @@ class SlamConfig:
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"SlamConfig: {message}")
+        # Only once every field is in its own range, what is computed from several (so that
+        # resolution = 0 is refused as such, not in a division by zero).
+        if self.map_extent / self.resolution > 46340:
+            raise ConfigError(f"SlamConfig: map_extent / resolution must be at most 46,340 cells a side (int32 cell "
+                              f"indices), got {self.map_extent} m / {self.resolution} m")
 
     @property
     def grid(self) -> PagedGridSpec:
@@ -424,6 +425,25 @@ def config_from_dict(values: dict[str, Any]) -> SlamConfig:
     return _dataclass_from_dict(SlamConfig, values)
 
 
+def unknown_names_message(unknown: list[str]) -> str:
+    """What ``build_setup`` says of names that are neither fields nor parameters: both kinds of
+    known names, and the closest ones."""
+    import difflib
+
+    fields = sorted(CONFIG_FIELDS + SETTINGS_FIELDS)
+    close = {name: difflib.get_close_matches(str(name), [*fields, *_DEFAULTS], n=1, cutoff=0.8) for name in unknown}
+    hints = "; ".join(f"{name!r}: did you mean {found[0]!r}?" for name, found in close.items() if found)
+    return (f"unknown name(s) {unknown}{' (' + hints + ')' if hints else ''}: a name is either a config or run "
+            f"settings field {fields} or a dotted parameter {sorted(_DEFAULTS)}")
+
+
+def default_values() -> dict[str, Any]:
+    """Every name :func:`build_setup` takes with its default: config and run-settings fields,
+    dotted parameters."""
+    fields = [*dataclasses.fields(SlamConfig), *dataclasses.fields(RunSettings)]
+    return {**{f.name: f.default for f in fields}, **_DEFAULTS}
+
+
 def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamParams]:
     """The config, run settings and parameters of one flat dictionary of names.
 
@@ -432,6 +452,9 @@ def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamPa
     missing keeps its default. This is the one builder behind ``--set``, config files and the
     experiments' method tables. Unknown names and bad values raise ``ConfigError``.
     """
+    unknown = sorted(set(values) - set(CONFIG_FIELDS) - set(SETTINGS_FIELDS) - set(_DEFAULTS), key=str)
+    if unknown:
+        raise ConfigError(unknown_names_message(unknown))
     config_values = {k: v for k, v in values.items() if k in CONFIG_FIELDS}
     settings_values = {k: v for k, v in values.items() if k in SETTINGS_FIELDS}
     param_values = {k: v for k, v in values.items() if k not in CONFIG_FIELDS and k not in SETTINGS_FIELDS}

@@ -80,7 +80,8 @@ def run_in_chunks(
       num_items: how many items to process.
       chunk_size: items per call (static for the chunk function: one compilation).
       carry: the initial carry (None for a map).
-      progress: show a tqdm bar; desc, unit: its label.
+      progress: show a tqdm bar (on stderr; "compiling..." beside it until the first chunk is
+        done); desc, unit: its label.
       on_chunk: see :data:`ChunkCallback` (e.g. to write a checkpoint or to stop on a signal;
         the carry may be donated by the next chunk, so copy what must outlive the call).
 
@@ -104,11 +105,14 @@ def run_in_chunks(
     with tqdm(total=num_items, desc=desc, unit=unit, disable=not progress) as bar:
         for index, start in enumerate(range(0, num_chunks * chunk_size, chunk_size)):
             sl = slice(start, start + chunk_size)
+            if index == 0:  # the first call compiles: say so, rather than sit at 0% in silence
+                bar.set_postfix_str("compiling...")
             t0 = time.perf_counter()
             carry, out = chunk_fn(carry, jax.tree.map(lambda a: a[sl], padded), valid[sl])
             outputs.append(jax.tree.map(np.asarray, out))  # blocks until the chunk is done
             if start == 0:
                 first_chunk_seconds = time.perf_counter() - t0
+                bar.set_postfix_str("", refresh=False)
             bar.update(int(valid[sl].sum()))
             done = min(start + chunk_size, num_items)
             if on_chunk is not None and on_chunk(index, carry, lambda done=done: stack(done)) and done < num_items:

@@ -78,17 +78,32 @@ CASES = [
      _config({"settings": {"linear_update": 1}})),
     ("cfg-not-json", WITH_CFG, ["cannot read config file"], _config("{config: nope")),
     ("cfg-missing-file", [*MAP, "--config", "{out}.json"], ["cannot read config file"], None),
-    ("cfg-unknown-field", WITH_CFG, ["unknown parameter", "map_padding"], _config({"config": {"map_padding": 5}})),
+    ("cfg-unknown-field", WITH_CFG, ["unknown name", "map_padding", "config or run settings field", "dotted parameter"],
+     _config({"config": {"map_padding": 5}})),
     ("cfg-tile-size", WITH_CFG, ["tile_size must be a power of two", "got 48"], _config({"config": {"tile_size": 48}})),
     ("set-extent-negative", [*MAP, *_sets("map_extent=-5")], ["map_extent must be > 0", "-5"], None),
     ("set-int-given-float", [*MAP, *_sets("beam_stride=2.9")], ["beam_stride must be a", "integer", "'2.9'"], None),
     ("set-int-given-word", [*MAP, *_sets("num_particles=lots")], ["num_particles", "integer", "'lots'"], None),
     ("set-no-equals", [*MAP, *_sets("linear_update")], ["NAME=VALUE"], None),
-    ("set-unknown", [*MAP, *_sets("motion.nope=1")], ["unknown parameter", "motion.nope"], None),
+    ("set-unknown", [*MAP, *_sets("motion.nope=1")], ["unknown name", "motion.nope", "map_extent", "motion.srr"], None),
     ("set-inf-setting", [*MAP, *_sets("linear_update=inf")], ["linear_update must be a finite number"], None),
     ("set-negative-horizon", [*MAP, *_sets("horizon=-1")], ["horizon must be >= 0, got -1"], None),
     ("set-zero-insert-range", [*MAP, *_sets("max_insert_range=0")], ["max_insert_range must be > 0"], None),
     ("set-angular-update-negative", [*MAP, *_sets("angular_update=-0.1")], ["angular_update must be >= 0"], None),
+    ("set-linear-update-negative", [*MAP, *_sets("linear_update=-1")], ["linear_update must be >= 0", "-1"], None),
+    # Every numeric setting against its own range, before any arithmetic uses it (resolution = 0
+    # was a ZeroDivisionError in map_extent / resolution).
+    ("set-zero-resolution", [*MAP, *_sets("resolution=0")], ["resolution must be > 0", "got 0.0"], None),
+    ("set-tiny-resolution", [*MAP, *_sets("resolution=1e-9")], ["map_extent / resolution must be at most 46,340"],
+     None),
+    ("set-zero-extent", [*MAP, *_sets("map_extent=0")], ["map_extent must be > 0", "got 0.0"], None),
+    ("set-zero-particles", [*MAP, *_sets("num_particles=0")], ["num_particles must be >= 1, got 0"], None),
+    ("set-zero-beam-stride", [*MAP, *_sets("beam_stride=0")], ["beam_stride must be >= 1, got 0"], None),
+    ("set-zero-field-radius", [*MAP, *_sets("field_radius=0")], ["field_radius must be in 1..11", "got 0"], None),
+    ("set-negative-match-iterations", [*MAP, *_sets("match_iterations=-1")], ["match_iterations must be >= 0"],
+     None),
+    ("set-zero-localizers", [*MAP, *_sets("num_localizers=0")], ["num_localizers must be >= 1, got 0"], None),
+    ("set-zero-tile-size", [*MAP, *_sets("tile_size=0")], ["tile_size must be a power of two", "got 0"], None),
     # Physically invalid parameters.
     ("param-negative-noise", [*MAP, *_sets("motion.srr=-0.1")], ["motion.srr must be >= 0", "-0.1"], None),
     ("param-negative-std-floor", [*MAP, *_sets("motion.min_rotation_std=-1e-3")], ["min_rotation_std must be >= 0"], None),
@@ -232,6 +247,41 @@ def test_a_real_process_refuses_on_one_line_without_a_traceback(tmp_path, small_
         assert proc.stderr.strip().splitlines() == [proc.stderr.strip()]
         assert proc.stderr.startswith("jaxslam map: error: ") and word in proc.stderr
         assert not (tmp_path / "out").exists()
+
+
+def test_every_numeric_setting_has_a_range_checked_before_any_arithmetic():
+    """Every parameter has a range; every int and float field refuses an out-of-range value
+    (-1, and 0 where it must be positive) with a ConfigError naming it, never another error."""
+    import dataclasses
+
+    from jaxslam.config import _DEFAULTS, _PARAM_RANGES, RunSettings, SlamConfig
+
+    assert set(_PARAM_RANGES) == set(_DEFAULTS)
+    numeric = [f.name for cls in (SlamConfig, RunSettings) for f in dataclasses.fields(cls)
+               if type(f.default) in (int, float)]
+    positive = {"num_particles", "resolution", "map_extent", "tile_size", "max_insert_range", "field_radius",
+                "beam_stride", "num_localizers"}
+    for name in numeric:
+        for bad in (-1, 0) if name in positive else (-1,):
+            with pytest.raises(ConfigError, match=name):
+                build_setup({name: str(bad)})
+
+
+def test_settings_wrong_for_the_log_are_refused_before_the_run(small_log):
+    import dataclasses
+
+    from jaxslam.laser import make_sensor
+    from jaxslam.rbpf import check_config_for_log, prepare
+
+    config, _, _ = build_setup({"beam_stride": small_log.num_beams})
+    check_config_for_log(small_log, config)  # every num_beams-th beam: one, but allowed
+    with pytest.raises(ConfigError, match=f"beam_stride={small_log.num_beams + 1} is more than"):
+        prepare(small_log, build_setup({"beam_stride": small_log.num_beams + 1})[0])
+    sensor = small_log.sensor
+    near_blind = dataclasses.replace(small_log, sensor=make_sensor(sensor.beam_angles, range_min=1.0,
+                                                                   range_max=float(sensor.range_max)))
+    with pytest.raises(ConfigError, match="max_insert_range=0.5 m is not above the laser's range_min=1 m"):
+        prepare(near_blind, build_setup({"max_insert_range": 0.5})[0])
 
 
 def test_values_that_are_legitimate_are_accepted():
@@ -434,7 +484,9 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
     monkeypatch.setattr(jaxslam.resources, "available_memory_bytes", lambda: 8 * 10**9)
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
             "--no-progress", "--out", str(tmp_path / "out")]
-    config, _, _ = build_setup({"num_particles": 30000})
+    from jaxslam.cli import MAP_DEFAULTS
+
+    config, _, _ = build_setup({**MAP_DEFAULTS, "num_particles": 30000})  # the command's defaults: the LP
     need, how = jaxslam.resources.estimate_run_bytes(config, small_log.num_beams)
     assert how.startswith("(30000 particles x 25 x 25 blocks + ")
     expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
@@ -629,6 +681,9 @@ IO_CASES = [
     ("log-odometry-flag-word", [*LOG, "--odometry", "wheels"], 2, ["--odometry", "invalid choice", "'wheels'"], None),
     ("log-scan-topic-on-carmen", [*LOG, "--scan-topic", "/laser"], 2, ["--scan-topic does not apply to a CARMEN log"],
      None),
+    # Settings in their own range but wrong for the log: refused once it is read, before the filter.
+    ("log-beam-stride-beyond-beams", [*LOG, *_sets("beam_stride=100000")], 2,
+     ["beam_stride=100000 is more than the log's 181 beams per scan", "at most 181"], None),
     # Bags.
     ("bag-truncated", BAG1, 2, ["test.bag", "cannot open the bag"], _bag("ros1", corrupt=_cut_in_half)),
     ("bag-garbage", BAG1, 2, ["test.bag: cannot open the bag"],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import jax
 import numpy as np
@@ -43,8 +44,8 @@ def test_map_refine_writes_a_refined_trajectory(tmp_path, small_log):
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=20)
     out = tmp_path / "out"
-    assert main(["map", str(log_path), "--particles", "3", "--no-progress", "--refine", "--set", "linear_update=0.3",
-                 "--set", "max_insert_range=8", "--out", str(out)]) == 0
+    assert main(["map", str(log_path), "--particles", "3", "--proposal", "smp", "--no-progress", "--refine",
+                 "--set", "linear_update=0.3", "--set", "max_insert_range=8", "--out", str(out)]) == 0
     plain, refined = np.loadtxt(out / "trajectory.txt"), np.loadtxt(out / "trajectory_refined.txt")
     assert refined.shape == plain.shape == (20, 4)
     np.testing.assert_array_equal(refined[:, 0], plain[:, 0])  # the same scans, the same stamps
@@ -59,14 +60,15 @@ def test_config_file_and_flags(tmp_path, small_log):
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps({"config": {"beam_stride": 2, "linear_update": 0.3}, "params": {"likelihood.sigma": 0.08}}))
     out = tmp_path / "out"
-    assert main(["map", str(log_path), "--config", str(cfg), "--particles", "3", "--no-progress", "--out", str(out)]) == 0
+    assert main(["map", str(log_path), "--config", str(cfg), "--particles", "3", "--proposal", "smp", "--no-progress",
+                 "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["config"]["beam_stride"] == 2
     assert summary["params"]["likelihood.sigma"] == pytest.approx(0.08)
 
 
 def test_config_file_sets_what_no_flag_overrides(tmp_path, small_log):
-    """The command's defaults (--particles 30, --proposal smp) yield to the file; a flag that is
+    """The command's defaults (--particles 30, --proposal lp) yield to the file; a flag that is
     given wins over it."""
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=12)
@@ -82,10 +84,59 @@ def test_config_file_sets_what_no_flag_overrides(tmp_path, small_log):
     assert (summary["config"]["num_particles"], summary["config"]["proposal"]) == (3, "op")
 
 
+def _setup_of_a_run(monkeypatch, argv):
+    """The (config, settings, params) ``main(argv)`` hands the filter (which is not run)."""
+    import jaxslam.slam
+
+    seen = []
+
+    def trap(key, log, config, params, settings, **kwargs):
+        seen.append((config, settings, params))
+        raise KeyboardInterrupt  # main's own way out, exit code 130
+
+    monkeypatch.setattr(jaxslam.slam, "run", trap)
+    assert main(argv) == 130
+    return seen[0]
+
+
+def test_the_map_default_is_the_lp_and_help_shows_the_defaults(tmp_path, small_log, monkeypatch, capsys):
+    """The command's defaults are the library's best (docs/results.md, the robustness table: the
+    LP fails least), and --help says what they are."""
+    from jaxslam.cli import DEMO_DEFAULTS, MAP_DEFAULTS, make_parser
+
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=12)
+    config, settings, params = _setup_of_a_run(monkeypatch, ["map", str(log_path), "--no-progress",
+                                                             "--out", str(tmp_path / "o")])
+    assert (config.proposal, config.num_particles, config.num_localizers, config.horizon) == ("lp", 30, 100, 5)
+    assert (settings.linear_update, settings.angular_update, float(params.lookahead.alpha)) == (0.5, 0.25, 0.5)
+    assert MAP_DEFAULTS["proposal"] == "lp"
+    sub = make_parser()._subparsers._group_actions[0].choices
+    text = " ".join(sub["map"].format_help().split())
+    for words in ("(default lp)", "SLAM particles N (default 30)", "per SLAM particle (default 100)",
+                  "processed scans (default 5)", "(default 0.5)", "after 0.5 m or 0.25 rad of odometry",
+                  "L = 100 localizers, horizon k = 5, alpha = 0.5", "JAXSLAM_CACHE_DIR"):
+        assert words in text, words
+    demo = " ".join(sub["demo"].format_help().split())
+    assert f"(default {DEMO_DEFAULTS['proposal']}" in demo and "(default 20)" in demo
+    assert "after 0.25 m or 0.25 rad" in demo
+
+
+def test_progress_says_reading_and_compiling(tmp_path, small_log, capsys):
+    """With the bar on: a word while the log is read, and "compiling..." before the first chunk."""
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=8)
+    assert main(["map", str(log_path), "--particles", "2", "--proposal", "op", "--set", "linear_update=0.3",
+                 "--set", "max_insert_range=8", "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert f"reading {log_path} ..." in err
+    assert "compiling..." in err and err.index("reading") < err.index("compiling...")
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--set", "motion.nope=1"], "unknown parameter"),
+        (["--set", "motion.nope=1"], "unknown name"),
         (["--set", "linear_update"], "NAME=VALUE"),
         (["--set", "num_particles=lots"], "num_particles"),
         (["--set", "lookahead.alpha=1.5"], "alpha"),
@@ -179,3 +230,105 @@ def test_doors_command_writes_a_summary(tmp_path, capsys):
     assert "final position error" in capsys.readouterr().out
     assert main(["doors", "--particles", "0", "--out", str(out)]) == 2
     assert "--particles must be >= 1" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# The persistent compilation cache (jaxslam.compile_cache): on for the command line only.
+
+
+def test_the_cache_folder_follows_the_environment(tmp_path):
+    from pathlib import Path
+
+    from jaxslam.compile_cache import cache_dir
+
+    assert cache_dir({"JAXSLAM_CACHE_DIR": str(tmp_path / "c")}) == tmp_path / "c"
+    for off in ("off", "OFF", "0", "none"):
+        assert cache_dir({"JAXSLAM_CACHE_DIR": off}) is None
+    assert cache_dir({"XDG_CACHE_HOME": str(tmp_path)}) == tmp_path / "jaxslam" / "jax"
+    assert cache_dir({"JAXSLAM_CACHE_DIR": " ", "HOME": str(tmp_path)}).parts[-3:] == (".cache", "jaxslam", "jax")
+    assert cache_dir({}) == Path.home() / ".cache" / "jaxslam" / "jax"
+
+
+_COUNT_CACHE_EVENTS = """
+import sys
+import jax.monitoring
+events = {"hits": 0, "writes": 0}
+def listen(event, **kwargs):
+    if event == "/jax/compilation_cache/cache_hits":
+        events["hits"] += 1
+    elif event == "/jax/compilation_cache/cache_misses":  # recorded as an entry is written
+        events["writes"] += 1
+jax.monitoring.register_event_listener(listen)
+import jaxslam
+assert not jax.config.jax_compilation_cache_dir, "import jaxslam turned the cache on"
+from jaxslam.cli import main
+code = main(sys.argv[1:])
+print("CACHE", events["hits"], events["writes"])
+sys.exit(code)
+"""
+
+
+def _run_cli_process(args, env_updates):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = dict(os.environ)
+    env.update(env_updates)
+    repo = str(Path(__file__).resolve().parents[1])  # this checkout's jaxslam, not an installed one
+    env["PYTHONPATH"] = os.pathsep.join([repo, env["PYTHONPATH"]]) if env.get("PYTHONPATH") else repo
+    proc = subprocess.run([sys.executable, "-c", _COUNT_CACHE_EVENTS, *args], capture_output=True, text=True,
+                          env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    hits, writes = (int(v) for v in proc.stdout.split("CACHE ")[1].split()[:2])
+    return hits, writes, proc
+
+
+def test_a_second_run_reads_its_compilations_from_the_cache(tmp_path, small_log):
+    """The same command twice, each in a fresh process: the first compiles and writes the cache
+    folder, the second finds every entry there (JAX's cache-hit events) and writes none."""
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=12)
+    cache = tmp_path / "cache"
+    args = ["map", str(log_path), "--particles", "2", "--proposal", "op", "--no-progress", "--set",
+            "linear_update=0.3", "--set", "max_insert_range=8", "--out", str(tmp_path / "out")]
+    hits, writes, _ = _run_cli_process(args, {"JAXSLAM_CACHE_DIR": str(cache)})
+    entries = sorted(p.name for p in cache.glob("*-cache"))
+    assert hits == 0 and writes == len(entries) > 0
+    hits, writes, _ = _run_cli_process(args, {"JAXSLAM_CACHE_DIR": str(cache)})
+    assert sorted(p.name for p in cache.glob("*-cache")) == entries  # nothing new
+    assert writes == 0 and hits >= len(entries)
+    hits, writes, _ = _run_cli_process([*args, "--no-cache"], {"JAXSLAM_CACHE_DIR": str(cache)})
+    assert hits == writes == 0
+
+
+def test_an_unusable_cache_folder_is_warned_of_once_and_the_run_goes_on(tmp_path, small_log, capsys, monkeypatch):
+    log_path = tmp_path / "office.clf"
+    write_flaser_log(log_path, small_log, stop=8)
+    (tmp_path / "a_file").write_text("not a folder\n")
+    monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "a_file" / "cache"))  # cannot be created, even by root
+    import jax
+
+    before = jax.config.jax_compilation_cache_dir
+    assert main(["map", str(log_path), "--particles", "2", "--proposal", "op", "--no-progress", "--set",
+                 "linear_update=0.3", "--set", "max_insert_range=8", "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    warned = [line for line in err if "compilation cache" in line]
+    assert len(warned) == 1 and warned[0].startswith("jaxslam map: warning: the compilation cache folder"), err
+    assert "running without it" in warned[0] and str(tmp_path / "a_file" / "cache") in warned[0]
+    assert (tmp_path / "out" / "map.pgm").is_file()
+    assert jax.config.jax_compilation_cache_dir == before  # left as it was
+
+
+@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root ignores file permissions")
+def test_a_read_only_cache_folder_is_not_used(tmp_path):
+    from jaxslam.compile_cache import enable
+
+    (tmp_path / "ro").mkdir(mode=0o500)
+    try:
+        folder, warning = enable(environ={"JAXSLAM_CACHE_DIR": str(tmp_path / "ro")})
+    finally:
+        os.chmod(tmp_path / "ro", 0o700)
+    assert folder is None and "cannot be used" in warning and "running without it" in warning
+    assert list((tmp_path / "ro").iterdir()) == []

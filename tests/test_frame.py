@@ -113,8 +113,8 @@ def test_the_command_line_maps_and_refines_a_far_log_as_a_near_one(office_log, t
     far_log = _shifted(near_log, SHIFT)
     for name, log in (("near", near_log), ("far", far_log)):
         write_flaser_log(tmp_path / f"{name}.clf", log)
-        assert main(["map", str(tmp_path / f"{name}.clf"), "--particles", "3", "--no-progress", "--refine",
-                     "--set", "linear_update=0.3", "--set", "max_insert_range=8",
+        assert main(["map", str(tmp_path / f"{name}.clf"), "--particles", "3", "--proposal", "smp", "--no-progress",
+                     "--refine", "--set", "linear_update=0.3", "--set", "max_insert_range=8",
                      "--out", str(tmp_path / name)]) == 0
     for file in ("trajectory.txt", "trajectory_refined.txt"):
         near_traj, far_traj = np.loadtxt(tmp_path / "near" / file), np.loadtxt(tmp_path / "far" / file)

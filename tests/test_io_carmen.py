@@ -313,8 +313,8 @@ def test_a_log_of_180_and_181_beam_lines_maps(tmp_path):
     log, warned = _read_counting_warnings(path)
     assert len(warned) == 1 and log.num_beams == 181 and np.all(log.ranges[1::2, 180] == 0.0)
     out = tmp_path / "out"
-    assert main(["map", str(path), "--particles", "2", "--no-progress", "--set", "linear_update=0.3",
-                 "--set", "max_insert_range=8", "--out", str(out)]) == 0
+    assert main(["map", str(path), "--particles", "2", "--proposal", "smp", "--no-progress", "--set",
+                 "linear_update=0.3", "--set", "max_insert_range=8", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert len(summary["log_notes"]) == 1 and "20 of 40 scans were padded" in summary["log_notes"][0]
     traj = np.loadtxt(out / "trajectory.txt")

@@ -63,6 +63,18 @@ def test_write_map_files(tmp_path):
     assert "occupied_thresh: 0.65\n" in text and "free_thresh: 0.196\n" in text
 
 
+def test_map_yaml_origin_is_rounded_to_the_nanometre(tmp_path):
+    """An origin computed as start + cells * resolution carries float noise; map.yaml shows the
+    number, not the noise, and reads back within a nanometre."""
+    logodds, _ = _test_grid()
+    noisy = (-12.350000000000001, 0.1 + 0.2)  # 0.30000000000000004
+    paths = write_map(tmp_path / "office", logodds, GridSpec((4, 6), 0.05, noisy))
+    assert "origin: [-12.35, 0.3, 0.0]\n" in paths["yaml"].read_text()
+    assert read_map(paths["yaml"])[1].origin == pytest.approx(noisy, abs=1e-9)
+    paths = write_map(tmp_path / "zero", logodds, GridSpec((4, 6), 0.05, (-1e-12, 1.0000000004)))
+    assert "origin: [0.0, 1.0, 0.0]\n" in paths["yaml"].read_text()  # no "-0.0"
+
+
 def test_map_round_trip(tmp_path):
     logodds, spec = _test_grid()
     paths = write_map(tmp_path / "office", logodds, spec)
@@ -394,6 +406,35 @@ def test_read_trajectory_empty_or_missing(tmp_path):
         read_trajectory(path)
     with pytest.raises(LogError, match=r"no such trajectory file"):
         read_trajectory(tmp_path / "missing.txt")
+
+
+def test_warnings_point_at_the_callers_line(tmp_path):
+    """A warning from inside the package names the user's call (here: this file), not the
+    reader's internals, whichever entry point was called."""
+    import warnings
+
+    from jaxslam.io import read_log
+    from logs import write_flaser_log
+
+    path = tmp_path / "traj.txt"
+    path.write_text("0 0 0 0\n1 5 5 0\n1 1 0 0\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_trajectory(path)
+    assert [w.filename for w in caught] == [__file__], [(w.filename, w.lineno) for w in caught]
+    clf = tmp_path / "log.clf"
+    from jaxslam.sim import office_scenario
+    import jax
+
+    write_flaser_log(clf, office_scenario(jax.random.key(0), num_scans=20, num_beams=31).log.subset(np.arange(6)))
+    lines = clf.read_text().splitlines()
+    odom = [f"ODOM 0 0 0 0 0 0 {t:.6f} host {t:.6f}" for t in (float(line.split()[-3]) - 0.01 for line in lines[1:])]
+    # ODOM lines before every laser line but the last: the last is dropped, with a warning.
+    clf.write_text("\n".join([lines[0], *(x for pair in zip(odom, lines[1:]) for x in pair)][:-2] + lines[-1:]) + "\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        read_log(clf, odometry_source="odom")
+    assert caught and {w.filename for w in caught} == {__file__}, [(w.filename, str(w.message)) for w in caught]
 
 
 def test_write_trajectory_rejects_bad_input(tmp_path):

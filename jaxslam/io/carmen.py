@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 
 import numpy as np
 
@@ -38,6 +37,7 @@ from jaxslam.io.rosbag import BeamLayout, check_laser_pose, pad_beam_layouts
 from jaxslam.io.trajectory import poses_at
 from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp
 from jaxslam.laser import make_sensor, uniform_beams
+from jaxslam.warn import warn
 
 __all__ = ["FLASER_NO_RETURN", "read_carmen", "text_problem"]
 
@@ -340,11 +340,9 @@ class _LaserLines:
             default_max = self.geometry[2]
             laser_pose = tuple(self.laser_pose)
             if self.laser_pose_varies and mount is None:
-                warnings.warn(
+                warn(
                     f"{self.laser_pose_varies}: the laser's pose on the robot differs by more than "
-                    f"{_LASER_POSE_TOLERANCE} from the first line's; the first line's is used",
-                    stacklevel=3,
-                )
+                    f"{_LASER_POSE_TOLERANCE} from the first line's; the first line's is used")
         if mount is not None:
             laser_pose = mount
         limit = default_max if range_max is None else float(range_max)
@@ -368,12 +366,10 @@ class _LaserLines:
                 )
             if dropped:
                 early = int(np.sum(times < odom.times[0]))
-                warnings.warn(
+                warn(
                     f"{src}: dropped {dropped} of {times.size} laser lines outside the ODOM lines' time "
                     f"span ({early} before the first, {dropped - early} after the last): odometry is "
-                    "interpolated, never extrapolated",
-                    stacklevel=3,
-                )
+                    "interpolated, never extrapolated")
             odometry = paired.poses
             found.append(f"{src}: the odometry of the ODOM lines is used (odometry_source='odom'), not that of the "
                          f"{self.kind} lines")
@@ -385,16 +381,13 @@ class _LaserLines:
             if np.all(true_at.covered):
                 ground_truth = true_at.poses
             else:
-                warnings.warn(
-                    f"{src}: TRUEPOS lines do not cover every laser timestamp; no ground truth is returned",
-                    stacklevel=3,
-                )
+                warn(f"{src}: TRUEPOS lines do not cover every laser timestamp; no ground truth is returned")
         kept = np.nonzero(keep)[0]
         # Readings at or beyond the limit are "no return": exactly range_max in the log.
         scans = [np.where(self.ranges[i] >= limit32, limit32, self.ranges[i].astype(np.float32)) for i in kept]
         beam_angles, ranges, range_min, note = pad_beam_layouts(src, self.layouts, layout_of[kept], scans, 0.0)
         if note:
-            warnings.warn(note, stacklevel=3)
+            warn(note)
         sensor = make_sensor(beam_angles, range_min=range_min, range_max=limit, laser_pose=laser_pose)
         return LaserLog(times[keep], odometry[keep], ranges, sensor, ground_truth, src, (note,) if note else (),
                         tuple(found))

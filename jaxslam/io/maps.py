@@ -114,7 +114,7 @@ def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65,
     with open(paths["pgm"], "wb") as f:
         f.write(f"P5\n# CREATOR: jaxslam {spec.resolution:.6f} m/pix\n{width} {height}\n255\n".encode("ascii"))
         f.write(image.tobytes())
-    ox, oy = spec.origin
+    ox, oy = (_nanometre(v) for v in spec.origin)
     paths["yaml"].write_text(
         f"image: {paths['pgm'].name}\n"
         f"mode: trinary\n"
@@ -129,6 +129,13 @@ def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65,
 
     Image.fromarray(image).save(paths["png"])  # uint8 (H, W): 8-bit grey
     return paths
+
+
+def _nanometre(value) -> float:
+    """``value`` (m) rounded to the nanometre, as a Python float: a grid's origin, computed as
+    ``start + cells * resolution``, carries float noise (-12.350000000000001) that map.yaml need
+    not show; a nanometre is far below any map's resolution."""
+    return round(float(value), 9) + 0.0  # + 0.0: no "-0.0"
 
 
 def _logit(p: float) -> np.float64:

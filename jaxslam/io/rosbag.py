@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from collections import Counter
 from pathlib import Path
 from typing import NamedTuple
@@ -36,8 +35,9 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxslam.io.trajectory import poses_at
-from jaxslam.laserlog import LaserLog, LogError
 from jaxslam.laser import make_sensor
+from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.warn import warn
 
 __all__ = ["read_rosbag"]
 
@@ -640,12 +640,9 @@ def _assemble(src, scan_topic, odom_what, scans: _Scans, odometry, mount: _Mount
                 f"{src}: no scan on {scan_topic!r} ({times[0]:.9f}..{times[-1]:.9f} s) lies within the "
                 f"time span of the odometry on {odom_what} ({odom_times[0]:.9f}..{odom_times[-1]:.9f} s)"
             )
-        warnings.warn(
-            f"{src}: dropped {early + late} of {times.size} scans outside the odometry's time span "
-            f"({early} before the first and {late} after the last {odom_what.strip(chr(39))} message): "
-            "odometry is interpolated, never extrapolated",
-            stacklevel=3,
-        )
+        warn(f"{src}: dropped {early + late} of {times.size} scans outside the odometry's time span "
+             f"({early} before the first and {late} after the last {odom_what.strip(chr(39))} message): "
+             "odometry is interpolated, never extrapolated")
     keep = paired.covered
     range_min, range_max = scans.first
     layout_of = np.asarray(scans.layout_of)
@@ -656,7 +653,7 @@ def _assemble(src, scan_topic, odom_what, scans: _Scans, odometry, mount: _Mount
     beam_angles, ranges, range_min, note = pad_beam_layouts(
         src, scans.layouts, layout_of[kept], [scans.ranges[i] for i in kept], max(range_min, 0.0))
     if note:
-        warnings.warn(note, stacklevel=3)
+        warn(note)
         notes.append(note)
     if mount.upside_down:
         # Seen from above, the beams of a laser whose z axis points down sweep clockwise: angle a

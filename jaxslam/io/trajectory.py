@@ -15,13 +15,13 @@ other timestamps; the log readers use it to pair each scan with odometry.
 from __future__ import annotations
 
 import os
-import warnings
 from typing import NamedTuple
 
 import numpy as np
 
 from jaxslam.geometry import between, compose, interpolate, wrap_angle_np
 from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp
+from jaxslam.warn import warn
 
 __all__ = [
     "PosesAt",
@@ -188,11 +188,9 @@ def read_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
     last = last_of_each_timestamp(table[:, 0])
     if not last.all():
         i = int(np.argmin(last))
-        warnings.warn(
+        warn(
             f"{src}: {int(np.sum(~last))} poses repeat the timestamp of the next pose (first: lines {line_of[i]} and "
             f"{line_of[i + 1]} at t={table[i, 0]:.9f}); of each repeated timestamp only the last pose is kept "
-            "(the rule jaxslam map applies to the scans of a log)",
-            stacklevel=2,
-        )
+            "(the rule jaxslam map applies to the scans of a log)")
         table = table[last]
     return table[:, 0].copy(), table[:, 1:].copy()
