@@ -216,6 +216,34 @@ def structurally_zero(objective_fn: Callable[[dict], Float[Array, ""]], coords: 
     return [name for name, var in zip(names, jaxpr.jaxpr.outvars) if isinstance(var, Literal)]
 
 
+LEARNING_SETTINGS: dict[str, Any] = {
+    "likelihood.gain": 1.0,           # the untempered likelihood: a tempered one peaks elsewhere
+    "likelihood_lookup": "bilinear",  # weights continuous in the pose: the SMP's and LP's gradients need it
+    "linear_update": 0.0,             # every scan an update: the motion model is the one that made the data
+    "angular_update": 0.0,
+}
+"""What a fit of the RBPF's parameters needs beyond the mapping defaults (docs/design.md,
+"Tempering and learning")."""
+
+
+def slam_learning_setup(values: dict[str, Any] | None = None):
+    """``(config, settings, params)`` of the RBPF set up for learning: :data:`LEARNING_SETTINGS`
+    over the library's defaults, then ``values`` (names as ``--set`` takes them: config fields,
+    run settings and dotted parameters; e.g. the data's minimum stds ``motion.min_translation_std``
+    and ``motion.min_rotation_std`` where they are known, as for a simulated log). A value in
+    ``values`` that undoes a learning setting is kept but warned of."""
+    import warnings
+
+    from jaxslam.config import build_setup
+
+    values = dict(values or {})
+    undone = sorted(k for k, v in values.items() if k in LEARNING_SETTINGS and v != LEARNING_SETTINGS[k])
+    if undone:
+        warnings.warn(f"slam_learning_setup: {undone} differ from what learning needs ({LEARNING_SETTINGS}); the "
+                      f"log-likelihood then does not peak at the data's parameters", stacklevel=2)
+    return build_setup({**LEARNING_SETTINGS, **values})
+
+
 class FitError(FloatingPointError):
     """:func:`fit` met a non-finite objective or gradient; ``result`` is the fit before that step."""
 

@@ -114,3 +114,15 @@ def test_fit_refuses_parameters_the_gradient_cannot_reach():
             trainable=trainable, progress=False)
     # A gradient that is 0 in value but not by construction is not refused.
     assert structurally_zero(lambda c: c["a"] * 0.0 + jnp.where(c["b"] > 0, 1.0, 0.0), {"a": 1.0, "b": 1.0}) == ["b"]
+
+
+def test_slam_learning_setup_sets_what_a_fit_needs():
+    from jaxslam.learning import LEARNING_SETTINGS, slam_learning_setup
+
+    config, settings, params = slam_learning_setup({"proposal": "op", "motion.min_translation_std": 0.001})
+    assert float(params.likelihood.gain) == 1.0 and config.likelihood_lookup == "bilinear"
+    assert settings.linear_update == 0.0 and settings.angular_update == 0.0
+    assert float(params.motion.min_translation_std) == pytest.approx(0.001) and config.proposal == "op"
+    with pytest.warns(UserWarning, match="likelihood.gain"):
+        slam_learning_setup({"likelihood.gain": 0.1})
+    assert set(LEARNING_SETTINGS) == {"likelihood.gain", "likelihood_lookup", "linear_update", "angular_update"}
