@@ -124,9 +124,12 @@ def init(
     n = config.num_particles
     pool = pool_size(config) if pool is None else PoolSize(*pool)
     pose = jnp.zeros(3, jnp.float32) if initial_pose is None else jnp.asarray(initial_pose, jnp.float32)
-    one, _ = paged_map.insert_scans(spec, paged_map.empty(spec, 1, *pool), pose[None],
-                                    jnp.asarray(first_ranges, jnp.float32), sensor, params.insertion,
-                                    config.max_insert_range, config.field_radius)
+    # The insertion is not differentiable (cells are chosen by rounding the pose): no gradient
+    # enters it, so none leaves it either (its tangents would only be NaN-prone noise).
+    one, _ = paged_map.insert_scans(spec, paged_map.empty(spec, 1, *pool), jax.lax.stop_gradient(pose[None]),
+                                    jnp.asarray(first_ranges, jnp.float32), sensor,
+                                    jax.lax.stop_gradient(params.insertion), config.max_insert_range,
+                                    config.field_radius)
     return SlamState(
         poses=jnp.broadcast_to(pose, (n, 3)),
         log_weights=jnp.full((n,), -math.log(n), jnp.float32),
@@ -176,8 +179,9 @@ def step(
                                                    params.resample_threshold, config.resampler)
     # Only the particles the resampling keeps insert the scan: the others' maps are dropped next.
     survivors = jnp.zeros((n,), bool).at[update.ancestors].set(True)
-    maps, outside = paged_map.insert_scans(spec, state.maps, out.pose, inputs.ranges, sensor, params.insertion,
-                                           config.max_insert_range, config.field_radius, survivors)
+    maps, outside = paged_map.insert_scans(spec, state.maps, jax.lax.stop_gradient(out.pose), inputs.ranges, sensor,
+                                           jax.lax.stop_gradient(params.insertion), config.max_insert_range,
+                                           config.field_radius, survivors)  # not differentiable: see init
     # An insertion that did not fit wrote nothing: the step is not taken.
     taken = active & ~maps.overflow
     ancestors = jnp.where(taken, update.ancestors, jnp.arange(n, dtype=update.ancestors.dtype))

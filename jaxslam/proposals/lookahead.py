@@ -212,8 +212,13 @@ def back_propagate(
     # A dense (L, M) membership mask: L = M ~ 100 makes this a few thousand flops,
     # cheaper and simpler on CPU and GPU than a scatter-based segment logsumexp.
     member = origin[None, :] == jnp.arange(num_origins, dtype=origin.dtype)[:, None]
-    per_origin = jax.scipy.special.logsumexp(jnp.where(member, log_a[None, :], -jnp.inf), axis=1)
-    return log_z + per_origin
+    # A sample without a descendant of nonzero weight has V = 0; its row is summed over zeros
+    # instead (and set to -inf after) so that its derivative is 0, not logsumexp's NaN of an
+    # all -inf row.
+    alive = jnp.any(member & jnp.isfinite(log_a)[None, :], axis=1)
+    rows = jnp.where(member, log_a[None, :], -jnp.inf)
+    per_origin = jax.scipy.special.logsumexp(jnp.where(alive[:, None], rows, 0.0), axis=1)
+    return log_z + jnp.where(alive, per_origin, -jnp.inf)
 
 
 def selection_log_probs(
@@ -248,7 +253,9 @@ def _log_mixture(alpha, log_a, log_b):
     at 0 and meets a zero from logaddexp); the mixture itself is smooth in alpha on [0, 1]."""
     log_alpha = jnp.where(alpha > 0.0, jnp.log(jnp.where(alpha > 0.0, alpha, 1.0)), -jnp.inf)
     log_rest = jnp.where(alpha < 1.0, jnp.log1p(-jnp.where(alpha < 1.0, alpha, 0.0)), -jnp.inf)
-    return jnp.logaddexp(log_rest + log_a, log_alpha + log_b)
+    x, y = log_rest + log_a, log_alpha + log_b
+    zero = jnp.isneginf(x) & jnp.isneginf(y)  # both components 0: log 0, without logaddexp's inner NaN
+    return jnp.where(zero, -jnp.inf, jnp.logaddexp(jnp.where(zero, 0.0, x), jnp.where(zero, 0.0, y)))
 
 
 @_log_mixture.defjvp
@@ -258,12 +265,19 @@ def _log_mixture_jvp(primals, tangents):
     log_p = _log_mixture(alpha, log_a, log_b)
     ok = jnp.isfinite(log_p)
     safe_log_p = jnp.where(ok, log_p, 0.0)
+    log_alpha = jnp.where(alpha > 0.0, jnp.log(jnp.where(alpha > 0.0, alpha, 1.0)), -jnp.inf)
+    log_rest = jnp.where(alpha < 1.0, jnp.log1p(-jnp.where(alpha < 1.0, alpha, 0.0)), -jnp.inf)
 
-    def ratio(x):  # exp(x - log p): a component over the mixture, 0 where it is 0 or p is
-        return jnp.where(ok & jnp.isfinite(x), jnp.exp(jnp.where(jnp.isfinite(x), x, 0.0) - safe_log_p), 0.0)
+    def over_p(x, cap=jnp.inf):  # exp(x - log p), 0 where x or p is 0, at most exp(cap)
+        fine = ok & jnp.isfinite(x)
+        return jnp.where(fine, jnp.exp(jnp.minimum(jnp.where(fine, x, 0.0) - safe_log_p, cap)), 0.0)
 
-    a_over_p, b_over_p = ratio(log_a), ratio(log_b)
-    d_log_p = ((b_over_p - a_over_p) * d_alpha + (1.0 - alpha) * a_over_p * d_a + alpha * b_over_p * d_b)
+    # The components' shares of p, (1 - alpha) a / p and alpha b / p, lie in [0, 1]; a / p and
+    # b / p (the alpha derivative) are unbounded as p -> 0 and capped at exp(60) so that a
+    # sample whose p is 0 to float32 gives 0 times a finite number, not 0 times inf (NaN).
+    a_share, b_share = over_p(log_rest + log_a), over_p(log_alpha + log_b)
+    d_log_p = ((over_p(log_b, 60.0) - over_p(log_a, 60.0)) * d_alpha
+               + jnp.where(a_share > 0.0, a_share * d_a, 0.0) + jnp.where(b_share > 0.0, b_share * d_b, 0.0))
     return log_p, d_log_p
 
 
