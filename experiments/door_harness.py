@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from jaxslam.geometry import wrap_angle
+from jaxslam.geometry import pose_errors
 from jaxslam.laser import SensorSpec
 from jaxslam.localization import doors, mcl
 from jaxslam.localization.doors import DoorConfig, DoorMap, DoorParams
@@ -44,13 +44,6 @@ class DoorRun(NamedTuple):
     """Particle door beliefs at the end (for static MCL: the map's fixed belief)."""
     final_log_weights: Float[Array, "N"]
     """Log-weights at the end."""
-
-
-def pose_errors(mean_pose, true_poses):
-    """(T,) position errors (m) and wrapped heading errors (rad) of (T, 3) mean poses."""
-    pos = jnp.hypot(mean_pose[:, 0] - true_poses[:, 0], mean_pose[:, 1] - true_poses[:, 1])
-    head = jnp.abs(wrap_angle(mean_pose[:, 2] - true_poses[:, 2]))
-    return pos, head
 
 
 def run_filter(key: PRNGKeyArray, inputs: ScanInputs, true_poses: Float[Array, "T 3"],

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import signal
 import sys
@@ -201,16 +200,15 @@ def _cmd_map(args: argparse.Namespace) -> int:
 
 
 def parse_laser_pose(text: str) -> tuple[float, float, float]:
-    """``"x,y,theta"`` (``--laser-pose``) -> three floats; anything else raises ``ConfigError``."""
-    parts = text.split(",")
+    """``"x,y,theta"`` (``--laser-pose``) -> three floats (:func:`jaxslam.io.rosbag.check_laser_pose`);
+    anything else raises ``ConfigError``."""
+    from jaxslam.io.rosbag import check_laser_pose
+
     try:
-        values = tuple(float(part) for part in parts)
+        return check_laser_pose(text.split(","))
     except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise ConfigError(f"--laser-pose expects x,y,theta: three finite numbers (m, m, rad) separated by commas, "
-                          f"e.g. 0.25,0,0.1 (a negative first one as --laser-pose=-0.25,0,0), got {text!r}")
-    return values
+                          f"e.g. 0.25,0,0.1 (a negative first one as --laser-pose=-0.25,0,0), got {text!r}") from None
 
 
 MAP_DEFAULTS = {"proposal": "lp", "num_particles": 30}
@@ -340,13 +338,12 @@ def _warn_of_the_cache(args) -> None:
 def _map_and_write(log, setup, args, source: str, world=None) -> int:
     from jaxslam.io.checkpoint import save_checkpoint
     from jaxslam.outputs import write_slam_outputs
-    from jaxslam.rbpf import check_config_for_log, check_extent
+    from jaxslam.rbpf import check_config_for_log
     from jaxslam.slam import RunInterrupted, run
 
     config, settings, params = setup
 
     check_config_for_log(log, config)
-    check_extent(log, config)
     _check_memory(log, config, settings)
     _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
     ckpt = checkpoint_path(args.out)
@@ -525,7 +522,7 @@ def _cmd_doors(args: argparse.Namespace) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxslam.geometry import wrap_angle
+    from jaxslam.geometry import pose_errors
     from jaxslam.localization import doors, mcl
     from jaxslam.localization.plotting import figure_run, plot_door_map, plot_position_errors, save_figures
     from jaxslam.sim.door_worlds import SCENARIOS, filter_settings
@@ -552,9 +549,8 @@ def _cmd_doors(args: argparse.Namespace) -> int:
                             dataclasses.replace(config, memory=args.filter_kind == "hybrid")).info
         mean_pose = info.mcl.mean_pose
         final_belief = np.asarray(info.door_belief[-1])
-    truth = jnp.asarray(scenario.true_poses, jnp.float32)
-    position_error = np.asarray(jnp.hypot(mean_pose[:, 0] - truth[:, 0], mean_pose[:, 1] - truth[:, 1]))
-    heading_error = np.asarray(jnp.abs(wrap_angle(mean_pose[:, 2] - truth[:, 2])))
+    position_error, heading_error = (np.asarray(e) for e in
+                                     pose_errors(mean_pose, jnp.asarray(scenario.true_poses, jnp.float32)))
     result = {"scenario": args.scenario, "filter": args.filter_kind, "seed": args.seed, "particles": args.particles,
               "final_position_error_m": float(position_error[-1]),
               "final_heading_error_deg": float(np.rad2deg(heading_error[-1])),

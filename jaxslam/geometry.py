@@ -88,6 +88,13 @@ def interpolate(a: Float[Array, "... 3"], b: Float[Array, "... 3"], fraction) ->
     return compose(a, between(a, b) * fraction)
 
 
+def pose_errors(estimated: Float[Array, "... 3"], truth: Float[Array, "... 3"]
+                ) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """Position error (m) and absolute heading error (rad, wrapped) of poses against the truth."""
+    position = jnp.hypot(estimated[..., 0] - truth[..., 0], estimated[..., 1] - truth[..., 1])
+    return position, jnp.abs(wrap_angle(estimated[..., 2] - truth[..., 2]))
+
+
 def weighted_mean_and_covariance(
     poses: Float[Array, "N 3"], weights: Float[Array, "N"]
 ) -> tuple[Float[Array, "3"], Float[Array, "3 3"]]:

@@ -188,15 +188,16 @@ def fit(
 
     history: dict[str, list] = {"objective": [], **{name: [] for name in trainable}}
     bar = tqdm(jax.random.split(key, num_steps), desc="fit", unit="step", disable=not progress)
-    for k, step_key in enumerate(bar):
+    for step_number, step_key in enumerate(bar):
         value, finite, new_coords, new_state = update(step_key, coords, state)
         bad = [name for name in trainable if not bool(finite[name])]
         if bad or not np.isfinite(float(value)):
             so_far = FitResult(to_params(coords), {k: np.asarray(v) for k, v in history.items()}, state)
-            raise FitError(f"fit step {k}: the objective is {float(value)} and the gradient is not finite in {bad}: "
+            raise FitError(f"fit step {step_number}: the objective is {float(value)} and the gradient is not finite "
+                           f"in {bad}: "
                            f"the estimate lost every particle at some step, or a filter's map pools overflowed "
                            f"(rbpf.filter then returns -inf: pass a larger pool); the fit stopped, its result up "
-                           f"to step {k - 1} is in this error's .result", so_far)
+                           f"to step {step_number - 1} is in this error's .result", so_far)
         for name in trainable:
             history[name].append(float(transforms[name].to_constrained_fn(coords[name])))
         history["objective"].append(float(value))
@@ -232,15 +233,14 @@ def slam_learning_setup(values: dict[str, Any] | None = None):
     run settings and dotted parameters; e.g. the data's minimum stds ``motion.min_translation_std``
     and ``motion.min_rotation_std`` where they are known, as for a simulated log). A value in
     ``values`` that undoes a learning setting is kept but warned of."""
-    import warnings
-
     from jaxslam.config import build_setup
+    from jaxslam.warn import warn
 
     values = dict(values or {})
     undone = sorted(k for k, v in values.items() if k in LEARNING_SETTINGS and v != LEARNING_SETTINGS[k])
     if undone:
-        warnings.warn(f"slam_learning_setup: {undone} differ from what learning needs ({LEARNING_SETTINGS}); the "
-                      f"log-likelihood then does not peak at the data's parameters", stacklevel=2)
+        warn(f"slam_learning_setup: {undone} differ from what learning needs ({LEARNING_SETTINGS}); the "
+             f"log-likelihood then does not peak at the data's parameters")
     return build_setup({**LEARNING_SETTINGS, **values})
 
 

@@ -325,8 +325,8 @@ def check_extent(log: LaserLog, config: SlamConfig) -> None:
 def check_config_for_log(log: LaserLog, config: SlamConfig) -> None:
     """Refuse (``ConfigError``) settings that are in their own range but wrong for this log, before
     any work: a ``beam_stride`` longer than the scan (the likelihoods would use its first beam
-    alone), or a ``max_insert_range`` at or below the laser's ``range_min`` (no beam ever
-    reaches the map)."""
+    alone), a ``max_insert_range`` at or below the laser's ``range_min`` (no beam ever reaches
+    the map), or odometry that leaves the virtual grid (:func:`check_extent`)."""
     beams = int(log.num_beams)
     if config.beam_stride > beams:
         raise ConfigError(f"beam_stride={config.beam_stride} is more than the log's {beams} beams per scan (the "
@@ -335,6 +335,7 @@ def check_config_for_log(log: LaserLog, config: SlamConfig) -> None:
     if config.max_insert_range <= range_min:
         raise ConfigError(f"max_insert_range={config.max_insert_range:g} m is not above the laser's range_min="
                           f"{range_min:g} m: no beam would reach the map; set --set max_insert_range=... above it")
+    check_extent(log, config)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -348,15 +349,14 @@ FilterOutput = particle_filter.FilterOutput
 
 def prepare(log: LaserLog, config: SlamConfig, settings: RunSettings = RunSettings()
             ) -> tuple[PreparedLog, UpdateSelection, np.ndarray]:
-    """Host side of a run: check the settings against the log (:func:`check_config_for_log`) and
-    the log against the grid, move it to the local frame
+    """Host side of a run: check the settings against the log (:func:`check_config_for_log`),
+    move it to the local frame
     (:func:`local_frame_offset`), select the scans to process and stack their inputs.
 
     Returns ``(prepared, selection, frame_offset)``: the arrays :func:`filter` takes, which scans
     of ``log`` it processes, and the (2,) translation (m) to add to local x, y for the world's.
     """
     check_config_for_log(log, config)
-    check_extent(log, config)
     frame_offset = local_frame_offset(log)
     local = local_log(log, frame_offset)
     selection = select_updates(local, settings.linear_update, settings.angular_update)

@@ -128,7 +128,8 @@ def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations, loo
         # The match's covariance: the tempered likelihood (the gain that makes the beams'
         # evidence honest) normalised over the stencil, plus the proposal's floor.
         candidates, _, spacing = stencil_poses(result.pose, sm)
-        log_lik = model.log_likelihoods_fn(MapView(spec, hit_dist2), candidates, scan, sensor, params.likelihood, lookup)
+        log_lik = model.log_likelihoods_fn(MapView(spec, hit_dist2), candidates, scan, sensor, params.likelihood,
+                                           lookup)
         _, cov = weighted_mean_and_covariance(candidates, jax.nn.softmax(log_lik))
         cov = cov + jnp.diag((sm.min_std_fraction * spacing) ** 2)
         return result.pose, result.score, cov

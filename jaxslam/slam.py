@@ -146,7 +146,7 @@ def run(
     The maps' pool starts at :func:`jaxslam.rbpf.pool_size`; a chunk in which a step needed more tiles than
     the pool had is repeated from its start with a grown pool (one recompile; reported on
     stderr and in ``result.map_pool``). A log whose odometry leaves the virtual grid is refused
-    first (:func:`jaxslam.rbpf.check_extent`).
+    first (:func:`jaxslam.rbpf.check_config_for_log`).
 
     Args:
       key: the run's randomness (the same key reproduces the run bit for bit).

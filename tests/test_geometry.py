@@ -190,3 +190,13 @@ def test_between_np_matches_between_and_keeps_float64_precision():
     step = G.between_np(far, near)
     np.testing.assert_allclose(np.hypot(step[0], step[1]), 0.001, rtol=1e-9)
     assert G.between_np(far, near).dtype == np.float64
+
+
+def test_pose_errors_match_numpy():
+    rng = np.random.default_rng(0)
+    est = rng.normal(size=(50, 3)) * [3.0, 3.0, 4.0]
+    truth = rng.normal(size=(50, 3)) * [3.0, 3.0, 4.0]
+    position, heading = G.pose_errors(est.astype(np.float32), truth.astype(np.float32))
+    diff = np.angle(np.exp(1j * (est[:, 2] - truth[:, 2])))
+    np.testing.assert_allclose(np.asarray(position), np.linalg.norm(est[:, :2] - truth[:, :2], axis=1), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(heading), np.abs(diff), atol=1e-5)

@@ -243,6 +243,13 @@ def selection_log_probs(
     return log_p, fallback
 
 
+def _mixture_log_weights(alpha):
+    """(log(1 - alpha), log(alpha)), -inf at the ends without NaN in anything derived from them."""
+    log_rest = jnp.where(alpha < 1.0, jnp.log1p(-jnp.where(alpha < 1.0, alpha, 0.0)), -jnp.inf)
+    log_alpha = jnp.where(alpha > 0.0, jnp.log(jnp.where(alpha > 0.0, alpha, 1.0)), -jnp.inf)
+    return log_rest, log_alpha
+
+
 @jax.custom_jvp
 def _log_mixture(alpha, log_a, log_b):
     """log[(1 - alpha) exp(log_a) + alpha exp(log_b)] for alpha in [0, 1] and shares <= 0.
@@ -251,8 +258,7 @@ def _log_mixture(alpha, log_a, log_b):
     at alpha = 0 (the paper's form) and at alpha = 1. Its derivative is written out because
     autodiff of that expression is NaN at both ends (the derivative of log(alpha) is infinite
     at 0 and meets a zero from logaddexp); the mixture itself is smooth in alpha on [0, 1]."""
-    log_alpha = jnp.where(alpha > 0.0, jnp.log(jnp.where(alpha > 0.0, alpha, 1.0)), -jnp.inf)
-    log_rest = jnp.where(alpha < 1.0, jnp.log1p(-jnp.where(alpha < 1.0, alpha, 0.0)), -jnp.inf)
+    log_rest, log_alpha = _mixture_log_weights(alpha)
     x, y = log_rest + log_a, log_alpha + log_b
     zero = jnp.isneginf(x) & jnp.isneginf(y)  # both components 0: log 0, without logaddexp's inner NaN
     return jnp.where(zero, -jnp.inf, jnp.logaddexp(jnp.where(zero, 0.0, x), jnp.where(zero, 0.0, y)))
@@ -265,8 +271,7 @@ def _log_mixture_jvp(primals, tangents):
     log_p = _log_mixture(alpha, log_a, log_b)
     ok = jnp.isfinite(log_p)
     safe_log_p = jnp.where(ok, log_p, 0.0)
-    log_alpha = jnp.where(alpha > 0.0, jnp.log(jnp.where(alpha > 0.0, alpha, 1.0)), -jnp.inf)
-    log_rest = jnp.where(alpha < 1.0, jnp.log1p(-jnp.where(alpha < 1.0, alpha, 0.0)), -jnp.inf)
+    log_rest, log_alpha = _mixture_log_weights(alpha)
 
     def over_p(x, cap=jnp.inf):  # exp(x - log p), 0 where x or p is 0, at most exp(cap)
         fine = ok & jnp.isfinite(x)
