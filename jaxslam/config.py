@@ -87,6 +87,16 @@ class SlamConfig:
     """Resampling scheme: systematic, stratified, multinomial or residual."""
     match_iterations: int = 24
     """Fixed iteration budget of the hill-climbing scan matcher."""
+    window_cells: int = 5
+    """Coarse cells per axis of the window posterior (:mod:`jaxslam.window_posterior`): the
+    window is cut into this cubed, each scored once."""
+    window_levels: int = 4
+    """Levels the window posterior refines each mode by (each halves the cells); with the
+    coarse level and the fit, the proposal's sequential depth."""
+    window_modes: int = 4
+    """Modes the window posterior keeps: its coarse local maxima, each refined on its own."""
+    window_keep: int = 3
+    """Cells each mode keeps per level (each splits into 8 at the next)."""
     num_localizers: int = 100
     """L, localizer particles per SLAM particle in the look-ahead proposal."""
     horizon: int = 5
@@ -120,6 +130,11 @@ class SlamConfig:
             (self.beam_stride >= 1, f"beam_stride must be >= 1, got {self.beam_stride}"),
             (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}, got {self.resampler!r}"),
             (self.match_iterations >= 0, f"match_iterations must be >= 0, got {self.match_iterations}"),
+            (self.window_cells >= 1, f"window_cells must be >= 1, got {self.window_cells}"),
+            (self.window_levels >= 1, f"window_levels must be >= 1, got {self.window_levels}"),
+            (1 <= self.window_modes <= self.window_cells**3,
+             f"window_modes must be in 1..window_cells^3, got {self.window_modes}"),
+            (self.window_keep >= 1, f"window_keep must be >= 1, got {self.window_keep}"),
             (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
             (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),
             (self.lookahead_initial in ("odometry", "scan_match"),
@@ -234,6 +249,12 @@ class ScanMatchParams(NamedTuple):
     """The SMP's hill climber starts from a draw of the motion model with its stds times this
     (GMapping: 1, each particle matches from its own odometry sample, so particles that share a
     map can land in different optima); 0 starts every particle from the odometry prediction."""
+    window_sigmas: Float[Array, ""]
+    """Half-side of the window posterior's window in each axis, in the step's motion-noise stds."""
+    window_min_xy: Float[Array, ""]
+    """... but at least this (m) in x and y ..."""
+    window_min_theta: Float[Array, ""]
+    """... and this (rad) in heading."""
 
 
 class LookaheadParams(NamedTuple):
@@ -285,6 +306,7 @@ _DEFAULTS: dict[str, float] = {
     "insertion.no_return_free_range": 5.0,
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
     "scan_match.min_std_fraction": 0.1, "scan_match.start_noise": 1.0,
+    "scan_match.window_sigmas": 3.0, "scan_match.window_min_xy": 0.1, "scan_match.window_min_theta": 0.1,
     "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
     "lookahead.selection_correction": 1.0,
     "resample_threshold": 0.5,
@@ -324,6 +346,9 @@ _PARAM_RANGES: dict[str, tuple[Any, str]] = {
     "scan_match.min_score": (_at_least(0.0), ">= 0 (a mean per-beam fit in [0, 1]; above 1 every match fails)"),
     "scan_match.min_std_fraction": (_at_least(0.0), ">= 0"),
     "scan_match.start_noise": (_at_least(0.0), ">= 0"),
+    "scan_match.window_sigmas": (_above(0.0), "> 0"),
+    "scan_match.window_min_xy": (_above(0.0), "> 0 (m)"),
+    "scan_match.window_min_theta": (_above(0.0), "> 0 (rad)"),
     "lookahead.alpha": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
     # Above 1 is allowed (ESS <= L): the localizers are then resampled at every step of the horizon.
     "lookahead.resample_threshold": (_at_least(0.0), ">= 0 (a fraction of L: 0 never resamples, above 1 always)"),

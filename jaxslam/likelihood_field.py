@@ -130,6 +130,41 @@ def endpoint_log_likelihoods(
     return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
 
 
+def endpoint_cell_log_likelihoods(
+    spec: GridSpec | PagedGridSpec,
+    hit_dist2: UInt8[Array, "H W"] | PagedField,
+    poses: Float[Array, "L 3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    params: LikelihoodParams,
+    reach_xy: Float[Array, ""],
+    reach_theta: Float[Array, ""],
+    field_radius: int,
+) -> Float[Array, "L"]:
+    """The endpoint log-likelihood of a cell of poses: within ``reach_xy`` (m, in position) and
+    ``reach_theta`` (rad, in heading) of each of the L ``poses`` (nats, tempered by ``params.gain``),
+    for the coarse levels of the window posterior (:mod:`jaxslam.window_posterior`).
+
+    Moving the robot by at most (reach_xy, reach_theta) moves beam b's endpoint by at most
+    ``rho_b = reach_xy + reach_theta * |p_b|`` (|p_b| <= |laser offset| + r_b, its distance from
+    the robot). Each beam
+    is scored at the centre pose with its Gaussian widened by that reach,
+    ``log(z_hit exp(-d_b^2 / (2 (sigma^2 + rho_b^2))) + z_rand)``, a ``FAR`` cell (beyond the
+    field radius) counting as ``field_radius`` cells away (static). This is a blurred
+    likelihood, not a bound: the bound (d_b - rho_b in place of d_b, Olson's multi-resolution
+    matching read from the distance field) is flat wherever rho_b exceeds a few sigma, which at
+    a coarse heading step is every beam beyond a metre or two, and the search then kept the
+    cells nearest the prediction (docs/design.md, "The window posterior")."""
+    view = MapView(spec, hit_dist2)
+    resolution = view.resolution
+    d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
+    distance = jnp.where(d2 == FAR, float(field_radius), jnp.sqrt(d2.astype(jnp.float32))) * resolution
+    arm = jnp.hypot(sensor.laser_pose[0], sensor.laser_pose[1]) + jnp.maximum(ranges, 0.0)  # (B,) m
+    reach = reach_xy + reach_theta * arm
+    per_beam = jnp.log(params.z_hit * jnp.exp(-0.5 * distance**2 / (params.sigma**2 + reach**2)) + params.z_rand)
+    return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
+
+
 NORMALIZER_CELLS = 32
 """Cells summed exactly by :func:`endpoint_log_normalizer`; the Gaussian's tail beyond them is
 integrated in closed form."""

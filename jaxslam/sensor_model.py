@@ -1,8 +1,8 @@
 """The seam between the SLAM filter and its laser model.
 
 Everything that scores a scan in a particle's map goes through the model that
-``SlamConfig.sensor_model`` names in :data:`SENSOR_MODELS`: the three proposals, the scan
-matcher (its climb, its match score and the SMP's fitted Gaussian), the trajectory refinement
+``SlamConfig.sensor_model`` names in :data:`SENSOR_MODELS`: the three proposals, the window
+posterior (its cell scores, its match score and its fitted Gaussians), the trajectory refinement
 and the filter's log-evidence. A model reads the map through a :class:`~jaxslam.map_view.MapView`
 (paged or dense alike). A new model is one file that builds a :class:`SensorModel`, added to
 :data:`SENSOR_MODELS` here, or at run time with :func:`register_sensor_model` (which is how
@@ -19,8 +19,8 @@ from typing import Callable, NamedTuple
 
 from jaxtyping import Array, Float
 
-from jaxslam.likelihood_field import (LikelihoodParams, endpoint_log_likelihoods, endpoint_log_normalizer,
-                                      endpoint_match_score)
+from jaxslam.likelihood_field import (LikelihoodParams, endpoint_cell_log_likelihoods, endpoint_log_likelihoods,
+                                      endpoint_log_normalizer, endpoint_match_score)
 from jaxslam.laser import SensorSpec
 from jaxslam.map_view import MapView
 
@@ -36,6 +36,12 @@ MatchScoreFn = Callable[[MapView, Float[Array, "3"], Float[Array, "B"], SensorSp
 LogNormalizerFn = Callable[[Float[Array, "B"], SensorSpec, LikelihoodParams, float], Float[Array, ""]]
 """``log_normalizer_fn(ranges, sensor, params, resolution) -> ()``: the scan's log normalising
 constant, the same at every pose (added to the log-evidence, not to the weights)."""
+CellLogLikelihoodsFn = Callable[[MapView, Float[Array, "L 3"], Float[Array, "B"], SensorSpec, LikelihoodParams,
+                                 Float[Array, ""], Float[Array, ""], int], Float[Array, "L"]]
+"""``cell_log_likelihoods_fn(view, poses, ranges, sensor, params, reach_xy, reach_theta, field_radius) -> (L,)``:
+the log-likelihood of the cell of poses within ``reach_xy`` (m) and ``reach_theta`` (rad) of
+each pose, smooth at the cell's scale: what the window posterior (:mod:`jaxslam.window_posterior`)
+ranks its coarse cells by."""
 
 
 class SensorModel(NamedTuple):
@@ -47,6 +53,9 @@ class SensorModel(NamedTuple):
     """The match quality that decides whether a scan match counts."""
     log_normalizer_fn: LogNormalizerFn
     """Makes the log-evidence that of a density (for fitting the model's parameters)."""
+    cell_log_likelihoods_fn: CellLogLikelihoodsFn | None = None
+    """What the window posterior ranks its coarse cells by; None: a model without it is scored
+    at the cells' centres (nearest lookup)."""
 
 
 def _endpoint_log_likelihoods(view, poses, ranges, sensor, params, lookup):
@@ -57,7 +66,13 @@ def _endpoint_match_score(view, pose, ranges, sensor, params):
     return endpoint_match_score(view.spec, view.values, pose, ranges, sensor, params.sigma)
 
 
-ENDPOINT = SensorModel(_endpoint_log_likelihoods, _endpoint_match_score, endpoint_log_normalizer)
+def _endpoint_cell_log_likelihoods(view, poses, ranges, sensor, params, reach_xy, reach_theta, field_radius):
+    return endpoint_cell_log_likelihoods(view.spec, view.values, poses, ranges, sensor, params, reach_xy,
+                                         reach_theta, field_radius)
+
+
+ENDPOINT = SensorModel(_endpoint_log_likelihoods, _endpoint_match_score, endpoint_log_normalizer,
+                       _endpoint_cell_log_likelihoods)
 """The endpoint (likelihood-field) model of :mod:`jaxslam.likelihood_field`, GMapping's."""
 
 SENSOR_MODELS: dict[str, SensorModel] = {"endpoint": ENDPOINT}

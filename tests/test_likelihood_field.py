@@ -306,3 +306,42 @@ def test_normalizer_counts_the_scored_beams_and_makes_a_density_over_cells():
     tiny = PARAMS._replace(gain=jnp.float32(1.0), sigma=jnp.float32(1e-4))
     assert float(S.endpoint_log_normalizer(jnp.array([0.5], jnp.float32), one_beam, tiny, cell)) == pytest.approx(
         -math.log(cell), rel=1e-6)
+
+
+def np_cell_loglik(spec, hit, pose, ranges, angles, laser_pose, params, reach_xy, reach_theta, field_radius):
+    """The cell log-likelihood beam by beam in float64: the centre's distance, the Gaussian
+    widened by the reach of the beam's endpoint over the cell."""
+    sigma, z_hit, z_rand, gain = (float(v) for v in params)
+    o = np_compose(pose, laser_pose)
+    arm0 = math.hypot(float(laser_pose[0]), float(laser_pose[1]))
+    h, w = spec.shape
+    total = 0.0
+    for r, a in zip(np.asarray(ranges, np.float64), np.asarray(angles, np.float64)):
+        if not (RANGE_MIN <= r < RANGE_MAX):
+            continue
+        end = o[:2] + r * np.array([math.cos(o[2] + a), math.sin(o[2] + a)])
+        row = math.floor((end[1] - spec.origin[1]) / spec.resolution)
+        col = math.floor((end[0] - spec.origin[0]) / spec.resolution)
+        d2 = int(hit[row, col]) if (0 <= row < h and 0 <= col < w) else FAR
+        distance = (field_radius if d2 == FAR else math.sqrt(d2)) * spec.resolution
+        reach = reach_xy + reach_theta * (arm0 + r)
+        total += math.log(z_hit * math.exp(-0.5 * distance**2 / (sigma**2 + reach**2)) + z_rand)
+    return gain * total
+
+
+@pytest.mark.parametrize("reach", [(0.0, 0.0), (0.1, 0.05), (0.4, 0.3)])
+def test_cell_log_likelihoods_match_numpy_reference_and_flatten_with_the_reach(reach):
+    """endpoint_cell_log_likelihoods against the float64 reference; a larger cell never scores
+    lower on these beams (every widened Gaussian is wider), and it is never below the nearest
+    lookup at the centre."""
+    hit, ranges, sensor = setup()
+    cell = jax.jit(S.endpoint_cell_log_likelihoods, static_argnums=(0, 8))
+    got = float(cell(SPEC, jnp.asarray(hit), jnp.asarray(POSE)[None], jnp.asarray(ranges), sensor, PARAMS,
+                     jnp.float32(reach[0]), jnp.float32(reach[1]), 4)[0])
+    want = np_cell_loglik(SPEC, hit, POSE, ranges, np.asarray(sensor.beam_angles), np.asarray(sensor.laser_pose),
+                          PARAMS, reach[0], reach[1], 4)
+    assert got == pytest.approx(want, rel=1e-5, abs=1e-5)
+    assert got >= reference(hit, POSE, ranges, sensor) - 1e-5
+    wider = float(cell(SPEC, jnp.asarray(hit), jnp.asarray(POSE)[None], jnp.asarray(ranges), sensor, PARAMS,
+                       jnp.float32(reach[0] + 0.1), jnp.float32(reach[1] + 0.1), 4)[0])
+    assert wider >= got - 1e-6

@@ -63,11 +63,16 @@ from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.laser import SensorSpec
 from jaxslam.map_view import MapView
 from jaxslam.sensor_model import SensorModel, sensor_model
-from jaxslam.scan_matching import gaussian_log_density, matched_gaussian, sample_gaussian
+from jaxslam import window_posterior
 
 # Fixed fold-in tags so that the random numbers of horizon step s do not depend on
 # the horizon length K: a run whose last steps are invalid then equals a shorter run.
 _TAG_INITIAL, _TAG_SELECT, _TAG_HORIZON = 0, 1, 2
+
+LOCALIZER_UNIFORM_SHARE = 0.5
+"""Share of the localizers drawn from the window posterior's modes uniformly, the rest by the
+modes' masses: a mode lighter than the heaviest at time t still gets localizers, so the k
+scans ahead can judge it (the point of looking ahead)."""
 
 MoveFn = Callable[[PRNGKeyArray, Any, Any], Any]
 """``move(key, states, step_input) -> states``: propagate all L localizer states one step."""
@@ -388,20 +393,21 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
     poses_t = motion.sample(key_initial, start, inputs.motion, params.motion)
     log_lik_t = log_likelihood(poses_t, (inputs.motion, inputs.ranges))
     if config.lookahead_initial == "scan_match":
-        # Draw the time-t localizers from a Gaussian around the scan-matched pose instead, and
-        # make g an importance weight: g_i = log p(z_t | x_i) + log p(x_i | x_{t-1}, u_t) - log q(x_i).
-        # Steps 2-5 hold unchanged for any proposal q with g so defined (the increment then
-        # estimates the same p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
-        # The matcher's random start (scan_match.start_noise) only picks which q is used; drawn
-        # independently of the samples, it leaves the estimate unbiased.
-        gaussian = matched_gaussian(pose, field, inputs, sensor, params, config, fit_gain=localizer_gain,
-                                    start_key=jax.random.fold_in(key_initial, 2))
-        matched_t = sample_gaussian(jax.random.fold_in(key_initial, 1), gaussian, (num,))
+        # Draw the time-t localizers from the window posterior's mixture instead (every mode gets
+        # a share, LOCALIZER_UNIFORM_SHARE, whatever its mass: the horizon is what judges the
+        # modes), and make g an importance weight:
+        # g_i = log p(z_t | x_i) + log p(x_i | x_{t-1}, u_t) - log q(x_i). Steps 2-5 hold unchanged
+        # for any proposal q with g so defined (the increment then estimates the same
+        # p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
+        posterior = window_posterior.window_posterior(pose, field, inputs.motion, inputs.ranges, sensor, params,
+                                                      config, fit_gain=localizer_gain)
+        log_mixture = window_posterior.mixture_log_weights(posterior, LOCALIZER_UNIFORM_SHARE)
+        matched_t = window_posterior.sample(jax.random.fold_in(key_initial, 1), posterior, log_mixture, (num,))
         log_motion = motion.log_density(matched_t, pose, inputs.motion, params.motion)
         log_weight_t = (log_likelihood(matched_t, (inputs.motion, inputs.ranges)) + log_motion
-                        - gaussian_log_density(matched_t, gaussian))
-        poses_t = jnp.where(gaussian.matched, matched_t, poses_t)
-        log_lik_t = jnp.where(gaussian.matched, log_weight_t, log_lik_t)
+                        - window_posterior.log_density(matched_t, posterior, log_mixture))
+        poses_t = jnp.where(posterior.matched, matched_t, poses_t)
+        log_lik_t = jnp.where(posterior.matched, log_weight_t, log_lik_t)
     draw, horizon, history = lookahead_core(
         key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
         move, log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,
