@@ -158,10 +158,17 @@ def endpoint_cell_log_likelihoods(
     view = MapView(spec, hit_dist2)
     resolution = view.resolution
     d2, valid = endpoint_cell_distances(spec, hit_dist2, poses, ranges, sensor)
-    distance = jnp.where(d2 == FAR, float(field_radius), jnp.sqrt(d2.astype(jnp.float32))) * resolution
+    # The per-beam term depends on the beam (its reach) and the stored squared cell distance
+    # (0 .. field_radius^2, or FAR): a (B, field_radius^2 + 2) table, built once for all L poses
+    # (and, under vmap, per particle), replaces an exp and a log per beam and pose.
+    far_index = field_radius**2 + 1
+    stored = jnp.arange(far_index + 1, dtype=jnp.float32).at[far_index].set(float(field_radius**2))
     arm = jnp.hypot(sensor.laser_pose[0], sensor.laser_pose[1]) + jnp.maximum(ranges, 0.0)  # (B,) m
     reach = reach_xy + reach_theta * arm
-    per_beam = jnp.log(params.z_hit * jnp.exp(-0.5 * distance**2 / (params.sigma**2 + reach**2)) + params.z_rand)
+    widened = params.sigma**2 + reach**2  # (B,) m^2
+    table = jnp.log(params.z_hit * jnp.exp(-0.5 * stored * resolution**2 / widened[:, None]) + params.z_rand)
+    index = jnp.where(d2 == FAR, far_index, jnp.minimum(d2.astype(jnp.int32), far_index - 1))  # (L, B)
+    per_beam = jnp.take_along_axis(table, index.T, axis=1).T
     return params.gain * jnp.sum(jnp.where(valid, per_beam, 0.0), axis=-1)
 
 

@@ -19,7 +19,7 @@ is the box |delta_k| <= max(``scan_match.window_sigmas`` std_k, floor_k).
    the window.
 2. **Finer levels** (``window_levels``, static). Each mode splits its ``window_keep`` cells into
    their 8 halves, scores the halves (the cell score again; the last level the likelihood itself at
-   the cell centres, with ``match_lookup``) and keeps its best ``window_keep``. Modes never
+   the cell centres, with ``likelihood_lookup``, the weights' own) and keeps its best ``window_keep``. Modes never
    compete for places, so every mode is refined to the last level. Every candidate of every
    mode (and under the filter's vmap, of every particle) is one batched evaluation: the step's
    sequential depth is the number of levels plus the fit, where the hill climber it replaced
@@ -128,7 +128,7 @@ def window_posterior(pose: Float[Array, "3"], field, motion_step: Float[Array, "
       sensor: the laser.
       params: ``SlamParams``: the likelihood, the motion noise and the scan matcher's numbers.
       config: ``SlamConfig``: ``window_cells``, ``window_levels``, ``window_modes``,
-        ``window_keep``, the lookups, ``field_radius`` and ``max_insert_range`` (static).
+        ``window_keep``, ``likelihood_lookup``, ``field_radius`` and ``max_insert_range`` (static).
       fit_gain: the likelihood gain of the modes' Gaussians (the SMP: 1).
     """
     model = sensor_model(config)
@@ -156,7 +156,8 @@ def window_posterior(pose: Float[Array, "3"], field, motion_step: Float[Array, "
         return gain * log_lik + _log_prior(closest, std)
 
     def exact(offsets):
-        log_lik = model.log_likelihoods_fn(view, poses_at(offsets), ranges, sensor, untempered, config.match_lookup)
+        log_lik = model.log_likelihoods_fn(view, poses_at(offsets), ranges, sensor, untempered,
+                                           config.likelihood_lookup)
         return gain * log_lik + _log_prior(offsets, std)
 
     # 1. The coarse level: the modes' seeds.

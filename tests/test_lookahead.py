@@ -317,30 +317,30 @@ def test_grid_lp_k0_increment_is_log_mean_likelihood(room_field, alpha, localize
 
 
 def test_scan_matched_localizers_are_importance_weighted(room_field):
-    """lookahead_initial="scan_match": the time-t localizers come from the matched Gaussian q and
+    """lookahead_initial="scan_match": the time-t localizers come from the window posterior's
+    mixture q (half by the modes' masses, half uniform over the modes) and
     g_i = log p(z | x_i) + log p(x_i | x_{t-1}, u) - log q(x_i); with k = 0 the increment is
     log mean exp(g), an importance-sampling estimate of the same p(z_t | x_{t-1}, m, u_t)."""
-    from jaxslam import motion
-    from jaxslam.scan_matching import gaussian_log_density, matched_gaussian
+    from jaxslam import motion, window_posterior
+    from jaxslam.proposals.lookahead import LOCALIZER_UNIFORM_SHARE
 
-    # Equal gains: the increment is the localizers' own log mean weight, unscaled. No start
-    # noise, so that the Gaussian recomputed here is the one the proposal drew from.
-    params = default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1,
-                               "scan_match.start_noise": 0.0})
+    # Equal gains: the increment is the localizers' own log mean weight, unscaled.
+    params = default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1})
     inputs, pose = room_inputs(0)
     config = lp_config(horizon=0, lookahead_initial="scan_match")
     ex = _jit_explain(jax.random.key(3), pose, room_field, inputs, SENSOR, params, config)
-    gaussian = matched_gaussian(pose, room_field, inputs, SENSOR, params, config,
-                                           fit_gain=params.lookahead.localizer_gain)
-    assert bool(gaussian.matched)
+    post = window_posterior.window_posterior(pose, room_field, inputs.motion, inputs.ranges, SENSOR, params, config,
+                                             fit_gain=params.lookahead.localizer_gain)
+    assert bool(post.matched)
+    log_mixture = window_posterior.mixture_log_weights(post, LOCALIZER_UNIFORM_SHARE)
     lik = jax.vmap(lambda p: endpoint_log_likelihood(FIELD_GRID, room_field, p, inputs.ranges, SENSOR,
                                                      params.likelihood))(ex.poses_t)
     g = (lik + motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
-         - gaussian_log_density(ex.poses_t, gaussian))
+         - window_posterior.log_density(ex.poses_t, post, log_mixture))
     np.testing.assert_allclose(ex.log_lik_t, g, rtol=1e-5, atol=1e-3)
     expected = jax.scipy.special.logsumexp(g) - math.log(config.num_localizers)
     np.testing.assert_allclose(ex.draw.log_weight_increment, expected, rtol=1e-5, atol=1e-3)
-    # The cloud sits around the match, not spread like the motion model's.
+    # The cloud sits around the modes, not spread like the motion model's.
     spread_sm = float(np.std(np.asarray(ex.poses_t)[:, :2]))
     odo = _jit_explain(jax.random.key(3), pose, room_field, inputs, SENSOR, params, lp_config(horizon=0))
     assert spread_sm < float(np.std(np.asarray(odo.poses_t)[:, :2]))
@@ -446,49 +446,29 @@ def test_revisiting_accuracy_weights_particle_errors():
 
 
 @pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
-def test_smp_start_noise_spreads_the_matches_around_one_optimum(room_field):
-    """scan_match.start_noise: 0 starts the hill climber at the prediction (bit for bit the same
-    as no start key); 1 starts each particle from its own odometry draw, as GMapping does: the
-    matches differ (the particles keep diversity) but stay on the same optimum."""
-    from jaxslam.scan_matching import matched_gaussian
-
-    inputs, pose = room_inputs(0)
-    config = lp_config(horizon=0)
-
-    def fit(noise, key=None):
-        params = default_params(**{"scan_match.start_noise": noise})
-        return matched_gaussian(pose, room_field, inputs, SENSOR, params, config, 1.0, start_key=key)
-
-    reference = fit(0.0)
-    np.testing.assert_array_equal(fit(0.0, jax.random.key(1)).mean, reference.mean)
-    means = np.stack([np.asarray(fit(1.0, jax.random.key(k)).mean) for k in range(12)])
-    assert np.ptp(means[:, 0]) + np.ptp(means[:, 1]) > 1e-4  # the start matters
-    np.testing.assert_allclose(means[:, :2], np.broadcast_to(reference.mean[:2], (12, 2)), atol=0.03)
-    np.testing.assert_allclose(means[:, 2], np.full(12, float(reference.mean[2])), atol=0.03)
-
-
-@pytest.mark.slow  # Monte Carlo or whole-scenario check (python3 -m pytest -m slow)
 def test_scan_matched_localizers_estimate_the_same_evidence(room_field):
-    """LP-SM: localizers drawn from the matched Gaussian q and weighted g_i = log p(z_t | x_i)
+    """LP-SM: localizers drawn from the window posterior's mixture q and weighted g_i = log p(z_t | x_i)
     + log p(x_i | x_{t-1}, u_t) - log q(x_i). With k = 0 the increment is exactly log mean
     exp(g) with g so defined, and exp(increment) estimates the same p(z_t | x_{t-1}, m, u_t) as the
     paper's odometry-drawn localizers: the means over 400 draws agree within 3 Monte Carlo
     standard errors."""
-    from jaxslam import motion
-    from jaxslam.scan_matching import gaussian_log_density, matched_gaussian
+    from jaxslam import motion, window_posterior
+    from jaxslam.proposals.lookahead import LOCALIZER_UNIFORM_SHARE
 
     inputs, pose = room_inputs(0)
-    params = default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1,
-                               "scan_match.start_noise": 0.0})
+    params = default_params(**{"lookahead.localizer_gain": 0.1, "likelihood.gain": 0.1})
     config = lp_config(horizon=0, lookahead_initial="scan_match")
     # The importance weights, recomputed by hand.
     ex = _jit_explain(jax.random.key(5), pose, room_field, inputs, SENSOR, params, config)
-    gaussian = matched_gaussian(pose, room_field, inputs, SENSOR, params, config, fit_gain=0.1)
-    assert bool(gaussian.matched)
+    post = window_posterior.window_posterior(pose, room_field, inputs.motion, inputs.ranges, SENSOR, params, config,
+                                             fit_gain=0.1)
+    assert bool(post.matched)
+    log_mixture = window_posterior.mixture_log_weights(post, LOCALIZER_UNIFORM_SHARE)
     lik = jax.vmap(lambda p: endpoint_log_likelihood(FIELD_GRID, room_field, p, inputs.ranges, SENSOR,
                                                      params.likelihood))(ex.poses_t)
     log_motion = motion.log_density(ex.poses_t, pose, inputs.motion, params.motion)
-    np.testing.assert_allclose(ex.log_lik_t, lik + log_motion - gaussian_log_density(ex.poses_t, gaussian),
+    np.testing.assert_allclose(ex.log_lik_t, lik + log_motion - window_posterior.log_density(ex.poses_t, post,
+                                                                                            log_mixture),
                                rtol=1e-5, atol=1e-3)
     np.testing.assert_allclose(ex.draw.log_weight_increment,
                                jax.scipy.special.logsumexp(ex.log_lik_t) - math.log(config.num_localizers),

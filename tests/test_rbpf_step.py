@@ -20,14 +20,14 @@ from jaxslam.laserlog import LaserLog, select_updates
 from jaxslam.proposals import odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.paged_map import FIELD_AXES, fields
-from jaxslam.scan_matching import matched_gaussian
+from jaxslam import window_posterior
 
 N = 6
 CONFIG = SlamConfig(num_particles=N, proposal="smp", map_extent=ROOM_EXTENT, max_insert_range=10.0, beam_stride=1)
 # Jitted once here (op by op, a scan-matching step takes tens of seconds).
 smp_propose = jax.jit(scan_match.propose, static_argnames="config")
 op_propose = jax.jit(odometry.propose, static_argnames="config")
-fitted_gaussian = jax.jit(matched_gaussian, static_argnames=("config", "fit_gain"))
+posterior_fn = jax.jit(window_posterior.window_posterior, static_argnames="config")
 step = jax.jit(rbpf.step, static_argnames="config")
 
 
@@ -53,18 +53,19 @@ def _state(room_map, pose, log_weights):
     return rbpf.SlamState(jnp.broadcast_to(pose, (N, 3)), jnp.asarray(log_weights, jnp.float32), maps, jnp.int32(0))
 
 
-def test_smp_weight_is_the_matched_gaussians_and_its_draw_comes_from_it(room_field):
+def test_smp_weight_is_the_window_posteriors_and_its_draw_comes_from_a_mode(room_field):
+    """The SMP's increment is the window posterior's log_eta, and its draw is the mixture's draw
+    with the same key (a mode by its mass, then that mode's Gaussian)."""
     inputs, pose = _inputs()
     params = default_params()
     key = jax.random.key(4)
     out = smp_propose(key, pose, room_field, inputs, SENSOR, params, CONFIG)
-    gaussian = fitted_gaussian(pose, room_field, inputs, SENSOR, params, CONFIG, fit_gain=1.0,
-                               start_key=jax.random.fold_in(key, 1))
-    assert not bool(out.fallback) and bool(gaussian.matched)
-    np.testing.assert_allclose(float(out.log_weight_increment), float(gaussian.log_eta), rtol=1e-6)
-    # The draw lies within a few standard deviations of the fitted mean.
-    residual = np.linalg.solve(np.asarray(gaussian.chol), np.asarray(out.pose - gaussian.mean))
-    assert np.all(np.abs(residual) < 5.0)
+    post = posterior_fn(pose, room_field, inputs.motion, inputs.ranges, SENSOR, params, config=CONFIG, fit_gain=1.0)
+    assert not bool(out.fallback) and bool(post.matched)
+    np.testing.assert_allclose(float(out.log_weight_increment), float(post.log_eta), rtol=1e-6)
+    key_sample, _ = jax.random.split(key)
+    draw = window_posterior.sample(key_sample, post, window_posterior.mixture_log_weights(post))
+    np.testing.assert_allclose(np.asarray(out.pose), np.asarray(draw), atol=1e-5)
 
 
 def test_smp_falls_back_to_the_odometry_proposal_when_the_match_fails(room_field):

@@ -57,18 +57,17 @@ def test_half_widths_are_sigmas_times_the_motion_stds_with_floors():
 def test_search_finds_the_best_pose_of_a_brute_force_window(room_field, error):
     """Every pose of the window on the last level's lattice (40^3 poses) scored directly: the
     search's heaviest peak is within 2.5 cm and 0.03 rad of that lattice's best pose (with the
-    bilinear lookup, the matcher's), and its log pi within 1 nat (10 nats of the untempered scan:
-    1.4 cm off in the worst case here) of the best."""
+    config's lookup), and its log pi within 1 nat (10 nats of the untempered scan) of the best."""
     pose, motion_step, ranges, _ = _step(error)
     post = posterior_fn(pose, room_field, motion_step, ranges, SENSOR, PARAMS, config=CONFIG, fit_gain=1.0)
     half = W.half_widths(motion_step, PARAMS)
     lattice = W.coarse_offsets(half, CONFIG.window_cells * 2**CONFIG.window_levels)
-    values = np.concatenate([np.asarray(_log_pi(room_field, pose, motion_step, ranges, chunk, "bilinear"))
+    values = np.concatenate([np.asarray(_log_pi(room_field, pose, motion_step, ranges, chunk, CONFIG.likelihood_lookup))
                              for chunk in jnp.split(lattice, 8)])
     best = int(np.argmax(values))
     heaviest = int(np.argmax(np.asarray(post.log_masses)))
     peak_offset = between(compose(pose, motion_step), post.peaks[heaviest])
-    found = float(_log_pi(room_field, pose, motion_step, ranges, peak_offset[None], "bilinear")[0])
+    found = float(_log_pi(room_field, pose, motion_step, ranges, peak_offset[None], CONFIG.likelihood_lookup)[0])
     target = np.asarray(compose(pose, motion_step + lattice[best]))
     gap = np.asarray(post.peaks[heaviest]) - target
     assert np.hypot(gap[0], gap[1]) < 0.025 and abs(gap[2]) < 0.03

@@ -399,8 +399,11 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
         # g_i = log p(z_t | x_i) + log p(x_i | x_{t-1}, u_t) - log q(x_i). Steps 2-5 hold unchanged
         # for any proposal q with g so defined (the increment then estimates the same
         # p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
-        posterior = window_posterior.window_posterior(pose, field, inputs.motion, inputs.ranges, sensor, params,
-                                                      config, fit_gain=localizer_gain)
+        # q is held fixed under differentiation (a draw from it then carries no gradient, and
+        # g_i's gradient is the model's own, grad log p(z_t, x_i | x_{t-1})): the search's
+        # discrete choices have no derivative to give.
+        posterior = jax.lax.stop_gradient(window_posterior.window_posterior(
+            pose, field, inputs.motion, inputs.ranges, sensor, params, config, fit_gain=localizer_gain))
         log_mixture = window_posterior.mixture_log_weights(posterior, LOCALIZER_UNIFORM_SHARE)
         matched_t = window_posterior.sample(jax.random.fold_in(key_initial, 1), posterior, log_mixture, (num,))
         log_motion = motion.log_density(matched_t, pose, inputs.motion, params.motion)

@@ -1,0 +1,119 @@
+"""The proposals' step: its sequential depth, its cost per update and its beam evaluations per second.
+
+On the simulated office (``jaxslam demo``'s settings, the library's defaults otherwise), for each
+proposal: the compiled RBPF step's loops (every ``scan`` / ``while`` in its jaxpr with its trip
+count: the rounds that must run one after another), the wall time per update of ``rbpf.filter``
+over the log's first scans (compiled once, median of repeats), and the proposal's beam
+evaluations per second (pose evaluations a particle makes per step, times beams, times particles,
+over that time; the insertion's cost is in the time too, so this is a lower bound).
+
+    python benchmarks/bench_proposals.py --out results/bench_proposals.json
+
+Run it in two checkouts on one machine, one after the other, for a before/after ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+
+def loops(jaxpr) -> list[tuple[str, int]]:
+    """Every ``scan`` and ``while`` in ``jaxpr`` (nested ones included) with its trip count
+    (a while's is unknown: -1)."""
+    found = []
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name == "scan":
+            found.append(("scan", int(eqn.params["length"])))
+        elif name == "while":
+            found.append(("while", -1))
+        for value in eqn.params.values():
+            inner = getattr(value, "jaxpr", None)
+            if inner is not None and hasattr(inner, "eqns"):
+                found += loops(inner)
+            elif hasattr(value, "eqns"):
+                found += loops(value)
+    return found
+
+
+def pose_evaluations(config) -> int:
+    """Poses a particle scores per step (the proposal's likelihood evaluations)."""
+    if config.proposal == "op":
+        return 1
+    if hasattr(config, "window_cells"):  # the window posterior
+        per_mode_level = config.window_keep * 8
+        search = config.window_cells**3 + config.window_levels * config.window_modes * per_mode_level
+        fit = config.window_modes * 27 + 1
+        base = search + fit
+    else:  # the hill climber of earlier versions: a start, six moves a round, the stencil, the score
+        base = 1 + 6 * config.match_iterations + 27 + 1
+    if config.proposal == "lp":
+        return base + config.num_localizers * (2 + config.horizon)
+    return base
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--proposal", nargs="+", default=["smp", "lp"], choices=["op", "smp", "lp"])
+    parser.add_argument("--particles", type=int, default=30)
+    parser.add_argument("--scans", type=int, default=120, help="scans of the simulated office")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default="results/bench_proposals.json")
+    args = parser.parse_args(argv)
+
+    import jax
+    import numpy as np
+
+    from jaxslam import rbpf
+    from jaxslam.cli import DEMO_DEFAULTS
+    from jaxslam.config import build_setup
+    from jaxslam.sim import office_scenario
+
+    log = office_scenario(jax.random.key(0)).log
+    log = log.subset(np.arange(min(args.scans, log.num_scans)))
+    rows = {}
+    for proposal in args.proposal:
+        config, settings, params = build_setup({**DEMO_DEFAULTS, "proposal": proposal,
+                                                "num_particles": args.particles})
+        prepared, selection, _ = rbpf.prepare(log, config, settings)
+        steps = int(selection.indices.size - 1)
+        one_step = jax.tree.map(lambda a: a[0], prepared.inputs)
+        state = rbpf.init(jax.random.key(0), prepared.first_ranges, prepared.sensor, params, config,
+                          prepared.initial_pose)
+        jaxpr = jax.make_jaxpr(lambda k, s, i: rbpf.step(k, s, i, prepared.sensor, params, config))(
+            jax.random.key(1), state, one_step)
+        step_loops = loops(jaxpr.jaxpr)
+        run = jax.jit(lambda key: rbpf.filter(key, prepared, params, config).marginal_loglik)
+        t0 = time.perf_counter()
+        jax.block_until_ready(run(jax.random.key(0)))
+        compile_s = time.perf_counter() - t0
+        times = []
+        for r in range(args.repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(run(jax.random.key(1 + r)))
+            times.append(time.perf_counter() - t0)
+        per_update = float(np.median(times)) / steps
+        beams = int(np.ceil(prepared.inputs.ranges.shape[-1] / config.beam_stride))
+        evaluations = pose_evaluations(config)
+        row = {"proposal": proposal, "particles": args.particles, "steps": steps, "step_loops": step_loops,
+               "sequential_rounds": sum(max(n, 1) for _, n in step_loops), "seconds_per_update": per_update,
+               "pose_evaluations_per_particle": evaluations,
+               "beam_evaluations_per_second": evaluations * beams * args.particles / per_update,
+               "compile_s": compile_s}
+        rows[proposal] = row
+        print(f"{proposal}: {steps} updates, {per_update * 1e3:.1f} ms each; loops in the step {step_loops}; "
+              f"{evaluations} poses a particle, {row['beam_evaluations_per_second']:.3g} beam evaluations/s",
+              flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"machine": platform.platform(), "jax": jax.__version__, "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
