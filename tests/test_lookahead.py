@@ -616,3 +616,59 @@ def test_grid_lp_values_are_the_pathwise_draws(room_field, initial):
             grads = grad_fn(params, key)
             assert float(grads.lookahead.alpha) == 0.0
             assert all(np.isfinite(float(g)) for g in jax.tree.leaves(grads))
+
+
+@functools.partial(jax.jit, static_argnames=("num_runs",))
+def _toy_horizon_evidence_gradients(num_runs, seed=0, num=20):
+    """exp(log_evidence[-1]) of run_horizon alone and its gradient in (q, r), every draw made
+    with a score term (states (x, score): the move's score enters the weight through the
+    likelihood), resampling before every step."""
+    def evidence(key, q, r):
+        k0, k1 = jax.random.split(key)
+
+        def draw(key, x, u):
+            eps = jax.random.normal(key, x.shape)
+            new = jax.lax.stop_gradient(x + u + q * eps)
+            log_q = -0.5 * ((new - x - u) / q) ** 2 - jnp.log(q)
+            return new, log_q - jax.lax.stop_gradient(log_q)
+
+        lik = lambda x, z: -0.5 * ((z - x) / r) ** 2 - jnp.log(r) - LOG_SQRT_2PI  # noqa: E731
+        x, score = draw(k0, jnp.zeros(num), 0.0)
+
+        def move(key, states, step_input):
+            return draw(key, states[0], step_input[0])
+
+        def loglik(states, step_input):
+            return lik(states[0], step_input[1]) + states[1]
+
+        horizon, _ = la.run_horizon(k1, (x, score), lik(x, TOY_Z_T) + score, (jnp.zeros(3), TOY_FUTURE_Z),
+                                    jnp.ones(3, bool), move, loglik, 2.0)
+        return jnp.exp(horizon.log_evidence[-1])
+
+    keys = jax.random.split(jax.random.key(seed), num_runs)
+    grad = jax.value_and_grad(evidence, argnums=(1, 2))
+    return jax.vmap(lambda k: grad(k, jnp.float32(Q), jnp.float32(R)))(keys)
+
+
+def test_horizon_evidence_gradient_keeps_the_resampling_score():
+    """run_horizon's evidence estimate exp(log_evidence) of p(z_t..z_{t+3} | x_{t-1}) (a random
+    walk seen in Gaussian noise: a Gaussian in z) and its derivatives in q and r: with the moves'
+    scores and the resampling's score term (w[a] / stop_gradient(w[a]), issue 35) the means over
+    20,000 runs are within 4 standard errors of the exact density and its derivatives; with the
+    weights reset to a hard 0 after each resampling they were 58 (q) and 126 (r) standard errors off."""
+    z = jnp.concatenate([jnp.array([TOY_Z_T]), TOY_FUTURE_Z])
+    steps = jnp.arange(4.0)
+
+    def density(q, r):
+        cov = q**2 * (jnp.minimum(steps[:, None], steps[None, :]) + 1.0) + r**2 * jnp.eye(4)
+        return jnp.exp(jax.scipy.stats.multivariate_normal.logpdf(z, jnp.zeros(4), cov))
+
+    exact = float(density(Q, R))
+    exact_grad = [float(d) for d in jax.grad(density, argnums=(0, 1))(jnp.float32(Q), jnp.float32(R))]
+    values, grads = _toy_horizon_evidence_gradients(20_000, seed=2)
+    values = np.asarray(values, np.float64)
+    assert abs(values.mean() - exact) < 4 * values.std(ddof=1) / math.sqrt(values.size), (values.mean(), exact)
+    for name, d, want in zip("qr", grads, exact_grad):
+        d = np.asarray(d, np.float64)
+        mean, se = d.mean(), d.std(ddof=1) / math.sqrt(d.size)
+        assert abs(mean - want) < 4 * se, (name, mean, se, want)
