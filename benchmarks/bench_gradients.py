@@ -6,11 +6,19 @@ compiled first, then timed alternately (``--repeats`` times each, the median kep
 comes from one session on one machine. Each row is merged into ``--out`` as it is measured
 (keyed by proposal and scans), so calls with other settings add rows.
 
-Reverse mode keeps every step's residuals, the maps' included: memory grows with the steps. The
-LP (L = 100, k = 5, N = 20) ran out of 23 GB at 200 scans; give it fewer ``--scans``.
+Reverse mode keeps every step's residuals: memory grows with the steps. Each row records the
+compiled gradient's temporary buffers (XLA's ``memory_analysis``: the peak it plans, known before
+anything runs). The LP (L = 100, k = 5, N = 20) planned 24.8 GB over the 116 steps of 200 scans and
+ran out of the machine's 23 GB until its horizon ran without gradient (issue 35: p_J enters the
+increment without gradient, so nothing of the horizon reaches it); it now plans 1.4 GB.
+
+``--memory`` measures memory alone, one proposal per process (run it alone on the machine): the
+gradient is compiled, its planned temporary bytes read, run once, and the process's peak
+resident memory (``ru_maxrss``) recorded, with no forward pass and no timing:
 
     python benchmarks/bench_gradients.py --proposal op smp --out docs/results/bench_gradients.json
-    python benchmarks/bench_gradients.py --proposal lp --scans 60 --out docs/results/bench_gradients.json
+    python benchmarks/bench_gradients.py --proposal lp --out docs/results/bench_gradients.json
+    /usr/bin/time -v python benchmarks/bench_gradients.py --proposal lp --memory --out docs/results/bench_gradients.json
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import resource
 import sys
 import time
 from pathlib import Path
@@ -30,7 +39,12 @@ def main(argv=None) -> int:
     parser.add_argument("--scans", type=int, default=200, help="scans of the simulated office")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default="results/bench_gradients.json")
+    parser.add_argument("--memory", action="store_true",
+                        help="compile and run the gradient once, record its planned temporary bytes and the "
+                             "process's peak resident memory; no timing (one proposal)")
     args = parser.parse_args(argv)
+    if args.memory and len(args.proposal) != 1:
+        parser.error("--memory measures one proposal per process (the peak resident memory is the process's)")
 
     import dataclasses
 
@@ -58,15 +72,31 @@ def main(argv=None) -> int:
         def log_likelihood(p, key):
             return rbpf.filter(key, prepared, p, config).marginal_loglik
 
-        forward = jax.jit(log_likelihood)
-        gradient = jax.jit(jax.value_and_grad(log_likelihood))
         key = jax.random.key(1)
+        t0 = time.perf_counter()
+        gradient = jax.jit(jax.value_and_grad(log_likelihood)).lower(params, key).compile()
+        planned = gradient.memory_analysis()
+        temp_gb = None if planned is None else planned.temp_size_in_bytes / 1e9
+        if args.memory:
+            value, _ = jax.block_until_ready(gradient(params, key))
+            seconds = time.perf_counter() - t0
+            rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9  # Linux: KiB
+            row = {"proposal": proposal, "particles": args.particles, "scans": args.scans,
+                   "steps": int(selection.indices.size - 1), "num_localizers": config.num_localizers,
+                   "horizon": config.horizon, "gradient_temp_gb": temp_gb, "max_rss_gb": rss_gb,
+                   "value": float(value), "compile_and_run_s": seconds}
+            table["rows"][f"{proposal}_{args.particles}particles_{args.scans}scans_memory"] = row
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(table, indent=2))
+            print(f"{proposal}: {row['steps']} steps, gradient's planned temporary memory {temp_gb:.2f} GB, "
+                  f"peak resident {rss_gb:.2f} GB (compile and run {seconds:.0f} s)", flush=True)
+            continue
+        jax.block_until_ready(gradient(params, key))
+        compile_gradient = time.perf_counter() - t0
+        forward = jax.jit(log_likelihood)
         t0 = time.perf_counter()
         jax.block_until_ready(forward(params, key))
         compile_forward = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        jax.block_until_ready(gradient(params, key))
-        compile_gradient = time.perf_counter() - t0
         times = {"forward": [], "gradient": []}
         for r in range(args.repeats):
             for name, fn in (("forward", forward), ("gradient", gradient)):
@@ -76,7 +106,8 @@ def main(argv=None) -> int:
         f, g = float(np.median(times["forward"])), float(np.median(times["gradient"]))
         row = {"proposal": proposal, "particles": args.particles, "scans": args.scans,
                "steps": int(selection.indices.size - 1), "forward_s": f, "gradient_s": g, "ratio": g / f,
-               "compile_forward_s": compile_forward, "compile_gradient_s": compile_gradient}
+               "compile_forward_s": compile_forward, "compile_gradient_s": compile_gradient,
+               "gradient_temp_gb": temp_gb}
         table["rows"][f"{proposal}_{args.particles}particles_{args.scans}scans"] = row
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(table, indent=2))

@@ -380,9 +380,10 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
     (:func:`step`), ``state.maps.overflow`` is set and ``marginal_loglik`` is -inf; pass a
     larger ``pool`` (:func:`pool_size` is the default). Reverse-mode
     autodiff keeps every step's residuals, the maps included, so its memory grows with the
-    steps (benchmarks/bench_gradients.py). The OP's motion-noise gradients are score estimates
-    (:func:`jaxslam.motion.sample_with_score`), with either lookup; the SMP's and the LP's go
-    through the step's own draw and need ``likelihood_lookup="bilinear"`` (the nearest-cell
+    steps (benchmarks/bench_gradients.py; the LP's horizon keeps nothing: it runs without
+    gradient, :mod:`jaxslam.proposals.lookahead`). The OP's and the LP's motion-noise gradients
+    are score estimates (:func:`jaxslam.motion.sample_with_score`), with either lookup; the SMP's
+    goes through the step's own draw and needs ``likelihood_lookup="bilinear"`` (the nearest-cell
     weights are piecewise constant in the pose).
 
     Args:

@@ -40,6 +40,34 @@ equal) flattens their weights until the selection barely prefers the poses that 
 scans, and the LP drifts like the OP (the box-world figures: docs/design.md, "Gains", and
 docs/notes/2026-11-22-box-world-knobs.md).
 
+Gradients (``jax.grad`` of the filter's log-likelihood; docs/design.md, "What a gradient of the
+filter is"). The LP is an importance sampler on an extended space: the L time-t samples x, the
+horizon's random numbers omega and J, drawn from Q = prod_i q(x_i) P(omega | x) p_J, weighted by
+w = exp(g_J) / (L p_J). Q w = (1/L) gamma(x_J) prod_{i != J} q(x_i) P(omega | x), with gamma(x_J) =
+exp(g_J) q(x_J), so E_Q[w f(x_J)] = integral of gamma f, and the score estimate of the gradient of
+that integral is w d log gamma(x_J) = w (d g_J + d log q(x_J)) with every sample held fixed: the
+score-function (REINFORCE) estimate, w (d log w + d log Q), less terms whose mean is 0 given x_J
+(the other samples' scores, the horizon's). Each term, as computed:
+
+* the time-t samples: drawn without pathwise gradient (``motion.sample_with_score``: the same
+  pose as ``motion.sample`` for the same key), their score d log q(x_i) added to g_i as a term
+  0 in value; with the scan-matched start the draw from the window posterior's mixture q carries
+  no gradient and log q enters g without gradient (the draw's score and the weight's -d log q cancel);
+* the draw of J: its score d log p_J cancels the -d log p_J of w exactly, so the increment is
+  g_J - log L - stop_gradient(log p_J); in particular its derivative in alpha is 0 (alpha sets
+  the variance, not the expectation: tests/test_lookahead.py checks both, and that the noise
+  derivatives are the exact ones on a toy model);
+* the horizon: it acts on the increment only through p_J, so it runs on stop-gradient samples and
+  parameters (:func:`_propose_impl`), and reverse mode keeps none of its (K, L, beams)
+  intermediates. Its moves and resamplings would add only scores of mean 0 given x_J (noise).
+  :func:`run_horizon` itself keeps the resampling's score (w[a] / stop_gradient(w[a]), as
+  ``resampling.resample_if_needed``) for a caller that differentiates its ``log_evidence``.
+
+The values are unchanged: every term added is 0 and every stop-gradient the identity in value.
+``selection_correction = 0`` (the increment log mean exp(g)) gets the gradient of that estimate,
+every sample's score included. The gain ratio ``likelihood.gain / localizer_gain`` scales the
+increment's gradient with its value; the estimate is that of p(z_t | ...) only at equal gains.
+
 The model-independent core (:func:`run_horizon`, :func:`back_propagate`,
 :func:`selection_log_probs`, :func:`select`, :func:`lookahead_core`) takes the
 time-t samples, their log-likelihoods and two callables for the future steps, so it
@@ -154,6 +182,10 @@ def run_horizon(
       resample_threshold: resample before step s when ESS(a) < this * L (> 1: always).
       resample_fn: a resampler of :mod:`jaxslam.resampling`.
       return_history: also return every step's cloud (static; for plots).
+
+    After a resampling the weights are 1 (a = 0) in value, with the resampling's score term in
+    their derivative (``w[a] / stop_gradient(w[a])``, as :func:`jaxslam.resampling.resample_if_needed`).
+    :func:`lookahead_core` runs the horizon without gradient; this is for a direct caller.
     """
     num = log_lik_t.shape[0]
     log_num = math.log(num)
@@ -169,7 +201,13 @@ def run_horizon(
         ancestors = jnp.where(do, drawn, origin0)
         total = jax.scipy.special.logsumexp(log_a)
         log_z = jnp.where(do, log_z + total - log_num, log_z)
-        log_a = jnp.where(do, 0.0, log_a)
+        # After a resampling every weight is 1 (a = 0) in value; as in resampling.resample_if_needed
+        # its derivative keeps the resampling's dependence on the parameters (a score term:
+        # w[a] / stop_gradient(w[a]) of the normalised weights). A drawn localizer never has weight
+        # zero; the where keeps an impossible -inf from making NaN.
+        picked = log_a[drawn] - total
+        score = jnp.where(jnp.isfinite(picked), picked - jax.lax.stop_gradient(picked), 0.0)
+        log_a = jnp.where(do, score, log_a)
         origin = origin[ancestors]
         states = jax.tree.map(lambda s: s[ancestors], states)
         moved = move(key_move, states, step_input)
@@ -304,12 +342,16 @@ def select(
     with 0 the evidence estimate log mean exp(g) alone (without the selection correction
     g_J - logsumexp(g) - log p_J). With alpha = 0, correction 1 and every V zero the increment is
     -inf (the paper's weight is 0/0 there; the RBPF then drops the particle) and ``fallback``
-    reports it.
+    reports it. log p_J enters the increment without gradient: the score of the draw of J,
+    d log p_J, cancels the importance ratio's -d log p_J (module docstring, "Gradients"), so the
+    increment's derivative in alpha is 0 and the horizon's terms do not reach it.
     """
     num = log_v.shape[0]
     log_p, fallback = selection_log_probs(log_v, log_lik_t, alpha)
     index = jax.random.categorical(key, log_p).astype(jnp.int32)
-    full = log_lik_t[index] - math.log(num) - log_p[index]
+    # The draw of J: its score d log p_J cancels the -d log p_J of the importance ratio exactly, so
+    # p_J enters the increment without gradient (see the module docstring, "Gradients").
+    full = log_lik_t[index] - math.log(num) - jax.lax.stop_gradient(log_p[index])
     corrected = jnp.asarray(selection_correction, log_lik_t.dtype) > 0.0
     increment = jnp.where(corrected, full, _log_mean_exp(log_lik_t))
     paper_form_undefined = fallback & (jnp.asarray(alpha) <= 0.0) & corrected
@@ -336,10 +378,20 @@ def lookahead_core(
     ``key`` is split by fold-in tags, never by the horizon length. See :func:`run_horizon`
     for the arguments and :func:`select` for ``selection_correction``. Returns the draw, the
     final horizon state and (optionally) history.
+
+    Gradients (module docstring): ``log_lik_t`` should carry the time-t draws' score terms and
+    ``states_t`` no pathwise gradient; the horizon runs on stop-gradient ``states_t`` and
+    ``log_lik_t`` (p_J enters the increment without gradient, so nothing of it would reach the
+    increment), and ``move`` and ``log_likelihood`` should close over stop-gradient parameters
+    so that reverse mode stores nothing of the horizon.
     """
+    # The horizon reaches the increment only through p_J, which enters it without gradient
+    # (:func:`select`): it runs on stop-gradient samples, and ``move`` and ``log_likelihood``
+    # should close over stop-gradient parameters (the grid model's do), so that reverse mode
+    # keeps none of its (K, L, beams) intermediates.
     horizon, history = run_horizon(
-        jax.random.fold_in(key, _TAG_HORIZON), states_t, log_lik_t, future_inputs, future_valid,
-        move, log_likelihood, resample_threshold, resample_fn, return_history,
+        jax.random.fold_in(key, _TAG_HORIZON), jax.lax.stop_gradient(states_t), jax.lax.stop_gradient(log_lik_t),
+        future_inputs, future_valid, move, log_likelihood, resample_threshold, resample_fn, return_history,
     )
     log_v = back_propagate(horizon.log_a, horizon.origin, horizon.log_z, log_lik_t.shape[0])
     draw = select(jax.random.fold_in(key, _TAG_SELECT), log_v, log_lik_t, alpha, selection_correction)
@@ -386,12 +438,19 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
     localizer_gain = params.lookahead.localizer_gain
     evidence_scale = params.likelihood.gain / localizer_gain
     localizer_lik = params.likelihood._replace(gain=localizer_gain)
-    move, log_likelihood = _grid_model(params.motion, MapView(spec, field), sensor_model(config), sensor,
-                                       localizer_lik, config.likelihood_lookup)
+    view = MapView(spec, field)
+    _, log_likelihood = _grid_model(params.motion, view, sensor_model(config), sensor, localizer_lik,
+                                    config.likelihood_lookup)
+    # The horizon's model, without gradient (see lookahead_core): the same values.
+    no_grad = jax.lax.stop_gradient
+    horizon_move, horizon_log_likelihood = _grid_model(
+        no_grad(params.motion), jax.tree.map(no_grad, view), sensor_model(config), sensor, no_grad(localizer_lik),
+        config.likelihood_lookup)
     start = jnp.broadcast_to(pose, (num, 3))
     key_initial = jax.random.fold_in(key, _TAG_INITIAL)
-    poses_t = motion.sample(key_initial, start, inputs.motion, params.motion)
-    log_lik_t = log_likelihood(poses_t, (inputs.motion, inputs.ranges))
+    # motion.sample's draw, with no pathwise gradient; its score (0 in value) goes into g_i.
+    poses_t, score_t = motion.sample_with_score(key_initial, start, inputs.motion, params.motion)
+    log_lik_t = log_likelihood(poses_t, (inputs.motion, inputs.ranges)) + score_t
     if config.lookahead_initial == "scan_match":
         # Draw the time-t localizers from the window posterior's mixture instead (every mode gets
         # a share, LOCALIZER_UNIFORM_SHARE, whatever its mass: the horizon is what judges the
@@ -399,9 +458,9 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
         # g_i = log p(z_t | x_i) + log p(x_i | x_{t-1}, u_t) - log q(x_i). Steps 2-5 hold unchanged
         # for any proposal q with g so defined (the increment then estimates the same
         # p(z_t | x_{t-1}, m, u_t)). A failed match keeps the motion model.
-        # q is held fixed under differentiation (a draw from it then carries no gradient, and
-        # g_i's gradient is the model's own, grad log p(z_t, x_i | x_{t-1})): the search's
-        # discrete choices have no derivative to give.
+        # q carries no gradient: the score of the draw, d log q(x_i), and the -d log q(x_i) of the
+        # importance weight cancel (module docstring, "Gradients"), so neither the draw nor log q
+        # needs one, and the search's discrete choices have none to give.
         posterior = jax.lax.stop_gradient(window_posterior.window_posterior(
             pose, field, inputs.motion, inputs.ranges, sensor, params, config, fit_gain=localizer_gain))
         log_mixture = window_posterior.mixture_log_weights(posterior, LOCALIZER_UNIFORM_SHARE)
@@ -413,7 +472,7 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
         log_lik_t = jnp.where(posterior.matched, log_weight_t, log_lik_t)
     draw, horizon, history = lookahead_core(
         key, poses_t, log_lik_t, (inputs.future_motions, inputs.future_ranges), inputs.future_valid,
-        move, log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,
+        horizon_move, horizon_log_likelihood, params.lookahead.alpha, params.lookahead.resample_threshold,
         resampling.RESAMPLERS[config.resampler], return_history, params.lookahead.selection_correction,
     )
     draw = draw._replace(log_weight_increment=evidence_scale * draw.log_weight_increment)
