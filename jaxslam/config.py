@@ -77,22 +77,22 @@ class SlamConfig:
     "bilinear" (interpolated between the four surrounding cells, so the likelihood is continuous
     in the pose; four gathers per beam). See ``jaxslam.likelihood_field``."""
     match_lookup: str = "bilinear"
-    """The same choice for the hill-climbing scan matcher (the SMP's and the LP's match, and the
-    refinement's matches and their covariances). "bilinear" (the default) lets the matcher
-    settle between cells instead of stopping wherever a whole cell stops improving (the
+    """The same choice for the window posterior's polish of each mode's peak (the SMP's and the
+    LP's) and the refinement's hill climber and its covariances. "bilinear" (the default) lets a
+    peak settle between cells instead of stopping wherever a whole cell stops improving (the
     figures: docs/notes/2026-11-22-bilinear-matcher.md)."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     resampler: str = "systematic"
     """Resampling scheme: systematic, stratified, multinomial or residual."""
     match_iterations: int = 24
-    """Fixed iteration budget of the hill-climbing scan matcher."""
+    """Fixed iteration budget of the refinement's hill-climbing scan matcher."""
     window_cells: int = 5
     """Coarse cells per axis of the window posterior (:mod:`jaxslam.window_posterior`): the
     window is cut into this cubed, each scored once."""
     window_levels: int = 4
     """Levels the window posterior refines each mode by (each halves the cells); with the
-    coarse level and the fit, the proposal's sequential depth."""
+    coarse level, the polish and the fit, the proposal's sequential depth."""
     window_modes: int = 4
     """Modes the window posterior keeps: its coarse local maxima, each refined on its own."""
     window_keep: int = 3
@@ -245,10 +245,6 @@ class ScanMatchParams(NamedTuple):
     """Mean per-beam match quality (0..1) under which the match counts as failed (fall back to OP)."""
     min_std_fraction: Float[Array, ""]
     """Floor of the SMP Gaussian's std, as a fraction of the stencil spacing (sets particle diversity)."""
-    start_noise: Float[Array, ""]
-    """The SMP's hill climber starts from a draw of the motion model with its stds times this
-    (GMapping: 1, each particle matches from its own odometry sample, so particles that share a
-    map can land in different optima); 0 starts every particle from the odometry prediction."""
     window_sigmas: Float[Array, ""]
     """Half-side of the window posterior's window in each axis, in the step's motion-noise stds."""
     window_min_xy: Float[Array, ""]
@@ -305,7 +301,7 @@ _DEFAULTS: dict[str, float] = {
     "insertion.logodds_min": -4.0, "insertion.logodds_max": 4.0,
     "insertion.no_return_free_range": 5.0,
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
-    "scan_match.min_std_fraction": 0.1, "scan_match.start_noise": 1.0,
+    "scan_match.min_std_fraction": 0.1,
     "scan_match.window_sigmas": 3.0, "scan_match.window_min_xy": 0.1, "scan_match.window_min_theta": 0.1,
     "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
     "lookahead.selection_correction": 1.0,
@@ -345,7 +341,6 @@ _PARAM_RANGES: dict[str, tuple[Any, str]] = {
     # Above 1 is allowed and used (tests): no match reaches it, so the SMP always falls back to the OP.
     "scan_match.min_score": (_at_least(0.0), ">= 0 (a mean per-beam fit in [0, 1]; above 1 every match fails)"),
     "scan_match.min_std_fraction": (_at_least(0.0), ">= 0"),
-    "scan_match.start_noise": (_at_least(0.0), ">= 0"),
     "scan_match.window_sigmas": (_above(0.0), "> 0"),
     "scan_match.window_min_xy": (_above(0.0), "> 0 (m)"),
     "scan_match.window_min_theta": (_above(0.0), "> 0 (rad)"),

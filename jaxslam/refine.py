@@ -42,7 +42,8 @@ from jaxslam.driver import run_in_chunks
 from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.map_view import MapView
 from jaxslam.sensor_model import SENSOR_MODELS
-from jaxslam.scan_matching import match, stencil_poses
+from jaxslam.scan_matching import match
+from jaxslam.window_posterior import stencil_poses
 
 
 class RefinedTrajectory(NamedTuple):

@@ -18,18 +18,23 @@ is the box |delta_k| <= max(``scan_match.window_sigmas`` std_k, floor_k).
    the modes, so a second hypothesis one cell away from the first cannot crowd out one across
    the window.
 2. **Finer levels** (``window_levels``, static). Each mode splits its ``window_keep`` cells into
-   their 8 halves, scores the halves (the cell score again; the last level the likelihood itself at
-   the cell centres, with ``likelihood_lookup``, the weights' own) and keeps its best ``window_keep``. Modes never
-   compete for places, so every mode is refined to the last level. Every candidate of every
-   mode (and under the filter's vmap, of every particle) is one batched evaluation: the step's
-   sequential depth is the number of levels plus the fit, where the hill climber it replaced
-   had 24 dependent rounds.
-3. **Fit.** Round each mode's best pose a 3 x 3 x 3 stencil (spacing
+   their 8 halves, scores them (the cell score again; the last level the likelihood itself at
+   the cells' centres, with ``likelihood_lookup``, the weights' own) and keeps its best
+   ``window_keep``. Within a mode the likelihood has the gain ``fit_gain`` (the scan's own
+   sharpness decides where in a mode the pose lies; the tempered posterior decides which modes
+   there are and what each weighs). Modes never compete for places, so every mode is refined to
+   the last level. Every candidate of every mode (and under the filter's vmap, of every
+   particle) is one batched evaluation: the step's sequential depth is the number of levels
+   plus the polish and the fit, where the hill climber it replaced had 24 dependent rounds.
+3. **Polish.** Each mode's best cell and its 8 halves, read with ``match_lookup`` (bilinear by
+   default: continuous in the pose, so the peak settles between the field's cells); the best
+   of the nine is the mode's peak.
+4. **Fit.** Round each mode's best pose a 3 x 3 x 3 stencil (spacing
    ``scan_match.linear_step``, ``angular_step``): the mode's Gaussian is fitted with the
    likelihood at ``fit_gain`` (the SMP: 1, the scan's own sharpness, as GMapping), and the
    mode's mass is the stencil's Riemann sum of pi (at the filter's gain, with the prior). A
-   mode whose best pose lies within one stencil spacing of a heavier mode's is the same
-   hypothesis found twice, and is dropped.
+   mode whose stencil overlaps a heavier mode's (its best pose within two stencil spacings on
+   every axis) is the same hypothesis found twice, and is dropped.
 
 The proposal is the mixture of the modes' Gaussians with weights proportional to their masses
 (:func:`sample`, :func:`log_density`); its weight increment is the log of the summed masses,
@@ -41,13 +46,12 @@ gives the measured size of that.
 from __future__ import annotations
 
 import itertools
-import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from jaxslam import motion
 from jaxslam.geometry import compose, wrap_angle
@@ -143,9 +147,9 @@ def window_posterior(pose: Float[Array, "3"], field, motion_step: Float[Array, "
     def poses_at(offsets):
         return compose(pose, motion_step + offsets)
 
-    def cell_score(offsets, spacing):
-        """log pi of the cells of side ``spacing`` centred on ``offsets``: the cell likelihood and
-        the prior's largest value in the cell."""
+    def cell_score(offsets, spacing, sharpness):
+        """log pi of the cells of side ``spacing`` centred on ``offsets``, the likelihood at gain
+        ``sharpness``: the cell likelihood and the prior's largest value in the cell."""
         closest = jnp.clip(0.0, offsets - 0.5 * spacing, offsets + 0.5 * spacing)
         if model.cell_log_likelihoods_fn is None:
             log_lik = model.log_likelihoods_fn(view, poses_at(offsets), ranges, sensor, untempered, "nearest")
@@ -153,17 +157,16 @@ def window_posterior(pose: Float[Array, "3"], field, motion_step: Float[Array, "
             log_lik = model.cell_log_likelihoods_fn(view, poses_at(offsets), ranges, sensor, untempered,
                                                      0.5 * jnp.hypot(spacing[0], spacing[1]), 0.5 * spacing[2],
                                                      config.field_radius)
-        return gain * log_lik + _log_prior(closest, std)
+        return sharpness * log_lik + _log_prior(closest, std)
 
-    def exact(offsets):
-        log_lik = model.log_likelihoods_fn(view, poses_at(offsets), ranges, sensor, untempered,
-                                           config.likelihood_lookup)
-        return gain * log_lik + _log_prior(offsets, std)
+    def exact(offsets, lookup):
+        log_lik = model.log_likelihoods_fn(view, poses_at(offsets), ranges, sensor, untempered, lookup)
+        return fit_gain * log_lik + _log_prior(offsets, std)
 
     # 1. The coarse level: the modes' seeds.
     spacing = 2.0 * half / cells
     offsets = coarse_offsets(half, cells)
-    scores = cell_score(offsets, spacing)
+    scores = cell_score(offsets, spacing, gain)
     _, seeds = jax.lax.top_k(_local_maxima_first(scores, cells), config.window_modes)
     mode_cells = offsets[seeds][:, None, :]  # (M, 1, 3)
     # 2. The finer levels, each mode on its own.
@@ -172,13 +175,20 @@ def window_posterior(pose: Float[Array, "3"], field, motion_step: Float[Array, "
         spacing = 0.5 * spacing
         flat = children.reshape(-1, 3)
         last = level == config.window_levels - 1
-        child_scores = (exact(flat) if last else cell_score(flat, spacing)).reshape(config.window_modes, -1)
+        child_scores = (exact(flat, config.likelihood_lookup) if last
+                        else cell_score(flat, spacing, fit_gain)).reshape(config.window_modes, -1)
         child_scores = jnp.where(jnp.isnan(child_scores), -jnp.inf, child_scores)
         keep = min(config.window_keep, children.shape[1])
         _, best = jax.lax.top_k(child_scores, keep)
         mode_cells = jnp.take_along_axis(children, best[..., None], axis=1)
-    peaks = poses_at(mode_cells[:, 0, :])  # (M, 3): top_k sorts, so the first kept is the best
-    # 3. A Gaussian and a mass per mode, from the stencil round its peak.
+    # 3. The polish: each mode's best cell and its 8 halves, read with ``match_lookup`` (bilinear:
+    # the posterior is continuous in the pose there, so the peak settles between cells).
+    best_cell = mode_cells[:, 0, :]  # (M, 3): top_k sorts, so the first kept is the best
+    polish = jnp.concatenate([best_cell[:, None, :], best_cell[:, None, :] + jnp.asarray(_HALVES) * spacing], axis=1)
+    polish_scores = exact(polish.reshape(-1, 3), config.match_lookup).reshape(config.window_modes, -1)
+    polish_scores = jnp.where(jnp.isnan(polish_scores), -jnp.inf, polish_scores)
+    peaks = poses_at(jnp.take_along_axis(polish, jnp.argmax(polish_scores, axis=1)[:, None, None], axis=1)[:, 0])
+    # 4. A Gaussian and a mass per mode, from the stencil round its peak.
     gaussians = jax.vmap(lambda peak: _fit_mode(peak, pose, view, model, motion_step, ranges, sensor, params,
                                                 config, fit_gain))(peaks)
     means, chols, log_masses = gaussians
@@ -229,13 +239,14 @@ def _fit_mode(peak, pose, view, model: SensorModel, motion_step, ranges, sensor,
 
 def _drop_duplicates(peaks: Float[Array, "M 3"], log_masses: Float[Array, "M"], scan_match_params
                      ) -> Float[Array, "M"]:
-    """``log_masses`` with -inf for every mode whose peak lies within one stencil spacing (on
-    every axis) of a heavier mode's (ties: the earlier mode is the heavier)."""
+    """``log_masses`` with -inf for every mode whose stencil overlaps a heavier mode's (its peak
+    within two stencil spacings on every axis; ties: the earlier mode is the heavier): the same
+    hypothesis found twice, whose mass the sum would otherwise count twice."""
     sm = scan_match_params
     spacing = jnp.stack([sm.linear_step, sm.linear_step, sm.angular_step])
     gap = jnp.abs(peaks[:, None, :] - peaks[None, :, :])
     gap = gap.at[..., 2].set(jnp.abs(wrap_angle(gap[..., 2])))
-    same = jnp.all(gap < spacing, axis=-1)  # (M, M)
+    same = jnp.all(gap < 2.0 * spacing, axis=-1)  # (M, M): the two stencils overlap
     order = jnp.arange(peaks.shape[0])
     heavier = (log_masses[None, :] > log_masses[:, None]) | (
         (log_masses[None, :] == log_masses[:, None]) & (order[None, :] < order[:, None]))

@@ -290,7 +290,7 @@ def test_values_that_are_legitimate_are_accepted():
     config, settings, params = build_setup({
         "beam_stride": "3", "num_particles": np.int64(5), "max_insert_range": 8, "linear_update": "0",
         "resample_threshold": 1.01, "lookahead.resample_threshold": 2.0, "scan_match.min_score": 1.01,
-        "motion.srr": 0, "motion.srt": np.float32(0.0), "likelihood.z_hit": 0, "scan_match.start_noise": "0",
+        "motion.srr": 0, "motion.srt": np.float32(0.0), "likelihood.z_hit": 0, "scan_match.window_sigmas": "3",
         "map_extent": "100", "resolution": 0.1, "horizon": 0,
     })
     assert config.beam_stride == 3 and type(config.beam_stride) is int

@@ -585,7 +585,7 @@ def test_grid_lp_values_are_the_pathwise_draws(room_field, initial):
 
     grad_fn = jax.jit(jax.grad(increment))
     for alpha in (0.0, 0.3):
-        params = default_params(**{"lookahead.alpha": alpha, "scan_match.start_noise": 0.0})
+        params = default_params(**{"lookahead.alpha": alpha})
         for seed in range(3):
             key = jax.random.key(seed)
             out = _jit_propose(key, pose, room_field, inputs, SENSOR, params, config)

@@ -1,9 +1,8 @@
-"""The scan matcher, its score and the Gaussian fitted round a match, against NumPy references
-in the small room of tests/rooms.py."""
+"""The refinement's hill-climbing scan matcher and its score, against NumPy references in the
+small room of tests/rooms.py."""
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import jax
@@ -12,14 +11,11 @@ import numpy as np
 import pytest
 from rooms import ROOM_EXTENT, SENSOR, SPEC, build_room_map, paged_field, room_path, scan_at
 
-from jaxslam import motion
 from jaxslam.config import SlamConfig, default_params
-from jaxslam.geometry import between, compose
 from jaxslam.likelihood_field import endpoint_cell_distances, endpoint_log_likelihood
 from jaxslam.occupancy import FAR
-from jaxslam.proposals.base import StepInputs
 from jaxslam.likelihood_field import endpoint_match_score as match_score
-from jaxslam.scan_matching import match, matched_gaussian
+from jaxslam.scan_matching import match
 
 PARAMS = default_params()
 CONFIG = SlamConfig(num_particles=4, proposal="smp", map_extent=ROOM_EXTENT, max_insert_range=10.0)
@@ -80,44 +76,3 @@ def test_match_score_is_the_mean_fit_of_the_returned_beams(room_map):
     np.testing.assert_allclose(got, expected, rtol=1e-5)
     no_return = jnp.full_like(ranges, SENSOR.range_max)
     assert float(match_score(SPEC, room_map.hit_dist2, pose, no_return, SENSOR, sigma)) == 0.0
-
-
-def _room_step_inputs():
-    path = room_path(6)
-    return StepInputs(motion=jnp.asarray(between(path[1], path[2])), ranges=scan_at(path[2]),
-                      future_motions=jnp.zeros((0, 3)), future_ranges=jnp.zeros((0, 61)),
-                      future_valid=jnp.zeros((0,), bool)), jnp.asarray(path[1])
-
-
-def test_matched_gaussian_weight_is_the_stencil_riemann_sum(room_map):
-    """log_eta = log sum_j p(z | x_j)^gain p(x_j | x_{t-1}, u) + log(cell volume) over the 27
-    stencil poses round the match, recomputed in float64; the fitted mean and covariance are the
-    softmax-weighted moments of the stencil (untempered fit) plus the floor."""
-    inputs, pose = _room_step_inputs()
-    field = paged_field(room_map, CONFIG)  # as a filter's particle reads its map
-    gaussian = matched_gaussian(pose, field, inputs, SENSOR, PARAMS, CONFIG, fit_gain=1.0)
-    assert bool(gaussian.matched)
-    sm = PARAMS.scan_match
-    spacing = np.array([float(sm.linear_step), float(sm.linear_step), float(sm.angular_step)])
-    # The match itself, from the odometry prediction with the config's lookup.
-    result = _match(room_map, np.asarray(compose(pose, inputs.motion)), inputs.ranges, CONFIG.match_iterations,
-                    CONFIG.match_lookup, spec=CONFIG.grid)
-    offsets = np.array(list(itertools.product((-1, 0, 1), repeat=3)), np.float64) * spacing
-    candidates = np.asarray(result.pose, np.float64) + offsets
-    raw = np.array([float(endpoint_log_likelihood(CONFIG.grid, field, jnp.asarray(c, jnp.float32),
-                                                  inputs.ranges, SENSOR, PARAMS.likelihood._replace(gain=1.0)))
-                    for c in candidates])
-    log_motion = np.asarray(motion.log_density(jnp.asarray(candidates, jnp.float32), pose, inputs.motion,
-                                               PARAMS.motion), np.float64)
-    gain = float(PARAMS.likelihood.gain)
-    terms = gain * raw + log_motion
-    expected = terms.max() + math.log(np.exp(terms - terms.max()).sum()) + np.log(spacing).sum()
-    np.testing.assert_allclose(float(gaussian.log_eta), expected, rtol=1e-4)
-    w = np.exp(raw + log_motion - (raw + log_motion).max())
-    w /= w.sum()
-    mean_offset = w @ offsets
-    np.testing.assert_allclose(np.asarray(gaussian.mean)[:2], (np.asarray(result.pose) + mean_offset)[:2], atol=1e-4)
-    centred = offsets - mean_offset
-    cov = (centred * w[:, None]).T @ centred + np.diag((float(sm.min_std_fraction) * spacing) ** 2)
-    chol = np.asarray(gaussian.chol, np.float64)
-    np.testing.assert_allclose(chol @ chol.T, cov, rtol=1e-3, atol=1e-9)

@@ -7,8 +7,9 @@ how well each time-t sample explains the future to choose the particle's new pos
 
 1. Draw x_t^(i) ~ p(x_t | x_{t-1}, u_t), i = 1..L; g_i = a_i = log p(z_t | x_t^(i), m);
    origin_i = i; log Z = 0. That is the paper's draw (``lookahead_initial="odometry"``); the
-   default, ``"scan_match"``, draws them from the Gaussian fitted around the particle's scan
-   match q and sets g_i = log p(z_t | x_t^(i), m) + log p(x_t^(i) | x_{t-1}, u_t) - log q(x_t^(i)),
+   default, ``"scan_match"``, draws them from the particle's window posterior
+   (:mod:`jaxslam.window_posterior`: a mixture q of Gaussians round the modes of
+   p(z_t | x, m)^gain p(x | x_{t-1}, u_t), every mode given a share) and sets g_i = log p(z_t | x_t^(i), m) + log p(x_t^(i) | x_{t-1}, u_t) - log q(x_t^(i)),
    an importance weight; steps 2-5 are the same for both.
 2. For s = t+1 .. t+k: when the localizer ESS < ``resample_threshold`` * L,
    log Z += logsumexp(a) - log L and resample (poses, origin) by softmax(a), a = 0.
