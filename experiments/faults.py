@@ -373,7 +373,9 @@ def cells(records: list[dict], factor: float = SUCCESS_FACTOR) -> dict:
 
 
 def _fault_order(faults) -> list[str]:
-    return [f for f in FAULTS if f in set(faults)]
+    """The cells of ``faults`` (any iterable of names) in :data:`FAULTS`' order."""
+    wanted = set(faults)
+    return [f for f in FAULTS if f in wanted]
 
 
 def faults_markdown(records: list[dict], factor: float = SUCCESS_FACTOR) -> str:
@@ -403,33 +405,46 @@ def faults_markdown(records: list[dict], factor: float = SUCCESS_FACTOR) -> str:
     return "\n".join(lines) + "\n"
 
 
+def success_curves(records: list[dict], factor: float = SUCCESS_FACTOR) -> dict:
+    """The figure's lines: ``{kind: {(dataset, proposal): (sizes, fractions)}}`` for kind
+    "heading" (sizes in degrees) and "translation" (m); a fraction is successes / judged seeds
+    (:func:`judge`); the clean run is size 0 (its finished seeds count as successes). Cells
+    without a judged seed are left out."""
+    table = cells(records, factor)
+    curves: dict = {"heading": {}, "translation": {}}
+    for kind, lines in curves.items():
+        for dataset, proposal in sorted({(d, p) for d, p, _ in table}):
+            sizes, fractions = [], []
+            for fault in _fault_order(f for d, p, f in table if (d, p) == (dataset, proposal)):
+                fault_kind, size = FAULTS[fault]
+                cell = table[(dataset, proposal, fault)]
+                if fault_kind in (kind, "none") and cell["judged"]:
+                    sizes.append(size)
+                    fractions.append(cell["successes"] / cell["judged"])
+            if sizes:
+                lines[(dataset, proposal)] = (sizes, fractions)
+    return curves
+
+
 def faults_figure(records: list[dict], path: Path, factor: float = SUCCESS_FACTOR) -> Path:
-    """The success fraction (successes / judged seeds) against the slip's size: a panel for
-    heading slips (degrees) and one for translation slips (m), a line per log x proposal; the
-    clean run is size 0 (its finished seeds count as successes). Writes and returns ``path``."""
+    """The success fraction against the slip's size (:func:`success_curves`): a panel for
+    heading slips (degrees) and one for translation slips (m), a line per log x proposal.
+    Writes and returns ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    table = cells(records, factor)
+    curves = success_curves(records, factor)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     for ax, kind, unit in ((axes[0], "heading", "heading slip [deg]"),
                            (axes[1], "translation", "translation slip [m]")):
-        for dataset, proposal in sorted({(d, p) for d, p, _ in table}):
-            xs, ys = [], []
-            for fault in _fault_order(f for d, p, f in table if (d, p) == (dataset, proposal)):
-                fault_kind, size = FAULTS[fault]
-                cell = table[(dataset, proposal, fault)]
-                if fault_kind in (kind, "none") and cell["judged"]:
-                    xs.append(size)
-                    ys.append(cell["successes"] / cell["judged"])
-            if xs:
-                ax.plot(xs, ys, marker="o", label=f"{dataset} {proposal.upper()}")
+        for (dataset, proposal), (sizes, fractions) in curves[kind].items():
+            ax.plot(sizes, fractions, marker="o", label=f"{dataset} {proposal.upper()}")
         ax.set_xlabel(unit)
         ax.set_ylim(-0.05, 1.05)
         ax.grid(alpha=0.3)
-        ax.set_title(f"{kind} slips (3 a run)")
+        ax.set_title(f"{kind} slips")
     axes[0].set_ylabel(f"success fraction (error <= {factor:g} x clean)")
     handles, labels = axes[0].get_legend_handles_labels()
     if not handles:

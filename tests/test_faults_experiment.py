@@ -250,6 +250,14 @@ def test_the_table_counts_successes_per_cell():
     assert lines.index(intel) < lines.index(aces)  # the logs in datasets.py's order
 
 
+def test_the_figures_lines():
+    curves = faults.success_curves(_fake_records())
+    assert curves["heading"][("intel", "smp")] == ([0.0, 10.0, 45.0], [1.0, 1.0, pytest.approx(1 / 3)])
+    assert curves["translation"][("intel", "smp")] == ([0.0, 1.0], [1.0, 1.0])
+    assert curves["translation"][("aces", "lp")] == ([0.0, 0.5], [0.5, 0.0])
+    assert ("aces", "lp") not in curves["heading"] or curves["heading"][("aces", "lp")] == ([0.0], [0.5])
+
+
 def test_the_figure_and_the_store(tmp_path):
     path = faults.faults_figure(_fake_records(), tmp_path / "faults.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
