@@ -596,15 +596,17 @@ def main(argv=None) -> int:
     if args.max_scans is not None and args.max_scans < 2:
         print(f"--max-scans must be at least 2, got {args.max_scans}", file=sys.stderr)
         return 2
-    if args.ambiguous:
-        from jaxslam.cli import parse_assignments
-        from jaxslam.config import ConfigError
+    from jaxslam.cli import parse_assignments
+    from jaxslam.config import ConfigError, build_setup
 
-        try:
-            overrides = parse_assignments(args.set)
-        except ConfigError as err:
-            print(err, file=sys.stderr)
-            return 2
+    try:  # a bad --set is refused here, not by every run
+        overrides = parse_assignments(args.set)
+        for proposal in args.proposals:
+            build_setup({"proposal": proposal, **overrides})
+    except ConfigError as err:
+        print(f"--set: {err}", file=sys.stderr)
+        return 2
+    if args.ambiguous:
         runs = ambiguous_case(out, tuple(args.proposals), args.seeds, args.particles, overrides)
         print(ambiguous_markdown(runs))
         return 0

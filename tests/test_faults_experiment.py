@@ -278,9 +278,13 @@ def test_bad_arguments_are_refused_before_any_work(tmp_path, capsys):
     assert faults.main(["--data", str(tmp_path / "nowhere"), "--out", str(tmp_path / "b")]) == 2
     assert "datasets not found" in capsys.readouterr().err
     assert faults.main(["--max-scans", "1", "--out", str(tmp_path / "c")]) == 2
+    assert faults.main(["--set", "num_particels=3", "--out", str(tmp_path / "d")]) == 2
+    assert "--set: " in capsys.readouterr().err
+    assert faults.main(["--ambiguous", "--set", "no_equals_sign", "--out", str(tmp_path / "e")]) == 2
+    assert "NAME=VALUE" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         faults.main(["--faults", "heading-15"])
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    assert not any((tmp_path / name).exists() for name in "abcde")
 
 
 # ----------------------------------------------------------------------------- the ambiguous case
