@@ -244,8 +244,8 @@ def fault_log(log: LaserLog, fault: str, seed: int, settings: dict = SETTINGS) -
     if kind == "none":
         steps = find_turns(log.odometry, log.timestamps, settings["num_faults"], seed, settings["turn_window_s"])
         return log, steps
-    si = math.radians(size) if kind == "heading" else size
-    return inject_faults(log, kind, si, settings["num_faults"], seed, window_s=settings["turn_window_s"])
+    slip = math.radians(size) if kind == "heading" else size  # rad or m
+    return inject_faults(log, kind, slip, settings["num_faults"], seed, window_s=settings["turn_window_s"])
 
 
 # ----------------------------------------------------------------------------- runs
@@ -255,9 +255,10 @@ _LOGS_LOCK = threading.Lock()
 
 
 def read_dataset(dataset: str, data: Path, max_scans: int | None):
-    """The log (its first ``max_scans`` scans, all with None) and relations of ``dataset``, read once per process.
+    """``(log, relations)`` of ``dataset``, read once per process (the threads of ``--jobs`` share them).
 
-    With ``max_scans`` the relations are those between scans of the shortened log."""
+    With ``max_scans`` the log is its first ``max_scans`` scans and the relations are those
+    between its scans (a LogError if there are none)."""
     from jaxslam.io import Relations, read_log, read_relations
 
     with _LOGS_LOCK:
