@@ -37,6 +37,17 @@ def between_np(a, b) -> np.ndarray:
     return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle_np(b[..., 2] - a[..., 2])], axis=-1)
 
 
+def compose_np(a, b) -> np.ndarray:
+    """:func:`compose` on the host in float64 NumPy (``a (+) b``, heading wrapped), for host
+    code (log writers, odometry edits) where poses far from the origin would lose precision in
+    float32."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, wrap_angle_np(a[..., 2] + b[..., 2])], axis=-1)
+
+
 def make_pose(x, y, theta) -> Float[Array, "... 3"]:
     """Stack x, y (m) and theta (rad, wrapped) into a pose array."""
     x, y, theta = jnp.broadcast_arrays(jnp.asarray(x), jnp.asarray(y), jnp.asarray(theta))

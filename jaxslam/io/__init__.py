@@ -1,7 +1,8 @@
 """Log readers and writers: ROS bags, CARMEN logs, relations files, maps, trajectories.
 
 :func:`read_log` picks the reader from the file; the readers themselves are
-:func:`read_rosbag` and :func:`read_carmen`. Every reader returns a
+:func:`read_rosbag` and :func:`read_carmen` (:func:`write_carmen` writes any evenly spaced
+log as CARMEN). Every reader returns a
 :class:`~jaxslam.laserlog.LaserLog` and raises :class:`~jaxslam.laserlog.LogError`
 naming the file and the line or message for malformed input.
 """
@@ -12,7 +13,7 @@ import os
 import re
 from pathlib import Path
 
-from jaxslam.io.carmen import ONLY_COMMENTS, read_carmen, text_problem
+from jaxslam.io.carmen import ONLY_COMMENTS, read_carmen, text_problem, write_carmen
 from jaxslam.io.maps import read_map, write_map
 from jaxslam.io.relations import Relations, read_relations
 from jaxslam.io.rosbag import read_rosbag
@@ -31,6 +32,7 @@ __all__ = [
     "read_rosbag",
     "read_trajectory",
     "trajectory_per_scan",
+    "write_carmen",
     "write_map",
     "write_trajectory",
 ]

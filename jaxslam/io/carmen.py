@@ -27,19 +27,20 @@ lie on different grids and are refused, while 181 and 361 readings interleave.
 
 from __future__ import annotations
 
+import io
 import math
 import os
 
 import numpy as np
 
-from jaxslam.geometry import between
+from jaxslam.geometry import between, compose_np
 from jaxslam.io.rosbag import BeamLayout, check_laser_pose, pad_beam_layouts
 from jaxslam.io.trajectory import poses_at
 from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.warn import warn
 
-__all__ = ["FLASER_NO_RETURN", "read_carmen", "text_problem"]
+__all__ = ["FLASER_NO_RETURN", "read_carmen", "text_problem", "write_carmen"]
 
 FLASER_NO_RETURN = 81.91
 """Range (m) that old CARMEN logs write for a beam with no return (SICK LMS maximum)."""
@@ -421,3 +422,75 @@ class _LaserLines:
 def _line(where: str) -> str:
     """The line number of a ``file:line`` location."""
     return where.rsplit(":", 1)[-1]
+
+
+# Beam angles must lie on start + i * resolution to within this (rad) to be written as ROBOTLASER1.
+_UNIFORM_BEAMS_TOLERANCE = 1e-5
+
+
+def write_carmen(path, log: LaserLog) -> None:
+    """Write ``log`` as a CARMEN text log of ``ROBOTLASER1`` lines (and ``TRUEPOS`` lines for
+    its ground truth), which :func:`read_carmen` reads back as the same log.
+
+    One ROBOTLASER1 line per scan carries the beam geometry (first angle, angular resolution,
+    ``range_max`` as max_range), the ranges, the laser's and the robot's odometry poses (the
+    laser's mounting is the difference) and the timestamp; velocities are written as 0.
+    Numbers are written so that they read back exactly: timestamps and poses as float64 (17
+    significant digits), ranges as float32 (9). Used to map a log edited in memory (e.g. an
+    odometry with injected faults, ``experiments/faults.py``) with ``jaxslam map``.
+
+    What does not survive: ``range_min`` (CARMEN lines carry none; the reader gives 0, so a
+    log with a reading below a positive range_min is refused, since that reading would turn
+    valid), ``notes`` and ``warnings`` (the reader makes its own), and ``source``.
+
+    Args:
+        path: the file to write (``.clf``); overwritten if it exists.
+        log: the log; its beams must be evenly spaced (start + i * resolution).
+
+    Raises:
+        LogError: beams not evenly spaced, fewer than 2 beams, or a reading below a positive
+            ``range_min`` (the message names the scan and beam), before anything is written.
+    """
+    src = log.source
+    angles = np.asarray(log.sensor.beam_angles, dtype=np.float64)
+    if angles.size < 2:
+        raise LogError(f"{src}: a CARMEN ROBOTLASER1 line needs at least 2 beams, the log has {angles.size}")
+    start, resolution = float(angles[0]), float((angles[-1] - angles[0]) / (angles.size - 1))
+    off_grid = np.abs(angles - (start + resolution * np.arange(angles.size)))
+    if off_grid.max() > _UNIFORM_BEAMS_TOLERANCE:
+        beam = int(np.argmax(off_grid))
+        raise LogError(f"{src}: beam {beam} lies {off_grid[beam]:.3g} rad off the even grid start + i * resolution "
+                       "that a ROBOTLASER1 line describes; the log cannot be written as CARMEN")
+    range_min = float(np.asarray(log.sensor.range_min))
+    if range_min > 0:
+        below = log.ranges < np.float32(range_min)
+        if below.any():
+            scan, beam = (int(v) for v in np.argwhere(below)[0])
+            raise LogError(f"{src}: scan {scan} beam {beam} reads {float(log.ranges[scan, beam]):g} m, below range_min="
+                           f"{range_min:g} m; CARMEN lines carry no range_min (it reads back as 0, making such "
+                           "readings valid), so the log cannot be written as CARMEN")
+    range_max = float(np.asarray(log.sensor.range_max))
+    mount = np.asarray(log.sensor.laser_pose, dtype=np.float64)
+    laser_world = compose_np(log.odometry, mount)
+    num_beams = angles.size
+    head = (f"ROBOTLASER1 0 {start!r} {resolution * (num_beams - 1)!r} {resolution!r} {range_max!r} 0.01 0 "
+            f"{num_beams}")
+    ranges_text = io.StringIO()
+    np.savetxt(ranges_text, log.ranges.astype(np.float32), fmt="%.9g")
+    rows = ranges_text.getvalue().splitlines()
+    origin = " ".join(str(src).split())  # one line, whatever the source's name holds
+    out = [f"# written by jaxslam.io.write_carmen from {origin}",
+           "# ROBOTLASER1 laser_type start_angle fov angular_res max_range accuracy remission_mode n ranges "
+           "n_remissions laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv forward_safety side_safety "
+           "turn_axis ipc_timestamp hostname logger_timestamp"]
+    truth = log.ground_truth
+    for i in range(log.num_scans):
+        lx, ly, lth = (repr(float(v)) for v in laser_world[i])
+        rx, ry, rth = (repr(float(v)) for v in log.odometry[i])
+        stamp = repr(float(log.timestamps[i]))
+        out.append(f"{head} {rows[i]} 0 {lx} {ly} {lth} {rx} {ry} {rth} 0 0 0 0 0 {stamp} jaxslam {stamp}")
+        if truth is not None:
+            tx, ty, tth = (repr(float(v)) for v in truth[i])
+            out.append(f"TRUEPOS {tx} {ty} {tth} {rx} {ry} {rth} {stamp} jaxslam {stamp}")
+    with open(os.fspath(path), "w", encoding="ascii") as f:
+        f.write("\n".join(out) + "\n")

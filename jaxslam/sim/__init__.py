@@ -10,6 +10,8 @@ from jaxslam.sim.scenarios import (
     office_scenario,
     office_waypoints,
     office_world,
+    symmetric_junction_scenario,
+    symmetric_junction_world,
 )
 from jaxslam.sim.simulate import noisy_odometry, simulate_log, simulate_scan, simulate_scans
 from jaxslam.sim.world import (
@@ -46,6 +48,8 @@ __all__ = [
     "simulate_log",
     "simulate_scan",
     "simulate_scans",
+    "symmetric_junction_scenario",
+    "symmetric_junction_world",
     "waypoint_path",
     "waypoint_path_length",
     "wall_segments",

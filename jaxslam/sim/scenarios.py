@@ -6,8 +6,10 @@
   Burgard, "Look-ahead Proposals for Robust Grid-based SLAM with Rao-Blackwellized
   Particle Filters" (Figs. 1 and 4): 15 laps around a lone box with a 4 m laser,
   then back to a checkpoint X whose surroundings were mapped at the start.
+* :func:`symmetric_junction_scenario`: a corridor that forks into two identical lanes; from
+  inside a lane the scan cannot tell which lane the robot is in.
 
-Both are deterministic given the key: the world and the true path are fixed, the key
+All are deterministic given the key: the world and the true path are fixed, the key
 draws the range and odometry noise.
 """
 
@@ -380,5 +382,101 @@ def box_world_scenario(
         range_noise_std=float(range_noise_std),
         step_length=step_length,
         dt=dt,
+    )
+    return Scenario(log, world, log.ground_truth, metadata)
+
+
+# ------------------------------------------------------------------ symmetric junction
+
+JUNCTION_LANE_WIDTH = 1.6
+"""Width (m) of each of the two lanes the corridor forks into (the corridor is twice as wide)."""
+JUNCTION_STEM = (-5.0, 0.0)
+"""South end and fork (y, m) of the corridor's undivided stem."""
+JUNCTION_LANE_END = 4.0
+"""North end (y, m) of both lanes: one end wall across the corridor."""
+JUNCTION_MOTION = motion_params(0.1, 0.05, 0.3, 0.1, 0.002, 0.002)
+"""Odometry noise of :func:`symmetric_junction_scenario`: srr = 0.1 m/m, srt = 0.05 m/rad,
+str = 0.3 rad/m (a heading std of about 8 degrees per metre driven at 0.1 m steps), stt = 0.1
+rad/rad, minimum stds 2 mm and 0.002 rad: by the lanes the odometry's sideways error is some
+tenths of a metre, comparable with the 1.6 m between the two lanes' centre lines."""
+
+
+def symmetric_junction_world(lane_width: float = JUNCTION_LANE_WIDTH) -> SegmentWorld:
+    """A corridor ``2 * lane_width`` wide running north from y = -5 m, split at y = 0 by a
+    thin wall along its centre line (x = 0) into two identical lanes that end at one wall at
+    y = 4 m: a fork whose two branches look the same to a forward-facing laser.
+
+    Seen from inside a lane (y > 0, heading north), the laser's 180 degrees hit only that
+    lane's two walls and the end wall, so the scan at ``(x, y, theta)`` in the east lane equals
+    the scan at ``(x - lane_width, y, theta)`` in the west lane: the two poses cannot be told
+    apart by the scan alone.
+
+    Groups: "walls" (the corridor's outer walls and end walls), "divider" (the centre wall).
+    """
+    w = float(lane_width)
+    if not w > 0:
+        raise ValueError(f"symmetric_junction_world: lane_width must be positive, got {lane_width!r}")
+    south, fork = JUNCTION_STEM
+    north = JUNCTION_LANE_END
+    walls = polyline_segments([[-w, south], [w, south], [w, north], [-w, north]], closed=True)
+    divider = polyline_segments([[0.0, fork], [0.0, north]])
+    bounds = (-w - 1.0, south - 1.0, w + 1.0, north + 1.0)
+    return concat_worlds(
+        make_world(walls, bounds, groups={"walls": np.arange(walls.shape[0])}),
+        make_world(divider, bounds, groups={"divider": np.arange(divider.shape[0])}),
+    )
+
+
+def symmetric_junction_scenario(
+    key: PRNGKeyArray,
+    step_length: float = 0.1,
+    num_beams: int = 181,
+    range_max: float = 10.0,
+    range_noise_std: float = 0.02,
+    dt: float = 0.1,
+    motion: MotionParams | None = None,
+    lane_width: float = JUNCTION_LANE_WIDTH,
+) -> Scenario:
+    """A drive through a symmetric junction (:func:`symmetric_junction_world`): up the
+    corridor's centre line from y = -4.5 m, a swerve to the east lane's centre line before the
+    fork (y = -2 .. -0.5 m, corners rounded at 0.5 m), and north in the east lane to y = 3 m,
+    1 m short of the end wall (78 scans at the default 0.1 m steps).
+
+    Only the swerve, seen against the tip of the dividing wall, tells the lanes apart: from
+    inside a lane the scan at the true pose equals the scan at the *mirror pose* one lane
+    width west (``metadata["mirror_offset"]``), and the odometry (default
+    :data:`JUNCTION_MOTION`) is too noisy to tell them apart either. A filter must keep the
+    true mode from the swerve on; the fraction of its particles near the true pose at the
+    scans in the lane (``metadata["ambiguous_scans"]``) measures whether it does
+    (``experiments/faults.py --ambiguous``).
+
+    Laser: ``num_beams`` beams over 180 degrees, range_max 10 m (the end wall is in view from
+    the start, so the position along the corridor is observed), Gaussian range noise.
+
+    Returns:
+      A :class:`Scenario`. metadata: ``lane_width``, ``mirror_offset`` ((3,) [dx, dy, dtheta]
+      added to a pose in the east lane to get the pose in the west lane that sees the same
+      scan), ``ambiguous_scans`` (indices of the scans whose true pose lies 0.3 m or more
+      into the east lane, heading north), ``motion_params``, ``range_noise_std``,
+      ``step_length``, ``dt``.
+    """
+    if motion is None:
+        motion = JUNCTION_MOTION
+    w = float(lane_width)
+    world = symmetric_junction_world(w)
+    waypoints = np.array([[0.0, -4.5], [0.0, -2.0], [0.5 * w, -0.5], [0.5 * w, 3.0]])
+    true_poses = waypoint_path(waypoints, step_length, step_length / 0.5, turn_radius=0.5)
+    sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
+    log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt,
+                       source="<symmetric junction scenario>")
+    in_lane = (true_poses[:, 1] >= JUNCTION_STEM[1] + 0.3) & (np.abs(true_poses[:, 0] - 0.5 * w) < 1e-6)
+    metadata = dict(
+        lane_width=w,
+        mirror_offset=np.array([-w, 0.0, 0.0]),
+        ambiguous_scans=np.nonzero(in_lane)[0],
+        motion_params=motion,
+        range_noise_std=float(range_noise_std),
+        step_length=float(step_length),
+        dt=float(dt),
     )
     return Scenario(log, world, log.ground_truth, metadata)
