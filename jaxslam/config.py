@@ -235,12 +235,14 @@ def _normalize_fields(obj, where: str) -> None:
 
 
 class ScanMatchParams(NamedTuple):
-    """Traced numbers of the scan matcher and the scan-matching proposal."""
+    """Traced numbers of the window posterior (the SMP's and the LP's), its match score and the
+    refinement's matcher."""
 
     linear_step: Float[Array, ""]
-    """Initial step (m) of the hill climber; also the SMP's sampling stencil spacing in x, y."""
+    """Spacing (m) in x, y of the 27-pose stencil each window-posterior mode's Gaussian and mass
+    come from; also the refinement's hill climber's first step."""
     angular_step: Float[Array, ""]
-    """Initial step (rad) of the hill climber and the stencil spacing in theta."""
+    """The stencil's spacing (rad) in theta; also the refinement's climber's first step."""
     min_score: Float[Array, ""]
     """Mean per-beam match quality (0..1) under which the match counts as failed (fall back to OP)."""
     min_std_fraction: Float[Array, ""]
