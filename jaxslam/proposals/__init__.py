@@ -28,7 +28,8 @@ class Proposal(NamedTuple):
 
 PROPOSALS: dict[str, Proposal] = {
     "op": Proposal(odometry.propose, False, "odometry: the motion model"),
-    "smp": Proposal(scan_match.propose, False, "scan matching (GMapping): a Gaussian round each particle's match"),
+    "smp": Proposal(scan_match.propose, False,
+                    "scan matching (GMapping's proposal): a Gaussian round each mode of the window posterior"),
     "lp": Proposal(lookahead.propose, True, "look-ahead: L localizers run k scans ahead in each particle's map"),
 }
 """The proposals by name (``SlamConfig.proposal``)."""
