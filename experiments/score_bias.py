@@ -11,13 +11,16 @@ fixed-lag smoothed score (:func:`jaxslam.particle_filter.fixed_lag_score`) at a 
   bilinear lookup, gain 1, the first ``--scans`` scans, the motion terms at the simulated values
   and sigma at its known-path optimum): no exact score exists. The score in log coordinates
   (d log p / d log term) of N = ``--particles`` filters over ``--office-keys`` keys is compared
-  with a reference: the mean of the same estimators at N = ``--ref-particles`` (both are
-  consistent as N grows), and, for the motion terms, the known path's score (the motion model's
+  with a reference: the mean path-space score at N = ``--ref-particles`` (consistent as N
+  grows), and, for the motion terms, the known path's score (the motion model's
   log-density of the true path given the odometry: what the score is when the scans pin the path).
 
 All estimators of one filter run come from the same particles (one forward pass; the lags only
 change the surrogate added to the log-likelihood estimate), so their differences are paired.
-Writes ``score_bias.json`` and ``score_bias.md`` (the tables) into ``--out``:
+The office's table ends with the particles' genealogy: the mean ESS after each weight update,
+and from how many distinct particles of a step the particles 1, 2 and 5 steps later descend
+(1: every estimator gives that step's term the same value). Writes ``score_bias.json`` and
+``score_bias.md`` (the tables) into ``--out``; about 5 minutes on 2 CPU cores:
 
     python experiments/score_bias.py --out results/score_bias
 """
@@ -113,27 +116,34 @@ def office(args, bar) -> list[dict]:
 
                 out = particle_filter.scan_filter(step, key_steps, state, prepared.inputs,
                                                   lambda it: it[0].log_evidence, checkpoint=False)
-                terms = out.info[1]
+                info, terms = out.info
                 loglik = out.marginal_loglik
                 return jnp.stack([loglik] + [loglik + particle_filter.fixed_lag_score(terms, lag)
-                                             for lag in args.lags])
+                                             for lag in args.lags]), (info.ess, info.ancestors)
 
-            return jax.jit(jax.jacrev(estimates))
+            return jax.jit(jax.jacrev(estimates, has_aux=True))
 
         for n in (args.particles, args.ref_particles):
             if n not in compiled:
                 compiled[n] = make(n)
         known = np.asarray(jax.grad(lambda x: motion.path_log_density(setup["path"], setup["motions"],
                                                                        at(x, base).motion))(log_truth), np.float64)
-        runs = {}
+        runs, genealogy = {}, {}
         for n, num_keys in ((args.particles, args.office_keys), (args.ref_particles, args.ref_keys)):
-            grads = []
+            grads, ess, distinct = [], [], {lag: [] for lag in (1, 2, 5)}
             for k in jax.random.split(jax.random.key(300 + seed), num_keys):
-                grads.append(np.asarray(compiled[n](log_truth, k, base, prepared), np.float64))  # (E, P)
+                jac, (step_ess, ancestors) = compiled[n](log_truth, k, base, prepared)
+                grads.append(np.asarray(jac, np.float64))  # (E, P)
+                ess.append(np.asarray(step_ess))
+                for lag, counts in distinct.items():
+                    counts.extend(distinct_ancestors(np.asarray(ancestors), lag))
                 bar.update(1)
             runs[n] = np.array(grads)  # (keys, estimators, parameters)
-        reference = runs[args.ref_particles].mean(axis=(0, 1))  # every estimator's mean at the large N
-        ref_se = runs[args.ref_particles].mean(axis=1).std(axis=0, ddof=1) / np.sqrt(args.ref_keys)
+            genealogy[n] = {"particles": n, "mean_ess": float(np.mean(ess)), "median_ess": float(np.median(ess)),
+                            **{f"distinct_ancestors_{lag}_steps_back": float(np.mean(c)) for lag, c in distinct.items()}}
+        # The path-space score at the large N: consistent as N grows (a fixed lag is not).
+        reference = runs[args.ref_particles][:, 0].mean(axis=0)
+        ref_se = runs[args.ref_particles][:, 0].std(axis=0, ddof=1) / np.sqrt(args.ref_keys)
         for e, name in enumerate(estimator_names(args.lags)):
             for i, param in enumerate(OFFICE_NAMES):
                 g = runs[args.particles][:, e, i]
@@ -143,8 +153,23 @@ def office(args, bar) -> list[dict]:
                              "known_path": float(known[i]) if param in MOTION else None,
                              "mean": float(g.mean()), "bias": float(g.mean() - reference[i]),
                              "sd": float(g.std(ddof=1)), "se": float(g.std(ddof=1) / np.sqrt(g.size)),
-                             "ref_particles_mean": float(h.mean()), "ref_particles_sd": float(h.std(ddof=1))})
+                             "ref_particles_mean": float(h.mean()), "ref_particles_sd": float(h.std(ddof=1)),
+                             "genealogy": genealogy[args.particles], "ref_genealogy": genealogy[args.ref_particles]})
     return rows
+
+
+def distinct_ancestors(ancestors: np.ndarray, lag: int) -> list[int]:
+    """For every step t of a run ((T, N) ``ancestors``), how many distinct particles of step t the
+    particles of step t + ``lag`` descend from: the particles a fixed-lag term at that lag is
+    averaged over (1: every estimator gives that step's term the same value)."""
+    steps, n = ancestors.shape
+    counts = []
+    for t in range(steps - lag):
+        idx = np.arange(n)
+        for u in range(t + lag - 1, t - 1, -1):
+            idx = ancestors[u, idx]
+        counts.append(int(np.unique(idx).size))
+    return counts
 
 
 def summary_table(rows, model, params, lags) -> str:
@@ -161,6 +186,17 @@ def summary_table(rows, model, params, lags) -> str:
             cells = [f"{r['bias']:+.2f} ± {r['se']:.2f} ({r['sd']:.2f})" for r in sel]
             lines.append(f"| {p} | {name} | " + " | ".join(cells)
                          + f" | {np.mean([abs(r['bias']) for r in sel]):.2f} | {np.mean([r['sd'] for r in sel]):.2f} |")
+    return "\n".join(lines)
+
+
+def genealogy_table(rows) -> str:
+    lines = ["| seed | N | mean ESS | median ESS | distinct ancestors 1 / 2 / 5 steps back |", "|---|---|---|---|---|"]
+    for seed in sorted({r["seed"] for r in rows if r["model"] == "office"}):
+        r = next(r for r in rows if r["model"] == "office" and r["seed"] == seed)
+        for g in (r["genealogy"], r["ref_genealogy"]):
+            lines.append(f"| {seed} | {g['particles']} | {g['mean_ess']:.2f} | {g['median_ess']:.2f} | "
+                         f"{g['distinct_ancestors_1_steps_back']:.2f} / {g['distinct_ancestors_2_steps_back']:.2f} / "
+                         f"{g['distinct_ancestors_5_steps_back']:.2f} |")
     return "\n".join(lines)
 
 
@@ -182,7 +218,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", required=True, help="folder for score_bias.json and score_bias.md")
     parser.add_argument("--seeds", type=int, default=3, help="datasets per model")
-    parser.add_argument("--lags", type=int, nargs="+", default=[5, 10, 20])
+    parser.add_argument("--lags", type=int, nargs="+", default=[0, 5, 10, 20],
+                        help="fixed lags to measure (0: the filtering weights alone)")
     parser.add_argument("--lg-steps", type=int, default=200, help="linear-Gaussian: T")
     parser.add_argument("--lg-particles", type=int, default=50, help="linear-Gaussian: N")
     parser.add_argument("--lg-threshold", type=float, default=0.5, help="linear-Gaussian: resample when ESS < this N")
@@ -210,16 +247,17 @@ def main(argv=None) -> int:
         if not args.skip_office:
             rows += office(args, bar)
     seconds = time.time() - start
-    (out / "score_bias.json").write_text(json.dumps({"args": vars(args), "seconds": seconds, "rows": rows},
+    (out / "score_bias.json").write_text(json.dumps({"args": {**vars(args), "out": "OUT/"}, "seconds": seconds, "rows": rows},
                                                     indent=1))
     text = [f"Linear-Gaussian (T = {args.lg_steps}, N = {args.lg_particles}, resample when ESS < "
             f"{args.lg_threshold:g} N, {args.lg_keys} keys per seed): bias = mean estimate - Kalman score.", "",
             summary_table(rows, "linear-Gaussian", "aqr", args.lags)]
     if not args.skip_office:
         text += ["", f"Office (OP, {args.scans} scans, N = {args.particles}, {args.office_keys} keys per seed; "
-                 f"reference: N = {args.ref_particles}, {args.ref_keys} keys, all estimators averaged), score in "
+                 f"reference: the path-space score at N = {args.ref_particles}, {args.ref_keys} keys), score in "
                  f"log coordinates: bias = mean estimate - reference.", "",
-                 summary_table(rows, "office", OFFICE_NAMES, args.lags), "", reference_table(rows, OFFICE_NAMES)]
+                 summary_table(rows, "office", OFFICE_NAMES, args.lags), "", reference_table(rows, OFFICE_NAMES),
+                 "", genealogy_table(rows)]
     text.append(f"\n{seconds:.0f} s")
     (out / "score_bias.md").write_text("\n".join(text) + "\n")
     print("\n".join(text))

@@ -1,8 +1,8 @@
 """The fixed-lag smoothed score (``particle_filter.fixed_lag_score``, ``SlamConfig.score_lag``):
 the value of the log-likelihood estimate is the same bit for bit at every lag, a lag of at least
 the number of steps is today's path-space score, and on the linear-Gaussian model (Kalman
-reference) the fixed-lag score is as unbiased as the path-space one with a smaller spread, while
-lag 0 (the filtering weights) is biased."""
+reference) the fixed-lag score is as biased as the path-space one, no more, with a smaller spread,
+while lag 0 (the filtering weights) is biased."""
 
 from __future__ import annotations
 
@@ -72,22 +72,26 @@ def test_score_lag_is_checked_and_parsed():
 
 @pytest.mark.slow  # Monte Carlo check, about a minute (python3 -m pytest -m slow)
 def test_fixed_lag_score_against_the_kalman_score():
-    """T = 200, N = 50, resampling when ESS < N / 2, 400 keys on each of two datasets: at lag 10
-    the bias against the exact score is within 3 Monte Carlo standard errors of the path-space
-    score's, and the spread (sd over keys) is at least 25 % smaller in every parameter; lag 0 (the
-    filtering weights alone) is biased in a by more than 10 standard errors."""
+    """T = 200, N = 50, resampling when ESS < N / 2, 400 keys on each of two datasets (those of
+    experiments/score_bias.py's seeds 0 and 1): at lag 5 the bias against the exact score is no
+    larger than the path-space score's but for 3 Monte Carlo standard errors of their (paired)
+    difference, and the spread (sd over keys) is at least 25 % smaller in every parameter (measured:
+    34 to 50 %); lag 0 (the filtering weights alone) is biased in a by more than 10 standard
+    errors. Both scores carry the same O(T / N) bias of the particle approximation (in r, 15 to
+    37 with exact scores of -22 to 7): the lag removes no bias that the path-space score has, it
+    removes spread (docs/notes/2026-11-26-fixed-lag-score.md)."""
     for seed in (0, 1):
         ys = simulate(jax.random.key(100 + seed), THETA, 200)
         exact = np.asarray(kalman_score(THETA, ys))
         keys = jax.random.split(jax.random.key(200 + seed), 400)
         grads = {}
-        for lag in (None, 10, 0):
+        for lag in (None, 5, 0):
             fn = jax.jit(jax.vmap(jax.grad(lambda th, k, lag=lag: score_log_likelihood(th, k, ys, 50, "systematic",
                                                                                       0.5, lag)), in_axes=(None, 0)))
             grads[lag] = np.asarray(fn(THETA, keys), np.float64)
         bias = {lag: g.mean(0) - exact for lag, g in grads.items()}
         se = {lag: g.std(0, ddof=1) / np.sqrt(g.shape[0]) for lag, g in grads.items()}
-        paired_se = (grads[10] - grads[None]).std(0, ddof=1) / np.sqrt(400)  # the same particles: paired
-        assert np.all(np.abs(bias[10]) <= np.abs(bias[None]) + 3 * paired_se), (seed, bias, paired_se)
-        assert np.all(grads[10].std(0) < 0.75 * grads[None].std(0)), seed
+        paired_se = (grads[5] - grads[None]).std(0, ddof=1) / np.sqrt(400)  # the same particles: paired
+        assert np.all(np.abs(bias[5]) <= np.abs(bias[None]) + 3 * paired_se), (seed, bias, paired_se)
+        assert np.all(grads[5].std(0) < 0.75 * grads[None].std(0)), seed
         assert abs(bias[0][0]) > 10 * se[0][0], (seed, bias[0], se[0])
