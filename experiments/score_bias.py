@@ -23,6 +23,12 @@ and from how many distinct particles of a step the particles 1, 2 and 5 steps la
 ``score_bias.md`` (the tables) into ``--out``; about 5 minutes on 2 CPU cores:
 
     python experiments/score_bias.py --out results/score_bias
+
+With ``--fits`` it measures nothing else: Adam fits of the linear-Gaussian model's q and r from
+twice the truth on each score, at N = 50 and 200, against the Kalman maximum-likelihood estimate
+(``score_bias_fits.json`` and ``.md``):
+
+    python experiments/score_bias.py --out results/score_bias --fits
 """
 
 from __future__ import annotations
@@ -67,6 +73,63 @@ def linear_gaussian(args, bar) -> list[dict]:
                              "sd": float(g.std(ddof=1)), "se": float(g.std(ddof=1) / np.sqrt(g.size))})
             bar.update(1)
     return rows
+
+
+def linear_gaussian_fits(args, bar) -> list[dict]:
+    """``--fits``: Adam (:func:`jaxslam.learning.fit`) on q and r of the linear-Gaussian model from
+    twice the truth (a frozen), on the path-space and on the fixed-lag score at each ``--fit-lags``
+    lag, N = ``--fit-particles`` each; the learned values (mean of the last third of the steps)
+    as multiples of the Kalman maximum-likelihood estimate (the same fit on the exact
+    log-likelihood)."""
+    from typing import NamedTuple
+
+    import jax
+    import jax.numpy as jnp
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from linear_gaussian import THETA, kalman_log_likelihood, score_log_likelihood, simulate
+
+    from jaxslam.learning import fit
+
+    class LgParams(NamedTuple):
+        a: jax.Array
+        q: jax.Array
+        r: jax.Array
+
+    def theta(p):
+        return jnp.stack([p.a, p.q, p.r])
+
+    start = LgParams(jnp.float32(THETA[0]), jnp.float32(2 * THETA[1]), jnp.float32(2 * THETA[2]))
+    rows = []
+    for seed in range(args.seeds):
+        ys = simulate(jax.random.key(100 + seed), THETA, args.lg_steps)
+        exact = fit(jax.random.key(1), lambda k, p: kalman_log_likelihood(theta(p), ys), start, num_steps=300,
+                    learning_rate=0.05, trainable=["q", "r"], progress=False)
+        mle = {n: float(getattr(exact.params, n)) for n in "qr"}
+        for n_particles in args.fit_particles:
+            for name, lag in zip(estimator_names(args.fit_lags), [None, *args.fit_lags]):
+                result = fit(jax.random.key(10 + seed), lambda k, p, lag=lag, n=n_particles: score_log_likelihood(
+                    theta(p), k, ys, n, "systematic", args.lg_threshold, lag), start, num_steps=args.fit_steps,
+                    learning_rate=0.05, trainable=["q", "r"], progress=False)
+                tail = max(1, args.fit_steps // 3)
+                learned = {n: float(np.mean(result.history[n][-tail:])) for n in "qr"}
+                rows.append({"seed": seed, "particles": n_particles, "estimator": name, "mle": mle,
+                             "learned": learned, "ratio_to_mle": {n: learned[n] / mle[n] for n in "qr"}})
+                bar.update(1)
+    return rows
+
+
+def fits_table(rows) -> str:
+    seeds = sorted({r["seed"] for r in rows})
+    lines = ["| N | estimator | " + " | ".join(f"seed {s}: q, r / MLE" for s in seeds) + " |",
+             "|" + "---|" * (2 + len(seeds))]
+    for n in sorted({r["particles"] for r in rows}):
+        for name in dict.fromkeys(r["estimator"] for r in rows):
+            sel = [next(r for r in rows if r["seed"] == s and r["particles"] == n and r["estimator"] == name)
+                   for s in seeds]
+            lines.append(f"| {n} | {name} | " + " | ".join(f"{r['ratio_to_mle']['q']:.2f}, {r['ratio_to_mle']['r']:.2f}"
+                                                         for r in sel) + " |")
+    return "\n".join(lines)
 
 
 def office(args, bar) -> list[dict]:
@@ -230,6 +293,12 @@ def main(argv=None) -> int:
     parser.add_argument("--ref-particles", type=int, default=100, help="office: N of the reference")
     parser.add_argument("--ref-keys", type=int, default=4, help="office: runs per seed at --ref-particles")
     parser.add_argument("--skip-office", action="store_true")
+    parser.add_argument("--fits", action="store_true",
+                        help="measure nothing else: fit q and r of the linear-Gaussian model from 2x the truth on "
+                             "each score (score_bias_fits.json and .md)")
+    parser.add_argument("--fit-lags", type=int, nargs="+", default=[10], help="--fits: the fixed lags")
+    parser.add_argument("--fit-particles", type=int, nargs="+", default=[50, 200], help="--fits: the N of each fit")
+    parser.add_argument("--fit-steps", type=int, default=150, help="--fits: Adam steps")
     args = parser.parse_args(argv)
     if min(args.seeds, args.lg_steps, args.lg_particles, args.lg_keys, args.scans, args.particles,
            args.office_keys, args.ref_particles) < 1 or args.ref_keys < 2 or min(args.lags) < 0:
@@ -240,6 +309,18 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     start = time.time()
+    if args.fits:
+        with tqdm(total=args.seeds * len(args.fit_particles) * (1 + len(args.fit_lags)), desc="fits", unit="fit") as bar:
+            rows = linear_gaussian_fits(args, bar)
+        seconds = time.time() - start
+        (out / "score_bias_fits.json").write_text(json.dumps(
+            {"args": {**vars(args), "out": "OUT/"}, "seconds": seconds, "rows": rows}, indent=1))
+        text = (f"Linear-Gaussian fits of q and r from 2x the truth (T = {args.lg_steps}, resample when ESS < "
+                f"{args.lg_threshold:g} N, {args.fit_steps} Adam steps of 0.05, one key per step; the mean of the "
+                f"last third as a multiple of the Kalman MLE):\n\n{fits_table(rows)}\n\n{seconds:.0f} s")
+        (out / "score_bias_fits.md").write_text(text + "\n")
+        print(text)
+        return 0
     total = args.seeds * (1 + len(args.lags)) + (0 if args.skip_office else
                                                  args.seeds * (args.office_keys + args.ref_keys))
     with tqdm(total=total, desc="score estimates", unit="batch") as bar:
