@@ -402,15 +402,15 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
     steps (benchmarks/bench_gradients.py). The OP's motion-noise gradients are score estimates
     (:func:`jaxslam.motion.sample_with_score`), with either lookup; the SMP's and the LP's go
     through the step's own draw and need ``likelihood_lookup="bilinear"`` (the nearest-cell
-    weights are piecewise constant in the pose). ``config.score_lag`` picks the score estimate
-    the gradient is: None the path-space score, an int the fixed-lag smoothed score
-    (:func:`jaxslam.particle_filter.fixed_lag_score`); the value is the same.
+    weights are piecewise constant in the pose).
 
     Args:
       key: the run's key.
       prepared: :func:`prepare`'s arrays.
       params: traced parameters.
-      config: static settings.
+      config: static settings; ``config.score_lag`` picks the score estimate the gradient is: None
+        the path-space score, an int the fixed-lag smoothed score
+        (:func:`jaxslam.particle_filter.fixed_lag_score`); the value is the same.
       pool: static sizes of the map pools (default :func:`pool_size`).
     """
     key_init, key_steps = jax.random.split(key)
