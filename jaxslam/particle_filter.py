@@ -132,14 +132,16 @@ def scan_filter(step_fn: Callable, key: PRNGKeyArray, state, inputs, log_evidenc
     fixed-lag smoothed score (:func:`fixed_lag_score`). The value is the same bit for bit.
     """
     num_steps = jax.tree.leaves(inputs)[0].shape[0]
+    smoothed = score_lag is not None and score_lag < num_steps
 
     def body(k, s, inp):
         out = step_fn(k, s, inp)
-        return out[0], (out[1], out[2] if len(out) == 3 else None)
+        # The terms leave the scan only when used: the program is then the same as without them.
+        return out[0], (out[1], out[2] if smoothed and len(out) == 3 else None)
 
     final, (info, terms) = scan_steps(body, state, jax.random.split(key, num_steps), inputs, checkpoint)
     marginal_loglik = jnp.sum(log_evidence_fn(info))
-    if score_lag is not None and score_lag < num_steps:
+    if smoothed:
         if terms is None:
             raise ValueError("scan_filter: score_lag needs a step_fn that returns (state, info, ScoreTerms)")
         marginal_loglik = marginal_loglik + fixed_lag_score(terms, score_lag)
