@@ -108,6 +108,12 @@ class SlamConfig:
     localizers spread with the odometry and the particles inherit the spread; started from the
     match they stay pinned to the map (the figures:
     docs/notes/2026-11-25-robustness-table-and-the-library-lp.md)."""
+    score_lag: int | None = None
+    """Which score estimate the gradient of ``rbpf.filter``'s ``marginal_loglik`` is (its value
+    is the same): None, the path-space score over the final particles' ancestral paths; an int L
+    >= 0, the fixed-lag smoothed score, each step's term averaged over the particles L steps
+    later (:func:`jaxslam.particle_filter.fixed_lag_score`; less biased by path degeneracy:
+    docs/notes/2026-11-26-fixed-lag-score.md). Mapping computes no gradient and ignores it."""
 
     def __post_init__(self):
         _normalize_fields(self, "SlamConfig")
@@ -137,6 +143,7 @@ class SlamConfig:
             (self.window_keep >= 1, f"window_keep must be >= 1, got {self.window_keep}"),
             (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
             (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),
+            (self.score_lag is None or self.score_lag >= 0, f"score_lag must be None or >= 0, got {self.score_lag}"),
             (self.lookahead_initial in ("odometry", "scan_match"),
              f"lookahead_initial must be 'odometry' or 'scan_match', got {self.lookahead_initial!r}"),
         ]
@@ -223,7 +230,9 @@ def _normalize_fields(obj, where: str) -> None:
         value = getattr(obj, field.name)
         kind = type(field.default)
         try:
-            if kind is int:
+            if field.default is None and value is not None:  # an optional int (score_lag)
+                value = check_int(field.name, value)
+            elif kind is int:
                 value = check_int(field.name, value)
             elif kind is float:
                 value = check_float(field.name, value)
@@ -423,6 +432,11 @@ def _dataclass_from_dict(cls, values: dict[str, Any]):
         kind = type(getattr(cls, name))
         if isinstance(value, str) and kind is not str:
             text = value.strip()
+            if getattr(cls, name) is None:  # an optional int: "none" or an integer
+                kind = int
+                if text.lower() == "none":
+                    kwargs[name] = None
+                    continue
             try:
                 value = int(text) if kind is int else float(text)
             except ValueError:

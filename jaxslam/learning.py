@@ -8,6 +8,12 @@ addressed by their dotted names (``"motion.srr"``, as ``--set`` and ``default_pa
 any of them can be frozen. The optimiser is a ``NamedTuple(init, step)`` of pure functions,
 as in optax and blackjax.
 
+The gradient of ``rbpf.filter``'s estimate is the path-space score by default;
+``SlamConfig.score_lag`` makes it the fixed-lag smoothed score
+(:func:`jaxslam.particle_filter.fixed_lag_score`: the same bias, less spread on a
+linear-Gaussian model; no change where the weights collapse every step, as on the simulated
+office: docs/notes/2026-11-26-fixed-lag-score.md).
+
 Fit with the untempered likelihood (``likelihood.gain`` 1 for the RBPF, ``likelihood_gain`` 1
 for MCL and the doors) and leave the gain out of ``trainable``: a gain below 1 makes the
 objective a tempered pseudo-likelihood whose maximum is not at the true noise

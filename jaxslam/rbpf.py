@@ -147,7 +147,24 @@ def step(
     config: SlamConfig,
     valid: Bool[Array, ""] | bool = True,
 ) -> tuple[SlamState, SlamInfo]:
-    """One RBPF update with scan ``inputs.ranges`` (all beams) after motion ``inputs.motion``.
+    """One RBPF update (see :func:`step_with_score_terms`)."""
+    new_state, info, _ = step_with_score_terms(key, state, inputs, sensor, params, config, valid)
+    return new_state, info
+
+
+def step_with_score_terms(
+    key: PRNGKeyArray,
+    state: SlamState,
+    inputs: StepInputs,
+    sensor: SensorSpec,
+    params: SlamParams,
+    config: SlamConfig,
+    valid: Bool[Array, ""] | bool = True,
+) -> tuple[SlamState, SlamInfo, particle_filter.ScoreTerms]:
+    """:func:`step`, with the step's share of the score (:func:`particle_filter.fixed_lag_score`;
+    a step not taken has none).
+
+    One RBPF update with scan ``inputs.ranges`` (all beams) after motion ``inputs.motion``.
 
     The step is taken only when ``valid`` (False: a padding step past the end of a log) and the
     maps' pools hold its new tiles. A step not taken changes nothing (poses, weights, maps, step
@@ -209,7 +226,9 @@ def step(
     new_state = SlamState(jnp.where(taken, out.pose[ancestors], state.poses),
                           jnp.where(taken, update.new_log_weights, state.log_weights), maps,
                           state.step + jnp.where(taken, 1, 0).astype(state.step.dtype))
-    return new_state, info
+    terms = particle_filter.ScoreTerms(jnp.where(taken, update.log_weights, state.log_weights),
+                                       jnp.where(taken, update.score_terms.increments, 0.0), ancestors)
+    return new_state, info, terms
 
 
 def _noop_inputs(inputs: StepInputs) -> StepInputs:
@@ -390,15 +409,18 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
       key: the run's key.
       prepared: :func:`prepare`'s arrays.
       params: traced parameters.
-      config: static settings.
+      config: static settings; ``config.score_lag`` picks the score estimate the gradient is: None
+        the path-space score, an int the fixed-lag smoothed score
+        (:func:`jaxslam.particle_filter.fixed_lag_score`); the value is the same.
       pool: static sizes of the map pools (default :func:`pool_size`).
     """
     key_init, key_steps = jax.random.split(key)
     state = init(key_init, prepared.first_ranges, prepared.sensor, params, config, prepared.initial_pose, pool=pool)
     # Not rematerialised: the maps are in the scan's carry, so a checkpoint would save nothing.
-    out = particle_filter.scan_filter(lambda k, s, inp: step(k, s, inp, prepared.sensor, params, config),
-                                      key_steps, state, prepared.inputs, lambda info: info.log_evidence,
-                                      checkpoint=False)
+    out = particle_filter.scan_filter(
+        lambda k, s, inp: step_with_score_terms(k, s, inp, prepared.sensor, params, config),
+        key_steps, state, prepared.inputs, lambda info: info.log_evidence, checkpoint=False,
+        score_lag=config.score_lag)
     return out._replace(marginal_loglik=jnp.where(out.state.maps.overflow, -jnp.inf, out.marginal_loglik))
 
 

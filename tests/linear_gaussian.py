@@ -60,3 +60,38 @@ def particle_log_likelihood(theta, key, ys, num_particles, resampler, resample_t
 
     _, log_evidence = jax.lax.scan(step, (x, log_weights), (jax.random.split(k1, ys.shape[0]), ys))
     return log_evidence.sum()
+
+
+def score_log_likelihood(theta, key, ys, num_particles, resampler="systematic", resample_threshold=1.0,
+                         score_lag=None):
+    """The bootstrap filter's estimate of log p(y_1:T | theta) in the form the RBPF's OP learns
+    by (:func:`jaxslam.motion.sample_with_score`): the states carry no gradient, and each
+    particle's increment adds log f(x_t | x_t-1) - stop_gradient(itself), 0 in value, so that the
+    gradient is a Fisher-identity score estimate, built by ``particle_filter.scan_filter``:
+    the path-space score (``score_lag`` None) or the fixed-lag smoothed one (an int)."""
+    from jaxslam.particle_filter import scan_filter
+
+    a, q, r = theta
+    k0, k1 = jax.random.split(key)
+    x0 = jax.random.normal(k0, (num_particles,))
+    log_weights = jnp.full((num_particles,), -jnp.log(num_particles))
+
+    def step(k, carry, y):
+        x_prev, log_weights = carry
+        k_move, k_resample = jax.random.split(k)
+        x = jax.lax.stop_gradient(a * x_prev + jnp.sqrt(q) * jax.random.normal(k_move, (num_particles,)))
+        log_f = norm.logpdf(x, a * x_prev, jnp.sqrt(q))
+        increments = norm.logpdf(y, x, jnp.sqrt(r)) + log_f - jax.lax.stop_gradient(log_f)
+        poses = jnp.stack([x, jnp.zeros_like(x), jnp.zeros_like(x)], axis=-1)
+        update = reweight_and_resample(k_resample, poses, log_weights, increments, jnp.float32(resample_threshold),
+                                       resampler)
+        return (x[update.ancestors], update.new_log_weights), update.log_evidence, update.score_terms
+
+    out = scan_filter(step, k1, (x0, log_weights), ys, lambda log_evidence: log_evidence, checkpoint=False,
+                      score_lag=score_lag)
+    return out.marginal_loglik
+
+
+def kalman_score(theta, ys):
+    """The exact score d log p(y_1:T | theta) / d theta."""
+    return jax.grad(kalman_log_likelihood)(theta, ys)

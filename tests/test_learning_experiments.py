@@ -1,4 +1,4 @@
-"""experiments/learn_doors.py, learn_intel.py and learn_office.py: their helpers, bad input, and a
+"""experiments/learn_doors.py, learn_intel.py, learn_office.py and score_bias.py: their helpers, bad input, and a
 tiny end-to-end fit (the figures come from full runs, docs/results.md)."""
 
 from __future__ import annotations
@@ -67,3 +67,18 @@ def test_learn_office_score_puts_the_filter_beside_the_known_path(tmp_path):
     squares = office["residual_mean_squares"]
     assert set(squares) == {"filter_straight", "filter_turning", "true_path_straight", "true_path_turning"}
     assert all(len(v) == 3 and np.all(np.asarray(v) > 0) for v in squares.values())
+
+
+def test_score_bias_runs_end_to_end_on_the_linear_gaussian_model(tmp_path, capsys):
+    import score_bias
+
+    assert score_bias.main(["--out", str(tmp_path), "--skip-office", "--seeds", "1", "--lg-keys", "4",
+                            "--lg-steps", "10", "--lg-particles", "8", "--lags", "0", "3"]) == 0
+    record = json.loads((tmp_path / "score_bias.json").read_text())
+    assert record["args"]["out"] == "OUT/"  # no path of the machine it ran on
+    assert {r["estimator"] for r in record["rows"]} == {"path-space", "lag 0", "lag 3"}
+    assert all(np.isfinite(r["bias"]) and r["sd"] >= 0 for r in record["rows"])
+    assert "| a | lag 3 |" in (tmp_path / "score_bias.md").read_text()
+    with pytest.raises(SystemExit):
+        score_bias.main(["--out", str(tmp_path), "--lags", "-1"])
+    assert "lags >= 0" in capsys.readouterr().err
