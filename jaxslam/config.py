@@ -90,12 +90,12 @@ class SlamConfig:
     window_cells: int = 5
     """Coarse cells per axis of the window posterior (:mod:`jaxslam.window_posterior`): the
     window is cut into this cubed, each scored once."""
-    window_levels: int = 4
+    window_levels: int = 3
     """Levels the window posterior refines each mode by (each halves the cells); with the
     coarse level, the polish and the fit, the proposal's sequential depth."""
-    window_modes: int = 4
+    window_modes: int = 3
     """Modes the window posterior keeps: its coarse local maxima, each refined on its own."""
-    window_keep: int = 3
+    window_keep: int = 2
     """Cells each mode keeps per level (each splits into 8 at the next)."""
     num_localizers: int = 100
     """L, localizer particles per SLAM particle in the look-ahead proposal."""
