@@ -90,7 +90,7 @@ class SlamConfig:
     window_cells: int = 5
     """Coarse cells per axis of the window posterior (:mod:`jaxslam.window_posterior`): the
     window is cut into this cubed, each scored once."""
-    window_levels: int = 3
+    window_levels: int = 4
     """Levels the window posterior refines each mode by (each halves the cells); with the
     coarse level, the polish and the fit, the proposal's sequential depth."""
     window_modes: int = 3
