@@ -93,9 +93,9 @@ class SlamConfig:
     window_levels: int = 4
     """Levels the window posterior refines each mode by (each halves the cells); with the
     coarse level, the polish and the fit, the proposal's sequential depth."""
-    window_modes: int = 3
+    window_modes: int = 4
     """Modes the window posterior keeps: its coarse local maxima, each refined on its own."""
-    window_keep: int = 2
+    window_keep: int = 3
     """Cells each mode keeps per level (each splits into 8 at the next)."""
     num_localizers: int = 100
     """L, localizer particles per SLAM particle in the look-ahead proposal."""
