@@ -170,7 +170,9 @@ def test_the_pure_filter_is_run_bit_for_bit_compiles_once_and_vmaps():
     keys = jax.random.split(jax.random.key(7), 2)
     batched = jax.jit(jax.vmap(lambda k: rbpf.filter(k, prepared, params, config).marginal_loglik))(keys)
     singles = [float(filter_fn(k, params).marginal_loglik) for k in keys]
-    np.testing.assert_allclose(np.asarray(batched), singles, rtol=1e-5)
+    # vmap compiles another program (other fusions, so other float32 summation orders over the
+    # window posterior's hundreds of poses a particle): 1.02e-5 apart on 2026-11-26, no draw changed.
+    np.testing.assert_allclose(np.asarray(batched), singles, rtol=1e-4)
 
 
 @pytest.mark.slow  # whole-filter gradients of four configurations, eight compilations (python3 -m pytest -m slow)
