@@ -55,7 +55,7 @@ def test_half_widths_are_sigmas_times_the_motion_stds_with_floors():
 
 @pytest.mark.parametrize("error", [(0.0, 0.0, 0.0), (0.1, -0.05, 0.08), (-0.12, 0.08, -0.1)])
 def test_search_finds_the_best_pose_of_a_brute_force_window(room_field, error):
-    """Every pose of the window on the last level's lattice (40^3 poses) scored directly: the
+    """Every pose of the window on the last level's lattice (80^3 poses) scored directly: the
     search's heaviest peak is within 1.5 nats of that lattice's best log pi (15 nats of the
     untempered scan) and within 1.5 cells and 0.03 rad of its pose, and the heaviest mode's mean
     within 1.5 cells and 0.03 rad of the pose the scan was cast from. A cell is what the search
