@@ -46,10 +46,14 @@ def pose_evaluations(config) -> int:
     if config.proposal == "op":
         return 1
     if hasattr(config, "window_cells"):  # the window posterior
-        per_mode_level = config.window_keep * 8
-        search = config.window_cells**3 + config.window_levels * config.window_modes * per_mode_level
-        fit = config.window_modes * 27 + 1
-        base = search + fit
+        # Each mode splits one seed cell at the first level, its kept cells at the later ones.
+        per_mode, cells = 0, 1
+        for _ in range(config.window_levels):
+            per_mode += 8 * cells
+            cells = min(config.window_keep, 8 * cells)
+        search = config.window_cells**3 + config.window_modes * per_mode
+        polish_and_fit = config.window_modes * (9 + 27) + 1  # the polish, the stencils, the match score
+        base = search + polish_and_fit
     else:  # the hill climber of earlier versions: a start, six moves a round, the stencil, the score
         base = 1 + 6 * config.match_iterations + 27 + 1
     if config.proposal == "lp":
