@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import NamedTuple
+from functools import partial
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -167,10 +168,7 @@ def run(
       initial_pool: ``(capacity, max_new_tiles)`` of the maps' pool at the start (default
         :func:`jaxslam.rbpf.pool_size`); the pool grows as needed, and its size never changes the result.
     """
-    from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
-
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+    _check_chunk_size(chunk_size)
     t_start = time.perf_counter()
     prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
     log = rbpf.local_log(log, frame_offset)  # from here on, the local frame
@@ -217,18 +215,248 @@ def run(
             raise RunInterrupted(done + chunked.num_done, num_steps)
         state, info, first_chunk_seconds = chunked.carry, with_prior(chunked.outputs), chunked.first_chunk_seconds
 
-    best = particle_filter.best_particle(state.log_weights)  # SlamResult.best_particle
-    best_path = np.concatenate([np.asarray(initial_pose)[None], rbpf.backtrack_path(info, best)])
-    trajectory = rbpf.to_world(trajectory_per_scan(log, selection.indices, best_path), frame_offset)
-    best_path = rbpf.to_world(best_path, frame_offset)
+    return _finish(state, info, prepared, log, selection, frame_offset, config, settings, growths,
+                   first_chunk_seconds, time.perf_counter() - t_start)
+
+
+# ---------------------------------------------------------------------------------------------
+# Several runs as one program, over devices and hosts.
+
+
+RUNS_AXIS = "runs"
+"""The name of :func:`run_batch`'s mesh axis: the runs are split over it."""
+
+
+def run_batch(
+    keys: PRNGKeyArray,
+    logs: LaserLog | Sequence[LaserLog],
+    config: SlamConfig,
+    params: SlamParams,
+    settings: RunSettings = RunSettings(),
+    *,
+    devices: Sequence[jax.Device] | None = None,
+    chunk_size: int = 32,
+    progress: bool = True,
+    initial_pool: tuple[int, int, int, int] | None = None,
+) -> list[SlamResult | None]:
+    """R runs of :func:`run` as one program, the runs spread over ``devices``.
+
+    Every array of the state carries a leading run axis, the chunk of steps is vmapped over it,
+    and the axis is split over a 1-D device mesh (:data:`RUNS_AXIS`, ``jax.shard_map``), so each
+    device holds R / D of the runs and steps them without talking to the others; the devices
+    agree only, once per chunk, on whether some run's map pools overflowed. R is padded up to a
+    multiple of D with copies of the last run, whose results are dropped. Each run's particles
+    are those of :func:`run` with its key, log, config, params and settings, bit for bit on the
+    machines tested (tests/test_run_batch.py): the per-step keys are derived from each run's key
+    as ``run`` derives them, and a step not taken is a no-op.
+
+    Several hosts: call it in every process after ``jax.distributed.initialize``, with the same
+    arguments; ``devices`` defaults to ``jax.devices()``, every process's. Each process gets back
+    the results of the runs its own devices held (the others' are None in the list).
+
+    Pool growth: the runs share their pools' sizes (one program). When a step of any run needs
+    more room than its pools have, every run's pools grow and the chunk is taken again for all
+    runs from the chunk's start state (kept for that: the batch holds two states at the chunk's
+    boundary, where :func:`run` donates its one). Checkpoints and ``resume`` are :func:`run`'s alone.
+
+    Args:
+      keys: (R,) the runs' keys.
+      logs: one log for every run, or R logs (e.g. a simulated world per seed): the same beams
+        and sensor; they may process different numbers of scans (a shorter run's last chunks
+        are no-op steps for it).
+      config, params, settings: as :func:`run`'s, the same for every run.
+      devices: the devices of the mesh (default ``jax.devices()``).
+      chunk_size: steps per compiled call, as :func:`run`'s.
+      progress: a tqdm bar over the longest run's steps (and growth lines on stderr).
+      initial_pool: the maps' pool sizes at the start (a :class:`~jaxslam.paged_map.PoolSize`;
+        default :func:`jaxslam.rbpf.pool_size`).
+
+    Returns:
+      A list of R :class:`SlamResult` (None for a run held by another process). ``timings`` are
+      the batch's: ``total`` is the whole batch's wall time, ``compile`` its first chunk's.
+    """
+    from jax.sharding import Mesh, NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    _check_chunk_size(chunk_size)
+    keys = jnp.asarray(keys) if not isinstance(keys, jax.Array) else keys
+    if keys.ndim != 1 or not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key):
+        raise ValueError(f"run_batch: keys must be a 1-D array of typed PRNG keys (jax.random.key), got shape "
+                         f"{keys.shape} of {keys.dtype}")
+    num_runs = keys.shape[0]
+    logs = [logs] * num_runs if isinstance(logs, LaserLog) else list(logs)
+    if num_runs < 1 or len(logs) != num_runs:
+        raise ValueError(f"run_batch: {num_runs} keys and {len(logs)} logs; give one log, or one per key, and a key "
+                         "at least")
+    devices = list(jax.devices() if devices is None else devices)
+    if not devices:
+        raise ValueError("run_batch: no devices")
+    t_start = time.perf_counter()
+
+    # The host side of each distinct log, once (the runs of one log share it).
+    prepared_by_log = {}
+    for log in logs:
+        if id(log) not in prepared_by_log:
+            prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
+            prepared_by_log[id(log)] = (prepared, selection, frame_offset, rbpf.local_log(log, frame_offset))
+    runs = [prepared_by_log[id(log)] for log in logs]
+    sensor = jax.tree.map(np.asarray, runs[0][0].sensor)  # host arrays: replicated on every process's devices
+    params = jax.tree.map(np.asarray, params)
+    for prepared, *_ in runs[1:]:
+        if not all(np.array_equal(a, b) for a, b in zip(prepared.sensor, sensor)):
+            raise ValueError("run_batch: the logs' lasers differ (beam angles, range limits or mounting); a batch "
+                             "maps logs of one laser")
+    num_steps = np.array([selection.indices.size - 1 for _, selection, _, _ in runs])
+    total_steps = max(int(num_steps.max()), 1)
+
+    # Per run: its step keys (as run derives them) and inputs, padded to the longest run.
+    split = [jax.random.split(k) for k in keys]
+    step_keys = np.stack([jax.random.key_data(pad_items(jax.random.split(k_steps, max(int(n), 1)), total_steps))
+                          for (_, k_steps), n in zip(split, num_steps)], axis=1)  # (S, R, ...) key data
+    inputs = jax.tree.map(lambda *a: np.stack(a, axis=1),
+                          *(pad_items(prepared.inputs, total_steps) for prepared, *_ in runs))  # (S, R, ...)
+    run_valid = np.arange(total_steps)[:, None] < num_steps[None, :]  # (S, R)
+
+    # Initial states: one per distinct log, in pools of one size.
+    starts = {}
+    for (prepared, *_), (k_init, _) in zip(runs, split):
+        if id(prepared) not in starts:
+            starts[id(prepared)] = _initial_state(k_init, prepared, params, config, initial_pool)
+    pool = PoolSize(*np.max([s.maps.pool_size for s in starts.values()], axis=0).tolist())
+    starts = {k: s._replace(maps=paged_map.grow(config.grid, s.maps, pool)) if s.maps.pool_size != pool else s
+              for k, s in starts.items()}
+    growths = [] if initial_pool is None or pool == PoolSize(*initial_pool) else [{"step": 0, **pool._asdict()}]
+
+    # The mesh, and the runs padded to a multiple of its devices (copies of the last run).
+    mesh = Mesh(np.array(devices), (RUNS_AXIS,))
+    padded = -(-num_runs // len(devices)) * len(devices)
+    source = np.minimum(np.arange(padded), num_runs - 1)  # the run each batch slot copies
+    by_runs = NamedSharding(mesh, P(RUNS_AXIS))
+
+    def global_runs(leaf_of_run, shape_of_leaf):
+        """A global array (padded, ...) split over the runs, each process building its own runs."""
+        return jax.make_array_from_callback((padded,) + shape_of_leaf, by_runs, lambda index: np.stack(
+            [leaf_of_run(int(source[r])) for r in range(padded)[index[0]]]))
+
+    start_leaves = {k: jax.tree.leaves(s) for k, s in starts.items()}
+    first = next(iter(starts.values()))
+    state = jax.tree.unflatten(jax.tree.structure(first), [
+        global_runs(lambda r, i=i: np.asarray(start_leaves[id(runs[r][0])][i]), np.shape(leaf))
+        for i, leaf in enumerate(jax.tree.leaves(first))])
+
+    def to_runs(chunk):
+        """A chunk (C, R, ...) on the host as a global array (padded, C, ...) split over the runs."""
+        chunk = np.moveaxis(np.asarray(chunk), 1, 0)
+        return global_runs(lambda r: chunk[r], chunk.shape[1:])
+
+    chunk_starts = iter(range(0, total_steps, chunk_size))
+    label = f"RBPF {config.proposal.upper()} N={config.num_particles}, {num_runs} runs on {len(devices)} devices"
+
+    def chunk_fn(state, xs, valid):
+        nonlocal pool
+        step_key_data, chunk_inputs, chunk_run_valid = xs
+        start = next(chunk_starts)
+        args = [to_runs(step_key_data), jax.tree.map(to_runs, chunk_inputs), to_runs(chunk_run_valid & valid[:, None])]
+        while True:
+            new_state, info, overflow, use = _run_chunk_batch(state, *args, sensor, params, config, mesh)
+            if not bool(overflow.addressable_data(0)):
+                break
+            # A step of some run did not fit the pools: grow every run's and take the chunk again
+            # for all runs from its start (a step not taken was a no-op, the keys are fixed).
+            pool = _larger_pool_for(pool, _PoolUse(*(int(u.addressable_data(0)) for u in use)))
+            state = _grow_batch(state, config, pool, mesh)
+            growths.append({"step": start, **pool._asdict()})
+            if progress:
+                _report_growth(pool, f"in the chunk from step {start}; every run takes it again")
+        local = jax.tree.map(_local_runs, info)  # {run: (C, ...)} of this process's runs
+        return new_state, jax.tree.map(lambda d: np.stack([d[r] for r in sorted(d)], axis=1), local,
+                                       is_leaf=lambda x: isinstance(x, dict))
+
+    chunked = run_in_chunks(chunk_fn, (step_keys, inputs, run_valid), total_steps, chunk_size, state,
+                            progress=progress, desc=label, unit="scan")
     total = time.perf_counter() - t_start
+    is_runs = lambda x: isinstance(x, dict)  # noqa: E731 (the {run: slice} of a leaf)
+    final = jax.tree.map(_local_runs, chunked.carry)
+    local_order = sorted(_local_runs(chunked.carry.step))  # the order of the runs in chunked.outputs' axis 1
+    results: list[SlamResult | None] = [None] * num_runs
+    for j, r in enumerate(local_order):
+        if r >= num_runs:  # a padding copy
+            continue
+        prepared, selection, frame_offset, local_log = runs[r]
+        results[r] = _finish(jax.tree.map(lambda d: d[r], final, is_leaf=is_runs),
+                             jax.tree.map(lambda a: a[:num_steps[r], j], chunked.outputs), prepared, local_log,
+                             selection, frame_offset, config, settings, list(growths), chunked.first_chunk_seconds,
+                             total)
+    return results
+
+
+def _local_runs(array: jax.Array) -> dict[int, np.ndarray]:
+    """The runs of a global array split over :data:`RUNS_AXIS` that this process's devices hold:
+    ``{run index: its slice (host)}``."""
+    out = {}
+    for shard in array.addressable_shards:
+        first = shard.index[0].start or 0
+        data = np.asarray(shard.data)
+        out.update({first + i: data[i] for i in range(data.shape[0])})
+    return out
+
+
+@partial(jax.jit, static_argnames=("config", "mesh"))
+def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config, mesh):
+    """:func:`_chunk_steps` vmapped over the runs, the runs split over ``mesh``. Also returns,
+    the same on every device, whether a valid step of some run overflowed its pools, and the
+    largest pool use of any run (a :class:`_PoolUse` that sizes the grown pools)."""
+    from jax.sharding import PartitionSpec as P
+
+    def local(state, step_key_data, inputs, valid, sensor, params):
+        keys = jax.random.wrap_key_data(step_key_data)
+        state, info = jax.vmap(_chunk_steps, in_axes=(0, 0, 0, 0, None, None, None))(
+            state, keys, inputs, valid, sensor, params, config)
+        overflow = jax.lax.pmax(jnp.any(info.pool_overflow & valid).astype(jnp.int32), RUNS_AXIS)
+        use = _PoolUse(*(jax.lax.pmax(jnp.max(u).astype(jnp.int32), RUNS_AXIS)
+                         for u in jax.vmap(_pool_use)(state.maps)))
+        return state, info, overflow > 0, use
+
+    runs = P(RUNS_AXIS)
+    return jax.shard_map(local, mesh=mesh, in_specs=(runs, runs, runs, runs, P(), P()),
+                         out_specs=(runs, runs, P(), P()), check_vma=False)(state, step_key_data, inputs, valid, sensor, params)
+
+
+@partial(jax.jit, static_argnames=("config", "pool", "mesh"))
+def _grow_batch(state, config, pool, mesh):
+    """Every run's maps in pools of ``pool``'s sizes (:func:`jaxslam.paged_map.grow`)."""
+    from jax.sharding import PartitionSpec as P
+
+    def local(state):
+        return jax.vmap(lambda s: s._replace(maps=paged_map.grow(config.grid, s.maps, pool)))(state)
+
+    return jax.shard_map(local, mesh=mesh, in_specs=P(RUNS_AXIS), out_specs=P(RUNS_AXIS),
+                         check_vma=False)(state)
+
+
+def _finish(state: SlamState, info: SlamInfo, prepared: rbpf.PreparedLog, local_log: LaserLog,
+            selection: UpdateSelection, frame_offset, config: SlamConfig, settings: RunSettings, growths: list,
+            first_chunk_seconds: float, total: float) -> SlamResult:
+    """One run's :class:`SlamResult` from its final state and stacked infos (what :func:`run` and
+    :func:`run_batch` share): the best particle's path and the per-scan trajectory, in the world frame."""
+    from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
+
+    best = particle_filter.best_particle(state.log_weights)  # SlamResult.best_particle
+    best_path = np.concatenate([np.asarray(prepared.initial_pose)[None], rbpf.backtrack_path(info, best)])
+    trajectory = rbpf.to_world(trajectory_per_scan(local_log, selection.indices, best_path), frame_offset)
+    best_path = rbpf.to_world(best_path, frame_offset)
     timings = {
         "compile": first_chunk_seconds,
         "total": total,
-        "real_time_factor": log.duration / total if total > 0 else float("inf"),
+        "real_time_factor": local_log.duration / total if total > 0 else float("inf"),
     }
     return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings, frame_offset,
                       _pool_report(state.maps, growths))
+
+
+def _check_chunk_size(chunk_size) -> None:
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
 
 
 def _initial_state(key, prepared: rbpf.PreparedLog, params: SlamParams, config: SlamConfig,
@@ -282,10 +510,7 @@ def _chunk_fn_growing_pools(chunk_starts, chunk_size: int, sensor, params: SlamP
             offset += s
             growths.append({"step": start + offset, **pool._asdict()})
             if progress:
-                print(f"jaxslam: the map pools grew to {pool.capacity} tiles ({pool.max_new_tiles} new per step) "
-                      f"and {pool.block_capacity} blocks ({pool.max_new_blocks} new per step) at step "
-                      f"{start + offset}; that step and the chunk's rest are taken again (one recompile)",
-                      file=sys.stderr)
+                _report_growth(pool, f"at step {start + offset}; that step and the chunk's rest are taken again")
             keys, chunk_inputs = (jax.tree.map(lambda a: pad_items(a[s:], chunk_size), t) for t in (keys, chunk_inputs))
             valid = np.concatenate([valid[s:], np.zeros(s, bool)])
         info = jax.tree.map(lambda *parts: np.concatenate([np.asarray(p) for p in parts])[:chunk_size], *done_infos)
@@ -305,20 +530,49 @@ def _pool_report(maps: PagedMaps, growths: list) -> dict:
 
 
 
-@jax.jit(static_argnames=("config",), donate_argnames=("state",))
-def _run_chunk(state, keys, inputs, valid, sensor, params, config):
+def _chunk_steps(state, keys, inputs, valid, sensor, params, config):
     """:func:`jaxslam.rbpf.step` over one chunk; ``valid`` False on the padding steps past the
     end of the log (not taken, as every step after one the pools could not hold)."""
     return particle_filter.scan_steps(
         lambda key, s, xs: rbpf.step(key, s, xs[0], sensor, params, config, valid=xs[1]), state, keys, (inputs, valid))
 
 
+_run_chunk = jax.jit(_chunk_steps, static_argnames=("config",), donate_argnames=("state",))
+"""One run's chunk, compiled (the state donated)."""
+
+
+def _report_growth(pool: PoolSize, where: str) -> None:
+    """The stderr line of a growth of the map pools."""
+    print(f"jaxslam: the map pools grew to {pool.capacity} tiles ({pool.max_new_tiles} new per step) "
+          f"and {pool.block_capacity} blocks ({pool.max_new_blocks} new per step) {where} (one recompile)",
+          file=sys.stderr)
+
+
+class _PoolUse(NamedTuple):
+    """What sizes the grown pools: tiles and blocks in use, and the largest requests seen (of
+    one map set, or the largest over a batch's runs)."""
+
+    tiles_in_use: int
+    peak_request: int
+    blocks_in_use: int
+    peak_block_request: int
+
+
+def _pool_use(maps: PagedMaps) -> _PoolUse:
+    return _PoolUse(paged_map.tiles_in_use(maps), maps.peak_request, paged_map.blocks_in_use(maps),
+                    maps.peak_block_request)
+
+
 def _larger_pool(maps: PagedMaps) -> PoolSize:
-    """The pools' sizes after ``maps``' pools overflowed: each at least twice the old, and room for
-    what is in use plus two of the largest requests seen."""
-    old = maps.pool_size
-    max_new = max(2 * old.max_new_tiles, 2 * int(maps.peak_request))
-    max_new_blocks = max(2 * old.max_new_blocks, 2 * int(maps.peak_block_request))
-    return PoolSize(max(2 * old.capacity, int(paged_map.tiles_in_use(maps)) + 2 * max_new), max_new,
-                    max(2 * old.block_capacity, int(paged_map.blocks_in_use(maps)) + 2 * max_new_blocks),
-                    max_new_blocks)
+    """The pools' sizes after ``maps``' pools overflowed (:func:`_larger_pool_for`)."""
+    return _larger_pool_for(maps.pool_size, _pool_use(maps))
+
+
+def _larger_pool_for(old: PoolSize, use: _PoolUse) -> PoolSize:
+    """The pools' sizes after pools of ``old`` sizes overflowed: each at least twice the old, and
+    room for what is in use plus two of the largest requests seen."""
+    tiles, peak, blocks, peak_blocks = (int(v) for v in use)
+    max_new = max(2 * old.max_new_tiles, 2 * peak)
+    max_new_blocks = max(2 * old.max_new_blocks, 2 * peak_blocks)
+    return PoolSize(max(2 * old.capacity, tiles + 2 * max_new), max_new,
+                    max(2 * old.block_capacity, blocks + 2 * max_new_blocks), max_new_blocks)
