@@ -84,3 +84,21 @@ class ResultStore:
         self.sections.update(sections)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         write_json(self.path, {"settings": self.settings, "runs": self.runs, **self.sections})
+
+
+def gather_json(value: Any) -> list:
+    """Every process's ``value`` (JSON-able), in process order: ``[value]`` in a single process;
+    under ``jax.distributed``, a collective that every process must call at the same point."""
+    import jax
+
+    if jax.process_count() == 1:
+        return [_plain(value)]
+    import numpy as np
+    from jax.experimental import multihost_utils
+
+    data = np.frombuffer(json.dumps(value).encode(), np.uint8)
+    sizes = np.asarray(multihost_utils.process_allgather(np.int32(data.size)))
+    padded = np.zeros(int(sizes.max()), np.uint8)
+    padded[:data.size] = data
+    every = np.asarray(multihost_utils.process_allgather(padded))
+    return [json.loads(bytes(every[p, :sizes[p]]).decode()) for p in range(sizes.size)]

@@ -149,7 +149,32 @@ def run_once(record: dict, seed: int, world: dict, progress: bool = False):
     config, settings, params = filter_setup(record, scenario, world)
     t0 = time.perf_counter()
     result = slam.run(jax.random.key(10_000 + seed), scenario.log, config, params, settings, progress=progress)
-    seconds = time.perf_counter() - t0
+    return score_run(seed, result, scenario, world, time.perf_counter() - t0), result, scenario
+
+
+def run_batch(record: dict, seeds: list[int], world: dict, devices=None, progress: bool = False):
+    """The runs of ``seeds`` of a cell as one batch (:func:`jaxslam.slam.run_batch`: each seed's
+    world is its own log, the runs split over ``devices``, a count or None for all): a list of
+    :func:`run_once`'s triples, each run the one ``run_once`` makes (its particles bit for bit;
+    tests/test_run_batch.py). A run's ``seconds`` is the batch's wall time over its runs."""
+    scenarios = [scenario_for(seed, record["odometry_scale"], world) for seed in seeds]
+    setups = [filter_setup(record, scenario, world) for scenario in scenarios]
+    config, settings, params = setups[0]
+    for seed, (c, s, p) in zip(seeds, setups):
+        if c != config or s != settings or not all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(p),
+                                                                                     jax.tree.leaves(params))):
+            raise ConfigError(f"seed {seed}'s filter setup differs from seed {seeds[0]}'s: a batch runs one setup")
+    t0 = time.perf_counter()
+    results = slam.run_batch(jax.numpy.stack([jax.random.key(10_000 + seed) for seed in seeds]),
+                             [scenario.log for scenario in scenarios], config, params, settings, devices=devices,
+                             progress=progress)
+    seconds = (time.perf_counter() - t0) / len(seeds)
+    return [(score_run(seed, result, scenario, world, seconds), result, scenario)
+            for seed, result, scenario in zip(seeds, results, scenarios)]
+
+
+def score_run(seed: int, result, scenario, world: dict, seconds: float) -> dict:
+    """A run's record (fields :data:`RUN_FIELDS`): RA between the first and last passage over X."""
     truth, lam = scenario.true_poses, world["rotation_weight"]
     passages = scenario.metadata.get("x_passages")
     if passages is None or len(passages) < 2:
@@ -171,7 +196,7 @@ def run_once(record: dict, seed: int, world: dict, progress: bool = False):
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
         "min_ess": float(result.info.ess.min()),
     }
-    return run, result, scenario
+    return run
 
 
 def save_example(path: Path, result, scenario, ra: float):
@@ -392,8 +417,16 @@ def main(argv=None) -> int:
     ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. first-seed + runs - 1")
     ap.add_argument("--out", default="results/box_world")
     ap.add_argument("--progress", action="store_true", help="a tqdm bar per filter run too")
+    ap.add_argument("--batch-seeds", action="store_true",
+                    help="run a cell's seeds as one batch over the devices (jaxslam.slam.run_batch); the same "
+                         "runs and records (a run's seconds: the batch's over its runs); a stopped batch is redone")
+    ap.add_argument("--devices", type=int, default=None, metavar="D",
+                    help="batch the seeds (--batch-seeds) over the first D devices (default all; on a CPU, "
+                         "XLA_FLAGS=--xla_force_host_platform_device_count=D before the run makes D)")
     args = ap.parse_args(argv)
     try:
+        if args.devices is not None:
+            slam.batch_devices(args.devices)  # there are that many, before any work
         exp = load_experiment(args.config)
         if args.table not in exp["tables"]:
             raise ConfigError(f"no table {args.table!r} in {args.config}; tables: {sorted(exp['tables'])}")
@@ -406,7 +439,7 @@ def main(argv=None) -> int:
         world = world_settings(exp, table)
         out = Path(args.out)
         store = ResultStore(out / "results.json", world, key=lambda r: (r["cell"], r["seed"]))
-    except (ConfigError, SettingsMismatch, OSError, json.JSONDecodeError) as err:
+    except (ConfigError, SettingsMismatch, OSError, json.JSONDecodeError, ValueError) as err:
         print(f"box_world.py: {err}", file=sys.stderr)
         return 2
     from tqdm.auto import tqdm
@@ -423,9 +456,13 @@ def main(argv=None) -> int:
             continue
         stem = (f"maps/{c['method'].replace(' ', '_').replace('=', '')}_N{c['N']}_s{c['odometry_scale']:g}_"
                 f"{hashlib.sha1(key.encode()).hexdigest()[:8]}")
-        bar = tqdm(todo, desc=f"{c['method']} N={c['N']} scale={c['odometry_scale']:g}", unit="run", file=sys.stdout)
-        for seed in bar:
-            run, result, scenario = run_once(c, seed, world, args.progress)
+        bar = tqdm(total=len(todo), desc=f"{c['method']} N={c['N']} scale={c['odometry_scale']:g}", unit="run",
+                   file=sys.stdout)
+        if args.batch_seeds or args.devices is not None:  # the cell's seeds as one batch over the devices
+            outcomes = iter(run_batch(c, todo, world, args.devices, args.progress))
+        else:
+            outcomes = (run_once(c, seed, world, args.progress) for seed in todo)
+        for seed, (run, result, scenario) in zip(todo, outcomes):
             if "example" not in cell:
                 save_example(out / f"{stem}_seed{seed}.npz", result, scenario, run["ra"])
                 cell["example"] = f"{stem}_seed{seed}.npz"
@@ -435,6 +472,8 @@ def main(argv=None) -> int:
                 cell["worst_example"] = f"{stem}_worst.npz"
             store.add({"cell": key, **run}, cells=stored)
             bar.set_postfix(ra=f"{run['ra']:.3f}", s=f"{run['seconds']:.0f}")
+            bar.update()
+        bar.close()
     write_summaries(out, store, cells, world["success_ra"])
     print_table(cells, store.runs, world["success_ra"])
     print(f"wrote {out / 'results.json'}")

@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the shared resume helper
+from _runs import ResultStore, SettingsMismatch, gather_json  # experiments/_runs.py: the shared resume helper
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -81,36 +81,50 @@ GMAPPING_HERE = {  # GMapping (C++, 30 particles, default parameters) on this ma
 }
 
 
+def map_arguments(dataset: str, proposal: str, seed: int, run_dir: Path, data: Path, settings: dict = SETTINGS
+                  ) -> list[str]:
+    """``jaxslam map``'s command line (after ``jaxslam``) of one run."""
+    log_name, _ = DATASETS[dataset]
+    cli_proposal = "lp" if proposal.startswith("lp") else proposal
+    args = ["map", str(data / log_name), "--proposal", cli_proposal, "--particles", str(settings["particles"]),
+            "--seed", str(seed), "--out", str(run_dir), "--no-progress"]
+    if settings["refine"]:
+        args += ["--refine"]
+    if cli_proposal == "lp":
+        args += ["--localizers", str(settings["localizers"]), "--horizon", str(settings["horizon"])]
+    for item in PROPOSALS[proposal]:
+        args += ["--set", item]
+    for item in settings["set"]:
+        args += ["--set", item]
+    return args
+
+
 def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path, settings: dict = SETTINGS) -> dict:
     """Map one log with one proposal and seed (subprocess), then score it. Cached in out."""
-    from jaxslam.io import read_relations, read_trajectory
-    from jaxslam.metrics import relation_error
-
-    log_name, rel_name = DATASETS[dataset]
     run_dir = out / dataset / f"{proposal}-seed{seed}"
     scored = run_dir / "errors.json"
     if scored.is_file():
         return json.loads(scored.read_text())
-    cli_proposal = "lp" if proposal.startswith("lp") else proposal
-    cmd = [sys.executable, "-m", "jaxslam.cli", "map", str(data / log_name), "--proposal", cli_proposal,
-           "--particles", str(settings["particles"]), "--seed", str(seed), "--out", str(run_dir), "--no-progress"]
-    if settings["refine"]:
-        cmd += ["--refine"]
-    if cli_proposal == "lp":
-        cmd += ["--localizers", str(settings["localizers"]), "--horizon", str(settings["horizon"])]
-    for item in PROPOSALS[proposal]:
-        cmd += ["--set", item]
-    for item in settings["set"]:
-        cmd += ["--set", item]
+    cmd = [sys.executable, "-m", "jaxslam.cli", *map_arguments(dataset, proposal, seed, run_dir, data, settings)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         # Recorded (not cached) so that the table shows the failure and a rerun retries it.
         return {"dataset": dataset, "proposal": proposal, "seed": seed, "failed": proc.stderr[-2000:]}
+    return score_run(dataset, proposal, seed, run_dir, data, wall)
+
+
+def score_run(dataset: str, proposal: str, seed: int, run_dir: Path, data: Path, wall: float, **extra) -> dict:
+    """The record of a finished run (its folder holds ``jaxslam map``'s outputs): the relation
+    errors of its trajectory (and of the refined one), timings and memory, and ``extra``;
+    written to the folder's errors.json (the cache) and returned."""
+    from jaxslam.io import read_relations, read_trajectory
+    from jaxslam.metrics import relation_error
+
     summary = json.loads((run_dir / "summary.json").read_text())
     timestamps, poses = read_trajectory(run_dir / "trajectory.txt")
-    relations = read_relations(data / rel_name)
+    relations = read_relations(data / DATASETS[dataset][1])
     err = relation_error(timestamps, poses, relations).to_dict()
     refined = {}
     if (run_dir / "trajectory_refined.txt").is_file():  # every scan localised in the final map
@@ -129,9 +143,42 @@ def run_one(dataset: str, proposal: str, seed: int, out: Path, data: Path, setti
         "scans_processed": summary["scans_processed"], "scans_in_log": summary["scans_in_log"],
         "warnings": summary["warnings"],
         "map_png": str(run_dir / "map.png"),
+        **extra,
     }
-    scored.write_text(json.dumps(record, indent=2))
+    (run_dir / "errors.json").write_text(json.dumps(record, indent=2))
     return record
+
+
+def run_seeds_batched(dataset: str, proposal: str, seeds: list[int], out: Path, data: Path,
+                      settings: dict = SETTINGS, devices=None) -> list[dict]:
+    """The seeds of one (log, proposal) as one batch in this process (:func:`jaxslam.slam.run_batch`,
+    spread over ``devices``: a count or None for all, every process's under ``jax.distributed``),
+    each run's outputs written and scored as :func:`run_one`'s. Returns the records of the runs
+    this process's devices held. ``wall_s`` is the batch's wall time over its runs (the record's
+    ``batch`` says the batch's runs, devices and wall time); ``peak_memory_mb`` is the process's."""
+    import jax
+
+    from jaxslam import cli, slam
+
+    parser = cli.make_parser()
+    run_dirs = [out / dataset / f"{proposal}-seed{seed}" for seed in seeds]
+    runs = [parser.parse_args(map_arguments(dataset, proposal, seed, run_dir, data, settings))
+            for seed, run_dir in zip(seeds, run_dirs)]
+    config, run_settings, params = cli.build_setup_from_args(runs[0], cli.MAP_DEFAULTS)  # only the seeds differ
+    log = cli.read_map_log(runs[0])
+    devices = slam.batch_devices(devices)
+    t0 = time.perf_counter()
+    results = slam.run_batch(jax.numpy.stack([jax.random.key(seed) for seed in seeds]), log, config, params,
+                             run_settings, devices=devices, chunk_size=runs[0].chunk_size, progress=True)
+    wall = time.perf_counter() - t0
+    batch = {"runs": len(seeds), "devices": len(devices), "processes": jax.process_count(), "wall_s": wall}
+    records = []
+    for seed, run_dir, args, result in zip(seeds, run_dirs, runs, results):
+        if result is None:  # another process's
+            continue
+        cli.write_map_outputs(run_dir, log, result, params, seed, args.log, refine=args.refine)
+        records.append(score_run(dataset, proposal, seed, run_dir, data, wall / len(seeds), batch=batch))
+    return records
 
 
 def aggregate(records: list[dict]) -> dict:
@@ -342,6 +389,21 @@ def main(argv=None) -> int:
     parser.add_argument("--jobs", type=int, default=1,
                         help="runs at a time, each its own process (a machine with many cores or a GPU); "
                              "runs that share a machine slow each other: the wall times say so")
+    batching = parser.add_argument_group(
+        "batches over devices and hosts", "the seeds of a (log, proposal) as one program in this process, the runs "
+        "split over the devices (jaxslam.slam.run_batch); the same records, tables and resume (docs/tuning.md, "
+        "'Running at scale')")
+    batching.add_argument("--batch-seeds", action="store_true",
+                          help="run the seeds of each (log, proposal) as one batch over the devices")
+    batching.add_argument("--devices", type=int, default=None, metavar="D",
+                          help="batch the seeds (--batch-seeds) over the first D devices (default all that jax "
+                               "sees; on a CPU, XLA_FLAGS=--xla_force_host_platform_device_count=D before the run "
+                               "makes D)")
+    batching.add_argument("--coordinator", metavar="HOST:PORT",
+                          help="several hosts (implies --batch-seeds): jax.distributed's coordinator, process 0's "
+                               "address; start the same command in every process with its --process-id")
+    batching.add_argument("--num-processes", type=int, default=1, help="with --coordinator: how many processes")
+    batching.add_argument("--process-id", type=int, default=0, help="with --coordinator: this process's, 0 .. P-1")
     args = parser.parse_args(argv)
     data, out = Path(args.data), Path(args.out)
     if not data.is_dir():
@@ -349,6 +411,17 @@ def main(argv=None) -> int:
         return 2
     if args.jobs < 1:
         print(f"--jobs must be at least 1, got {args.jobs}", file=sys.stderr)
+        return 2
+    batched = args.batch_seeds or args.coordinator is not None or args.devices is not None
+    if batched and args.jobs != 1:
+        print("--jobs and --batch-seeds (--devices, --coordinator) do not go together: a batch is one process",
+              file=sys.stderr)
+        return 2
+    if args.coordinator is not None and not 0 <= args.process_id < args.num_processes:
+        print(f"--process-id must be in 0 .. {args.num_processes - 1}, got {args.process_id}", file=sys.stderr)
+        return 2
+    if args.devices is not None and args.devices < 1:
+        print(f"--devices must be at least 1, got {args.devices}", file=sys.stderr)
         return 2
     settings = {**SETTINGS, "refine": args.refine, "set": SETTINGS["set"] + args.set}
     try:  # results.json describes every run in the folder: an earlier call's runs stay in it
@@ -365,6 +438,8 @@ def main(argv=None) -> int:
     # seeds (with --jobs J, up to J runs further). Failed runs (no errors.json) are retried.
     jobs = [(d, p, s) for s in range(args.seeds) for d in args.datasets for p in args.proposals]
     todo = [job for job in jobs if store.get(job) is None or "failed" in store.get(job)]
+    if batched:
+        return run_batches(args, store, jobs, todo, out, data, settings)
     with tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="runs", unit="run") as progress, \
             ThreadPoolExecutor(max_workers=args.jobs) as pool:
         # Each run is a subprocess: threads only wait for them. Records are stored here, in this thread.
@@ -373,6 +448,54 @@ def main(argv=None) -> int:
             store.add(future.result())
             write_tables(store)
             progress.update()
+    write_tables(store)
+    judged_path = out / JUDGED_FILE
+    failed_maps_figure(store.runs, out, json.loads(judged_path.read_text()) if judged_path.is_file() else None)
+    print(markdown(aggregate(store.runs)))
+    print((out / "robustness.md").read_text())
+    return 0
+
+
+def run_batches(args, store: ResultStore, jobs: list, todo: list, out: Path, data: Path, settings: dict) -> int:
+    """``main`` with ``--batch-seeds``: each (log, proposal)'s seeds to do as one batch
+    (:func:`run_seeds_batched`). Under ``--coordinator`` every process runs the same batches
+    (process 0's list of runs to do), gets the records of every process's runs, and process 0
+    alone writes results.json and the tables; the run folders are written by the process that
+    held the run (a --out that all hosts share keeps them in one place)."""
+    import jax
+    from tqdm import tqdm
+
+    if args.coordinator is not None:
+        jax.distributed.initialize(args.coordinator, num_processes=args.num_processes, process_id=args.process_id)
+    from jaxslam.slam import batch_devices
+
+    try:
+        batch_devices(args.devices)  # there are that many, before any work
+    except ValueError as err:
+        print(err, file=sys.stderr)
+        return 2
+    lead = jax.process_index() == 0
+    todo = [tuple(job) for job in gather_json(todo)[0]]  # process 0's: every process runs the same batches
+    cells = {}
+    for dataset, proposal, seed in todo:
+        cells.setdefault((dataset, proposal), []).append(seed)
+    with tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="runs", unit="run", disable=not lead) as progress:
+        for (dataset, proposal), seeds in sorted(cells.items(), key=lambda kv: (list(DATASETS).index(kv[0][0]),
+                                                                             list(PROPOSALS).index(kv[0][1]))):
+            try:
+                records = run_seeds_batched(dataset, proposal, seeds, out, data, settings, args.devices)
+            except Exception as err:  # noqa: BLE001 (recorded, as a failed subprocess is; a rerun retries it)
+                records = [{"dataset": dataset, "proposal": proposal, "seed": seed,
+                            "failed": f"{type(err).__name__}: {err}"[-2000:]} for seed in seeds]
+                if lead:
+                    print(f"{dataset} {proposal}: the batch failed: {err}", file=sys.stderr)
+            records = [r for part in gather_json(records) for r in part]  # every process's runs
+            if lead:
+                store.add(*records)
+                write_tables(store)
+            progress.update(len(seeds))
+    if not lead:
+        return 0
     write_tables(store)
     judged_path = out / JUDGED_FILE
     failed_maps_figure(store.runs, out, json.loads(judged_path.read_text()) if judged_path.is_file() else None)

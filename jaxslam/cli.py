@@ -167,8 +167,16 @@ def _add_filter_options(p: argparse.ArgumentParser, command_defaults: dict, prop
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
-    from jaxslam.io import read_log
+    _log_reader_kwargs(args)  # a bad --laser-pose is refused first
+    _check_filter_args(args)
+    _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
+    setup = build_setup_from_args(args, MAP_DEFAULTS)
+    _check_out_folder(args.out)
+    return _map_and_write(read_map_log(args), setup, args, source=str(args.log))
 
+
+def _log_reader_kwargs(args: argparse.Namespace) -> dict:
+    """``read_log``'s keyword arguments from ``jaxslam map``'s flags."""
     kwargs = {}
     if args.scan_topic:
         kwargs["scan_topic"] = args.scan_topic
@@ -182,10 +190,16 @@ def _cmd_map(args: argparse.Namespace) -> int:
         kwargs["base_frame"] = args.base_frame
     if args.laser_pose is not None:
         kwargs["laser_pose"] = parse_laser_pose(args.laser_pose)
-    _check_filter_args(args)
-    _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
-    setup = build_setup_from_args(args, MAP_DEFAULTS)
-    _check_out_folder(args.out)
+    return kwargs
+
+
+def read_map_log(args: argparse.Namespace):
+    """The log ``jaxslam map`` maps, from its parsed arguments (``make_parser``): read, cut to
+    ``--max-scans`` and checked (:func:`jaxslam.laserlog.check_log`)."""
+    from jaxslam.io import read_log
+    from jaxslam.laserlog import check_log
+
+    kwargs = _log_reader_kwargs(args)
     if not args.no_progress:
         print(f"reading {args.log} ...", file=sys.stderr, flush=True)
     log = read_log(args.log, **kwargs)
@@ -193,10 +207,7 @@ def _cmd_map(args: argparse.Namespace) -> int:
         import numpy as np
 
         log = log.subset(np.arange(min(args.max_scans, log.num_scans)))
-    from jaxslam.laserlog import check_log
-
-    log = check_log(log)  # repeated timestamps (the last kept), dead scans, gaps: log.warnings
-    return _map_and_write(log, setup, args, source=str(args.log))
+    return check_log(log)  # repeated timestamps (the last kept), dead scans, gaps: log.warnings
 
 
 def parse_laser_pose(text: str) -> tuple[float, float, float]:
@@ -337,7 +348,6 @@ def _warn_of_the_cache(args) -> None:
 
 def _map_and_write(log, setup, args, source: str, world=None) -> int:
     from jaxslam.io.checkpoint import save_checkpoint
-    from jaxslam.outputs import write_slam_outputs
     from jaxslam.rbpf import check_config_for_log
     from jaxslam.slam import RunInterrupted, run
 
@@ -370,22 +380,8 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
             print(f"jaxslam {args.command}: interrupted at step {err.steps_done} of {err.num_steps} "
                   f"(checkpoint {ckpt}); resume with --resume", file=sys.stderr)
             return 128 + int(stop.signum)
-        refined, refine_seconds = None, None
-        if getattr(args, "refine", False):
-            import time
-
-            from jaxslam.refine import refine_trajectory
-
-            # In the filter's local frame (result.frame_offset subtracted), as the map was built.
-            _, field, grid = result.dense_map(local=True)
-            t0 = time.perf_counter()
-            refined = refine_trajectory(grid, field, result.to_local(result.trajectory), log.ranges, log.sensor,
-                                        params, result.config, odometry=result.to_local(log.odometry))
-            refined = refined._replace(poses=result.to_world(refined.poses),
-                                       matched_poses=result.to_world(refined.matched_poses))
-            refine_seconds = time.perf_counter() - t0
-        summary = write_slam_outputs(args.out, log, result, params, seed=args.seed, source=source, world=world,
-                                     refined=refined, refine_seconds=refine_seconds)
+        summary = write_map_outputs(args.out, log, result, params, args.seed, source,
+                                    refine=getattr(args, "refine", False), world=world)
         if ckpt.exists():
             ckpt.unlink()
     t = summary["timings"]
@@ -395,6 +391,30 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     for warning in summary["warnings"]:
         print(f"warning: {warning}", file=sys.stderr)
     return 0
+
+
+def write_map_outputs(out, log, result, params, seed: int, source: str, refine: bool = False, world=None) -> dict:
+    """``jaxslam map``'s outputs of one finished run (:func:`jaxslam.outputs.write_slam_outputs`);
+    with ``refine``, every scan first localised in the final map (``trajectory_refined.txt``,
+    :mod:`jaxslam.refine`). Returns the summary as written."""
+    from jaxslam.outputs import write_slam_outputs
+
+    refined, refine_seconds = None, None
+    if refine:
+        import time
+
+        from jaxslam.refine import refine_trajectory
+
+        # In the filter's local frame (result.frame_offset subtracted), as the map was built.
+        _, field, grid = result.dense_map(local=True)
+        t0 = time.perf_counter()
+        refined = refine_trajectory(grid, field, result.to_local(result.trajectory), log.ranges, log.sensor,
+                                    params, result.config, odometry=result.to_local(log.odometry))
+        refined = refined._replace(poses=result.to_world(refined.poses),
+                                   matched_poses=result.to_world(refined.matched_poses))
+        refine_seconds = time.perf_counter() - t0
+    return write_slam_outputs(out, log, result, params, seed=seed, source=source, world=world, refined=refined,
+                              refine_seconds=refine_seconds)
 
 
 def _fmt(value) -> str:

@@ -234,7 +234,7 @@ def run_batch(
     params: SlamParams,
     settings: RunSettings = RunSettings(),
     *,
-    devices: Sequence[jax.Device] | None = None,
+    devices: int | Sequence[jax.Device] | None = None,
     chunk_size: int = 32,
     progress: bool = True,
     initial_pool: tuple[int, int, int, int] | None = None,
@@ -265,7 +265,8 @@ def run_batch(
         and sensor; they may process different numbers of scans (a shorter run's last chunks
         are no-op steps for it).
       config, params, settings: as :func:`run`'s, the same for every run.
-      devices: the devices of the mesh (default ``jax.devices()``).
+      devices: the devices of the mesh, or how many of ``jax.devices()`` (:func:`batch_devices`;
+        default all of them).
       chunk_size: steps per compiled call, as :func:`run`'s.
       progress: a tqdm bar over the longest run's steps (and growth lines on stderr).
       initial_pool: the maps' pool sizes at the start (a :class:`~jaxslam.paged_map.PoolSize`;
@@ -288,9 +289,7 @@ def run_batch(
     if num_runs < 1 or len(logs) != num_runs:
         raise ValueError(f"run_batch: {num_runs} keys and {len(logs)} logs; give one log, or one per key, and a key "
                          "at least")
-    devices = list(jax.devices() if devices is None else devices)
-    if not devices:
-        raise ValueError("run_batch: no devices")
+    devices = batch_devices(devices)
     t_start = time.perf_counter()
 
     # The host side of each distinct log, once (the runs of one log share it).
@@ -388,6 +387,25 @@ def run_batch(
                              selection, frame_offset, config, settings, list(growths), chunked.first_chunk_seconds,
                              total)
     return results
+
+
+def batch_devices(devices: int | Sequence[jax.Device] | None = None) -> list[jax.Device]:
+    """The devices :func:`run_batch` spreads its runs over: ``devices`` itself, the first
+    ``devices`` of ``jax.devices()`` (every process's) when an int, or all of them when None.
+    ``ValueError`` when there are not that many (the message says how to make host devices)."""
+    if devices is None:
+        return jax.devices()
+    if isinstance(devices, (int, np.integer)) and not isinstance(devices, bool):
+        if not 1 <= devices <= jax.device_count():
+            raise ValueError(f"{devices} devices asked for, jax sees {jax.device_count()} "
+                             f"({jax.devices()[0].platform}); on a CPU, set XLA_FLAGS="
+                             f"--xla_force_host_platform_device_count={max(int(devices), 1)} before jax is imported "
+                             "(several host devices on shared cores run no faster)")
+        return jax.devices()[:int(devices)]
+    devices = list(devices)
+    if not devices:
+        raise ValueError("run_batch: no devices")
+    return devices
 
 
 def _local_runs(array: jax.Array) -> dict[int, np.ndarray]:

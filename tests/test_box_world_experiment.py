@@ -314,3 +314,54 @@ def test_quick_table_end_to_end(tmp_path):
     assert set(run) == {"cell", *bw.RUN_FIELDS} and run["ra"] >= 0 and run["num_steps"] > 0
     assert data["settings"]["scenario"] == {"laps": 3, "laps_per_visit": 3}
     assert (out / "ra_distribution.png").is_file() and (out / "examples.png").is_file()
+
+
+def _simulated_dataset(folder: Path, name: str = "sim") -> tuple[str, str]:
+    """A simulated log as a CARMEN file and relations from its true path (every fifth scan)."""
+    import jax
+    import numpy as np
+    from logs import write_flaser_log
+
+    from jaxslam.sim import office_scenario
+
+    scenario = office_scenario(jax.random.key(0), num_scans=150, num_beams=181)
+    log = scenario.log.subset(np.arange(40))
+    write_flaser_log(folder / f"{name}.clf", log)
+    lines = []
+    for i in range(0, 35, 5):
+        (x1, y1, t1), (x2, y2, t2) = scenario.true_poses[i], scenario.true_poses[i + 5]
+        c, s = np.cos(t1), np.sin(t1)
+        dx, dy = c * (x2 - x1) + s * (y2 - y1), -s * (x2 - x1) + c * (y2 - y1)
+        lines.append(f"{1000.0 + log.timestamps[i]:.6f} {1000.0 + log.timestamps[i + 5]:.6f} {dx:.6f} {dy:.6f} 0 0 0 "
+                     f"{np.arctan2(np.sin(t2 - t1), np.cos(t2 - t1)):.6f}")
+    (folder / f"{name}.relations").write_text("\n".join(lines) + "\n")
+    return f"{name}.clf", f"{name}.relations"
+
+
+def test_datasets_batched_seeds_are_the_cli_runs(tmp_path, monkeypatch, capsys):
+    """--batch-seeds: a log's seeds as one batch in the process (one device here) give each
+    seed's ``jaxslam map`` run (the same trajectory), scored and stored as the subprocess runs
+    are; a second call finds them done; --jobs does not go with it."""
+    import numpy as np
+
+    from jaxslam.cli import main as cli_main
+
+    data, out = tmp_path / "data", tmp_path / "ds"
+    data.mkdir()
+    monkeypatch.setattr(datasets, "DATASETS", {"sim": _simulated_dataset(data)})
+    small = ["--set", "num_particles=4", "--set", "linear_update=0.3", "--set", "max_insert_range=8"]
+    base = ["--data", str(data), "--out", str(out), "--datasets", "sim", "--proposals", "op", "--seeds", "2", *small]
+    assert datasets.main(base + ["--batch-seeds", "--jobs", "2"]) == 2
+    assert datasets.main(base + ["--devices", "99"]) == 2 and "XLA_FLAGS" in capsys.readouterr().err
+    assert datasets.main(base + ["--batch-seeds"]) == 0
+    runs = json.loads((out / "results.json").read_text())["runs"]
+    assert [(r["seed"], r["batch"]["runs"], r["batch"]["devices"]) for r in runs] == [(0, 2, 1), (1, 2, 1)]
+    assert all(r["trans_mean"] < 0.5 and r["relations"] == 7 for r in runs)
+    settings = {**datasets.SETTINGS, "set": small[1::2]}
+    alone = tmp_path / "alone"
+    assert cli_main(datasets.map_arguments("sim", "op", 1, alone, data, settings)) == 0
+    batched, single = (np.loadtxt(folder / "trajectory.txt") for folder in (out / "sim" / "op-seed1", alone))
+    np.testing.assert_allclose(batched, single, rtol=0, atol=1e-6)  # the same particles; the text rounds
+    capsys.readouterr()
+    assert datasets.main(base + ["--batch-seeds"]) == 0  # nothing left to run
+    assert json.loads((out / "results.json").read_text())["runs"] == runs
