@@ -370,6 +370,16 @@ def write_tables(store: ResultStore):
     (store.path.parent / "seeds.md").write_text(seed_markdown(store.runs))
 
 
+def write_everything(store: ResultStore, out: Path) -> int:
+    """The tables, the failed runs' maps and the printed tables, at the end of a call."""
+    write_tables(store)
+    judged_path = out / JUDGED_FILE
+    failed_maps_figure(store.runs, out, json.loads(judged_path.read_text()) if judged_path.is_file() else None)
+    print(markdown(aggregate(store.runs)))
+    print((out / "robustness.md").read_text())
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default="results/datasets")
@@ -448,12 +458,7 @@ def main(argv=None) -> int:
             store.add(future.result())
             write_tables(store)
             progress.update()
-    write_tables(store)
-    judged_path = out / JUDGED_FILE
-    failed_maps_figure(store.runs, out, json.loads(judged_path.read_text()) if judged_path.is_file() else None)
-    print(markdown(aggregate(store.runs)))
-    print((out / "robustness.md").read_text())
-    return 0
+    return write_everything(store, out)
 
 
 def run_batches(args, store: ResultStore, jobs: list, todo: list, out: Path, data: Path, settings: dict) -> int:
@@ -496,12 +501,7 @@ def run_batches(args, store: ResultStore, jobs: list, todo: list, out: Path, dat
             progress.update(len(seeds))
     if not lead:
         return 0
-    write_tables(store)
-    judged_path = out / JUDGED_FILE
-    failed_maps_figure(store.runs, out, json.loads(judged_path.read_text()) if judged_path.is_file() else None)
-    print(markdown(aggregate(store.runs)))
-    print((out / "robustness.md").read_text())
-    return 0
+    return write_everything(store, out)
 
 
 if __name__ == "__main__":

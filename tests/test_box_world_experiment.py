@@ -365,3 +365,42 @@ def test_datasets_batched_seeds_are_the_cli_runs(tmp_path, monkeypatch, capsys):
     capsys.readouterr()
     assert datasets.main(base + ["--batch-seeds"]) == 0  # nothing left to run
     assert json.loads((out / "results.json").read_text())["runs"] == runs
+
+
+def test_box_world_batches_a_cells_seeds(exp, tmp_path, monkeypatch, capsys):
+    """--batch-seeds: the seeds a cell still needs go to ``run_batch`` at once and are stored as the
+    loop stores them; a second call with more seeds batches only the new ones; --devices beyond
+    the machine's is refused before any work."""
+    batches = []
+
+    def run_batch(record, seeds, world, devices=None, progress=False):
+        batches.append((record["N"], list(seeds), devices))
+        return [({f: 0 for f in bw.RUN_FIELDS} | {"seed": s, "ra": 0.1}, None, None) for s in seeds]
+
+    monkeypatch.setattr(bw, "run_batch", run_batch)
+    monkeypatch.setattr(bw, "run_once", lambda *a, **k: pytest.fail("a batched cell was run seed by seed"))
+    monkeypatch.setattr(bw, "save_example", lambda *a: None)
+    out = tmp_path / "bw"
+    args = ["--table", "quick", "--methods", "OP", "--out", str(out), "--batch-seeds"]
+    assert bw.main(args + ["--runs", "2"]) == 0
+    assert bw.main(args + ["--runs", "3", "--devices", "1"]) == 0
+    assert batches == [(4, [0, 1], None), (8, [0, 1], None), (4, [2], 1), (8, [2], 1)]
+    assert len(json.loads((out / "results.json").read_text())["runs"]) == 6
+    capsys.readouterr()
+    assert bw.main(args + ["--devices", "99"]) == 2
+    assert "XLA_FLAGS" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # whole-scenario runs (python3 -m pytest -m slow)
+def test_box_world_batch_is_the_runs_alone(exp):
+    """Two seeds of the 3-lap quick world (OP, N = 4) as one batch: each seed's record is its run
+    alone's (the same RA, steps and resamplings; particles bit for bit: tests/test_run_batch.py)."""
+    table = exp["tables"]["quick"]
+    (cell,) = bw.table_cells(exp, {**table, "particles": [4]}, ["OP"], table.get("set", {}))
+    world = bw.world_settings(exp, table)
+    batched = bw.run_batch(cell, [0, 1], world)
+    for seed, (run, result, _) in zip([0, 1], batched):
+        alone, result_alone, _ = bw.run_once(cell, seed, world)
+        assert {k: run[k] for k in bw.RUN_FIELDS if k != "seconds"} == pytest.approx(
+            {k: alone[k] for k in bw.RUN_FIELDS if k != "seconds"}, rel=1e-5)
+        assert (result.best_path == result_alone.best_path).all()
