@@ -1,5 +1,7 @@
 """R seeds of one log as one batch over D devices (``slam.run_batch``) against a loop of the same
-runs (``slam.run``), in one process; checks that each batched run is its run alone.
+runs (``slam.run``), in one process: the batch as each device takes its runs one after the
+other (the default) and vmapped (``vectorize=True``); checks that each run of the default batch
+is its run alone, bit for bit (and says whether the vmapped ones are).
 
 The device count must be set before jax is imported: on a CPU the script sets
 ``XLA_FLAGS=--xla_force_host_platform_device_count=D`` itself. D host devices on a machine's
@@ -57,25 +59,28 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     alone = [slam.run(jax.random.key(s), log, config, params, settings, progress=False) for s in seeds]
     loop_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    batched = slam.run_batch(jax.numpy.stack([jax.random.key(s) for s in seeds]), log, config, params, settings,
-                             devices=args.devices, progress=False)
-    batch_s = time.perf_counter() - t0
-    same = all(np.array_equal(a.best_path, b.best_path) and np.array_equal(np.asarray(a.state.poses),
-                                                                          np.asarray(b.state.poses))
-               for a, b in zip(alone, batched))
-    loop_compile = alone[0].timings["compile"]
-    batch_compile = batched[0].timings["compile"]
     report = {
         "log": source, "scans": int(log.num_scans), "steps": int(alone[0].selection.indices.size - 1),
         "proposal": args.proposal, "particles": args.particles, "runs": len(seeds), "devices": args.devices,
         "platform": jax.devices()[0].platform, "cpu_count": os.cpu_count(),
-        "loop_s": loop_s, "batch_s": batch_s, "batch_over_loop": batch_s / loop_s,
-        "loop_first_chunk_s": loop_compile, "batch_first_chunk_s": batch_compile,
-        "loop_after_first_chunk_s": loop_s - loop_compile, "batch_after_first_chunk_s": batch_s - batch_compile,
-        "batch_over_loop_after_first_chunk": (batch_s - batch_compile) / (loop_s - loop_compile),
-        "runs_equal_their_runs_alone": same,
+        "loop_s": loop_s, "loop_first_chunk_s": alone[0].timings["compile"],
     }
+    same = True
+    for name, vectorize in (("batch", False), ("batch_vmap", True)):
+        t0 = time.perf_counter()
+        batched = slam.run_batch(jax.numpy.stack([jax.random.key(s) for s in seeds]), log, config, params, settings,
+                                 devices=args.devices, progress=False, vectorize=vectorize)
+        seconds = time.perf_counter() - t0
+        first = batched[0].timings["compile"]
+        # bit for bit: the particles' poses and weights and the best path of every run
+        equal = [bool(np.array_equal(a.best_path, b.best_path)
+                      and np.array_equal(np.asarray(a.state.poses), np.asarray(b.state.poses))
+                      and np.array_equal(np.asarray(a.state.log_weights), np.asarray(b.state.log_weights)))
+                 for a, b in zip(alone, batched)]
+        same &= all(equal) or vectorize  # vmapped runs are the runs alone to float rounding only
+        report.update({f"{name}_s": seconds, f"{name}_first_chunk_s": first, f"{name}_over_loop": seconds / loop_s,
+                       f"{name}_over_loop_after_first_chunk": (seconds - first) / (loop_s - report["loop_first_chunk_s"]),
+                       f"{name}_runs_equal_bit_for_bit": equal})
     for key, value in report.items():
         print(f"{key:36s} {value:.3f}" if isinstance(value, float) else f"{key:36s} {value}")
     out = Path(args.out)

@@ -238,17 +238,19 @@ def run_batch(
     chunk_size: int = 32,
     progress: bool = True,
     initial_pool: tuple[int, int, int, int] | None = None,
+    vectorize: bool = False,
 ) -> list[SlamResult | None]:
     """R runs of :func:`run` as one program, the runs spread over ``devices``.
 
-    Every array of the state carries a leading run axis, the chunk of steps is vmapped over it,
-    and the axis is split over a 1-D device mesh (:data:`RUNS_AXIS`, ``jax.shard_map``), so each
-    device holds R / D of the runs and steps them without talking to the others; the devices
-    agree only, once per chunk, on whether some run's map pools overflowed. R is padded up to a
-    multiple of D with copies of the last run, whose results are dropped. Each run's particles
-    are those of :func:`run` with its key, log, config, params and settings, bit for bit on the
-    machines tested (tests/test_run_batch.py): the per-step keys are derived from each run's key
-    as ``run`` derives them, and a step not taken is a no-op.
+    Every array of the state carries a leading run axis split over a 1-D device mesh
+    (:data:`RUNS_AXIS`, ``jax.shard_map``), so each device holds R / D of the runs and steps them
+    without talking to the others; the devices agree only, once per chunk, on whether some
+    run's map pools overflowed. R is padded up to a multiple of D with copies of the last run,
+    whose results are dropped. The per-step keys are derived from each run's key as ``run``
+    derives them, and a step not taken is a no-op, so each run is :func:`run`'s with its key,
+    log, config, params and settings: bit for bit (particles, weights, diagnostics) when each
+    device takes its runs one after the other (the default), and to float rounding when it
+    vmaps them (``vectorize``; tests/test_run_batch.py).
 
     Several hosts: call it in every process after ``jax.distributed.initialize``, with the same
     arguments; ``devices`` defaults to ``jax.devices()``, every process's. Each process gets back
@@ -271,6 +273,12 @@ def run_batch(
       progress: a tqdm bar over the longest run's steps (and growth lines on stderr).
       initial_pool: the maps' pool sizes at the start (a :class:`~jaxslam.paged_map.PoolSize`;
         default :func:`jaxslam.rbpf.pool_size`).
+      vectorize: vmap the runs a device holds rather than take them one after the other
+        (``lax.map``). Faster where a device has room to spare for several runs at once (a GPU
+        holding R / D > 1 runs); but XLA sums the vmapped weights and window posteriors in
+        another order, so each run equals its run alone to float rounding only (about 1e-7 m in
+        the poses), and a long run drifts from it: a resampling decision at the threshold flips
+        and it becomes another run of the same filter (seed 0 of 4 on 136 SMP steps did).
 
     Returns:
       A list of R :class:`SlamResult` (None for a run held by another process). ``timings`` are
@@ -357,7 +365,7 @@ def run_batch(
         start = next(chunk_starts)
         args = [to_runs(step_key_data), jax.tree.map(to_runs, chunk_inputs), to_runs(chunk_run_valid & valid[:, None])]
         while True:
-            new_state, info, overflow, use = _run_chunk_batch(state, *args, sensor, params, config, mesh)
+            new_state, info, overflow, use = _run_chunk_batch(state, *args, sensor, params, config, mesh, vectorize)
             if not bool(overflow.addressable_data(0)):
                 break
             # A step of some run did not fit the pools: grow every run's and take the chunk again
@@ -419,17 +427,22 @@ def _local_runs(array: jax.Array) -> dict[int, np.ndarray]:
     return out
 
 
-@partial(jax.jit, static_argnames=("config", "mesh"))
-def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config, mesh):
-    """:func:`_chunk_steps` vmapped over the runs, the runs split over ``mesh``. Also returns,
+@partial(jax.jit, static_argnames=("config", "mesh", "vectorize"))
+def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config, mesh, vectorize):
+    """:func:`_chunk_steps` over the runs (``vectorize``: vmapped; else ``lax.map``: one after the
+    other on each device), the runs split over ``mesh``. Also returns,
     the same on every device, whether a valid step of some run overflowed its pools, and the
     largest pool use of any run (a :class:`_PoolUse` that sizes the grown pools)."""
     from jax.sharding import PartitionSpec as P
 
     def local(state, step_key_data, inputs, valid, sensor, params):
         keys = jax.random.wrap_key_data(step_key_data)
-        state, info = jax.vmap(_chunk_steps, in_axes=(0, 0, 0, 0, None, None, None))(
-            state, keys, inputs, valid, sensor, params, config)
+        if vectorize:
+            state, info = jax.vmap(_chunk_steps, in_axes=(0, 0, 0, 0, None, None, None))(
+                state, keys, inputs, valid, sensor, params, config)
+        else:  # one run after the other: each the very program of a run alone (bit for bit)
+            state, info = jax.lax.map(lambda run: _chunk_steps(*run, sensor, params, config),
+                                      (state, keys, inputs, valid))
         overflow = jax.lax.pmax(jnp.any(info.pool_overflow & valid).astype(jnp.int32), RUNS_AXIS)
         use = _PoolUse(*(jax.lax.pmax(jnp.max(u).astype(jnp.int32), RUNS_AXIS)
                          for u in jax.vmap(_pool_use)(state.maps)))

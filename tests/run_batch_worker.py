@@ -2,7 +2,7 @@
 of several processes (``jax.distributed`` on the loopback interface); writes each run it holds
 to ``OUT/run{r}-process{p}.npz``.
 
-    python tests/run_batch_worker.py OUT --devices 2 [--pool C M B MB]
+    python tests/run_batch_worker.py OUT --devices 2 [--pool C M B MB] [--also-vectorized]
     python tests/run_batch_worker.py OUT --devices 2 --processes 2 --process-id 0 --port 12345
     python tests/run_batch_worker.py OUT --devices 2 --processes 2 --process-id 0 --port 12345 --probe
 
@@ -59,6 +59,8 @@ def main(argv=None) -> int:
     ap.add_argument("--port", type=int, default=0)
     ap.add_argument("--pool", type=int, nargs=4, default=None, help="initial_pool (small: the pools grow)")
     ap.add_argument("--probe", action="store_true", help="only a collective across the processes")
+    ap.add_argument("--also-vectorized", action="store_true",
+                    help="then the batch again with vectorize=True (default pools): OUT/vmap-run{r}-process{p}.npz")
     args = ap.parse_args(argv)
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + f" --xla_force_host_platform_device_count={args.devices}").strip()
@@ -84,6 +86,12 @@ def main(argv=None) -> int:
     for r, result in enumerate(results):
         if result is not None:
             np.savez(out / f"run{r}-process{jax.process_index()}.npz", **result_arrays(result))
+    if args.also_vectorized:
+        results = slam.run_batch(keys, [logs[i] for i in LOG_OF_RUN], config, params, settings,
+                                 chunk_size=CHUNK_SIZE, progress=False, vectorize=True)
+        for r, result in enumerate(results):
+            if result is not None:
+                np.savez(out / f"vmap-run{r}-process{jax.process_index()}.npz", **result_arrays(result))
     print(f"process {jax.process_index()}: {len(jax.devices())} devices, held runs "
           f"{[r for r, x in enumerate(results) if x is not None]}")
     return 0
