@@ -155,8 +155,9 @@ def run_once(record: dict, seed: int, world: dict, progress: bool = False):
 def run_batch(record: dict, seeds: list[int], world: dict, devices=None, progress: bool = False):
     """The runs of ``seeds`` of a cell as one batch (:func:`jaxslam.slam.run_batch`: each seed's
     world is its own log, the runs split over ``devices``, a count or None for all): a list of
-    :func:`run_once`'s triples, each run the one ``run_once`` makes (its particles bit for bit;
-    tests/test_run_batch.py). A run's ``seconds`` is the batch's wall time over its runs."""
+    :func:`run_once`'s triples, each run the one ``run_once`` makes up to how XLA compiles the
+    batch (a near tie may round the other way: docs/design.md). A run's ``seconds`` is the
+    batch's wall time over its runs."""
     scenarios = [scenario_for(seed, record["odometry_scale"], world) for seed in seeds]
     setups = [filter_setup(record, scenario, world) for scenario in scenarios]
     config, settings, params = setups[0]

@@ -248,9 +248,12 @@ def run_batch(
     run's map pools overflowed. R is padded up to a multiple of D with copies of the last run,
     whose results are dropped. The per-step keys are derived from each run's key as ``run``
     derives them, and a step not taken is a no-op, so each run is :func:`run`'s with its key,
-    log, config, params and settings: bit for bit (particles, weights, diagnostics) when each
-    device takes its runs one after the other (the default), and to float rounding when it
-    vmaps them (``vectorize``; tests/test_run_batch.py).
+    log, config, params and settings, up to how XLA compiles the batch: with each device taking
+    its runs one after the other (``lax.map``, the default) the tests' runs are their runs alone
+    bit for bit (particles, weights, diagnostics; tests/test_run_batch.py), but that is not
+    guaranteed: at the defaults (SMP, 30 particles, 136 steps of the simulated office) three
+    runs of four were, and one drew a pose 1.9 cm away at step 129 (a near tie that rounded the
+    other way) and went on as another run of the same filter (benchmarks/bench_run_batch.py).
 
     Several hosts: call it in every process after ``jax.distributed.initialize``, with the same
     arguments; ``devices`` defaults to ``jax.devices()``, every process's. Each process gets back
@@ -277,8 +280,9 @@ def run_batch(
         (``lax.map``). Faster where a device has room to spare for several runs at once (a GPU
         holding R / D > 1 runs); but XLA sums the vmapped weights and window posteriors in
         another order, so each run equals its run alone to float rounding only (about 1e-7 m in
-        the poses), and a long run drifts from it: a resampling decision at the threshold flips
-        and it becomes another run of the same filter (seed 0 of 4 on 136 SMP steps did).
+        the poses from the first steps), and a long run can drift from it: a resampling decision
+        flips and it becomes another run of the same filter (at the defaults above, one run of
+        four flipped one at step 84).
 
     Returns:
       A list of R :class:`SlamResult` (None for a run held by another process). ``timings`` are
