@@ -361,6 +361,7 @@ def run_batch(
         return global_runs(lambda r: chunk[r], chunk.shape[1:])
 
     chunk_starts = iter(range(0, total_steps, chunk_size))
+    is_runs = lambda x: isinstance(x, dict)  # noqa: E731 (a leaf's {run: its slice}, from _local_runs)
     label = f"RBPF {config.proposal.upper()} N={config.num_particles}, {num_runs} runs on {len(devices)} devices"
 
     def chunk_fn(state, xs, valid):
@@ -375,18 +376,17 @@ def run_batch(
             # A step of some run did not fit the pools: grow every run's and take the chunk again
             # for all runs from its start (a step not taken was a no-op, the keys are fixed).
             pool = _larger_pool_for(pool, _PoolUse(*(int(u.addressable_data(0)) for u in use)))
+            del new_state, info  # the chunk's stalled end: no third state while the start grows
             state = _grow_batch(state, config, pool, mesh)
             growths.append({"step": start, **pool._asdict()})
             if progress:
                 _report_growth(pool, f"in the chunk from step {start}; every run takes it again")
         local = jax.tree.map(_local_runs, info)  # {run: (C, ...)} of this process's runs
-        return new_state, jax.tree.map(lambda d: np.stack([d[r] for r in sorted(d)], axis=1), local,
-                                       is_leaf=lambda x: isinstance(x, dict))
+        return new_state, jax.tree.map(lambda d: np.stack([d[r] for r in sorted(d)], axis=1), local, is_leaf=is_runs)
 
     chunked = run_in_chunks(chunk_fn, (step_keys, inputs, run_valid), total_steps, chunk_size, state,
                             progress=progress, desc=label, unit="scan")
     total = time.perf_counter() - t_start
-    is_runs = lambda x: isinstance(x, dict)  # noqa: E731 (the {run: slice} of a leaf)
     final = jax.tree.map(_local_runs, chunked.carry)
     local_order = sorted(_local_runs(chunked.carry.step))  # the order of the runs in chunked.outputs' axis 1
     results: list[SlamResult | None] = [None] * num_runs
@@ -454,7 +454,8 @@ def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config
 
     runs = P(RUNS_AXIS)
     return jax.shard_map(local, mesh=mesh, in_specs=(runs, runs, runs, runs, P(), P()),
-                         out_specs=(runs, runs, P(), P()), check_vma=False)(state, step_key_data, inputs, valid, sensor, params)
+                         out_specs=(runs, runs, P(), P()), check_vma=False)(
+        state, step_key_data, inputs, valid, sensor, params)
 
 
 @partial(jax.jit, static_argnames=("config", "pool", "mesh"))
