@@ -404,3 +404,60 @@ def test_box_world_batch_is_the_runs_alone(exp):
         assert {k: run[k] for k in bw.RUN_FIELDS if k != "seconds"} == pytest.approx(
             {k: alone[k] for k in bw.RUN_FIELDS if k != "seconds"}, rel=1e-5)
         assert (result.best_path == result_alone.best_path).all()
+
+
+_DATASETS_MAIN = """
+import importlib.util, sys
+spec = importlib.util.spec_from_file_location("experiments_datasets", sys.argv[1])
+datasets = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(datasets)
+datasets.DATASETS = {"sim": ("sim.clf", "sim.relations")}
+sys.exit(datasets.main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.slow  # two processes compile a batch each (python3 -m pytest -m slow)
+def test_datasets_over_two_processes(tmp_path):
+    """--coordinator: two processes on 127.0.0.1 (one host device each) split the three seeds;
+    process 0 writes every run's record, and the run process 1 held is ``jaxslam map``'s run."""
+    import os
+    import socket
+
+    import numpy as np
+
+    from jaxslam.cli import main as cli_main
+
+    data, out = tmp_path / "data", tmp_path / "ds"
+    data.mkdir()
+    _simulated_dataset(data)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    small = ["--set", "num_particles=4", "--set", "linear_update=0.3", "--set", "max_insert_range=8"]
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=1", "JAX_PLATFORMS": "cpu",
+           "PYTHONPATH": os.pathsep.join([str(EXPERIMENTS.parent), str(EXPERIMENTS),  # datasets.py imports _runs
+                                          os.environ.get("PYTHONPATH", "")])}
+    procs = [subprocess.Popen([sys.executable, "-c", _DATASETS_MAIN, str(EXPERIMENTS / "datasets.py"), "--data",
+                               str(data), "--out", str(out), "--datasets", "sim", "--proposals", "op", "--seeds", "3",
+                               *small, "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id",
+                               str(i)], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+             for i in range(2)]
+    try:
+        texts = [p.communicate(timeout=600)[0] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert all(p.returncode == 0 for p in procs), "\n".join(texts)
+    runs = json.loads((out / "results.json").read_text())["runs"]
+    assert [(r["seed"], r["batch"]["processes"], r["batch"]["devices"]) for r in runs] == [(0, 2, 2), (1, 2, 2),
+                                                                                        (2, 2, 2)]
+    settings = {**datasets.SETTINGS, "set": small[1::2]}
+    monkey = pytest.MonkeyPatch()
+    monkey.setattr(datasets, "DATASETS", {"sim": ("sim.clf", "sim.relations")})
+    try:
+        assert cli_main(datasets.map_arguments("sim", "op", 2, tmp_path / "alone", data, settings)) == 0
+    finally:
+        monkey.undo()
+    np.testing.assert_array_equal(np.loadtxt(out / "sim" / "op-seed2" / "trajectory.txt"),
+                                  np.loadtxt(tmp_path / "alone" / "trajectory.txt"))
