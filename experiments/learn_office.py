@@ -96,7 +96,7 @@ def setup_office(office: int, args) -> dict:
     best = int(np.argmax(profile))
     truth["likelihood.sigma"] = float(sigma_grid[best])
     identified = 0 < best < sigma_grid.size - 1
-    print(f"office {office}: likelihood.sigma on the true path: peak at {sigma_grid[best]:.4f} m "
+    print(f"{args.world} {office}: likelihood.sigma on the true path: peak at {sigma_grid[best]:.4f} m "
           f"({args.resolution:g} m cells; range noise {range_noise:g} m)"
           + ("" if identified else ": at the end of the grid, not identified"))
     # The motion model's own optimum on this log: the simulator takes each step's std at the true
@@ -109,7 +109,7 @@ def setup_office(office: int, args) -> dict:
     best_fit = fit(jax.random.key(0), lambda _, p: motion.path_log_density(path, motions, p.motion), at_truth,
                    num_steps=600, learning_rate=0.01, trainable=list(TERMS), progress=False)
     known_path_motion = {n: float(np.mean(best_fit.history[n][-200:])) for n in TERMS}
-    print(f"office {office}: motion terms' known-path optimum / simulated: "
+    print(f"{args.world} {office}: motion terms' known-path optimum / simulated: "
           + ", ".join(f"{n.split('.')[1]} {known_path_motion[n] / truth[n]:.2f}" for n in TERMS))
     prepared, _, frame_offset = rbpf.prepare(log, config, settings)
     record = {"range_noise_std": range_noise, "sigma_identified": identified,
