@@ -39,10 +39,11 @@ from jaxslam import motion
 from jaxslam.geometry import between_np, weighted_mean_and_covariance, wrap_angle_np
 from jaxslam.grid import GridSpec
 from jaxslam.driver import run_in_chunks
-from jaxslam.laser import SensorSpec, subsample_beams, within_usable_range
+from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.map_view import MapView
 from jaxslam.sensor_model import SENSOR_MODELS
-from jaxslam.window_posterior import stencil_poses, window_posterior
+from jaxslam.scan_matching import match
+from jaxslam.window_posterior import stencil_poses
 
 
 class RefinedTrajectory(NamedTuple):
@@ -97,12 +98,12 @@ def refine_trajectory(
     if odometry is not None and np.shape(odometry) != poses.shape:
         raise ValueError(f"refine_trajectory: odometry {np.shape(odometry)} and poses {poses.shape} do not match")
     lik_sensor, lik_ranges = subsample_beams(sensor, ranges, config.beam_stride)
-    window_config = _window_config(spec, config)
 
     def chunk_fn(_, xs, valid):
         chunk_poses, chunk_ranges = xs
         return None, _match_chunk(spec, hit_dist2, jnp.asarray(chunk_poses), jnp.asarray(chunk_ranges), lik_sensor,
-                                  params, window_config)
+                                  params, config.match_iterations, config.match_lookup, config.max_insert_range,
+                                  config.sensor_model)
 
     matched_pose, scores, covariances = run_in_chunks(
         chunk_fn, (poses.astype(np.float32), lik_ranges), num, chunk_size).outputs
@@ -117,61 +118,22 @@ def refine_trajectory(
     return RefinedTrajectory(refined, ok, scores, matched_pose, covariances)
 
 
-PRIOR_STD = (0.1, 0.05)
-"""Std (m, rad) of the prior round each scan's trajectory pose in the refinement's window search:
-the pose between processed scans is the odometry composed onto the last processed pose, good to
-about a decimetre. It sizes the window (:data:`jaxslam.config` ``scan_match.window_sigmas`` of it,
-0.3 m and 0.15 rad at the defaults) and prefers, among modes the scan fits alike, the one nearest
-the trajectory; against a match good to a centimetre it moves a mode by about 1 % of its offset."""
-
-
-class _WindowConfig(NamedTuple):
-    """The static settings :func:`jaxslam.window_posterior.window_posterior` reads, over a dense map."""
-
-    grid: GridSpec
-    window_cells: int
-    window_levels: int
-    window_modes: int
-    window_keep: int
-    likelihood_lookup: str
-    match_lookup: str
-    field_radius: int
-    max_insert_range: float
-    sensor_model: str
-
-
-def _window_config(spec: GridSpec, config) -> _WindowConfig:
-    return _WindowConfig(spec, config.window_cells, config.window_levels, config.window_modes, config.window_keep,
-                         config.match_lookup, config.match_lookup, config.field_radius, config.max_insert_range,
-                         config.sensor_model)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 6))
-def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, window_config):
-    model = SENSOR_MODELS[window_config.sensor_model]
-    # The prior: PRIOR_STD round the trajectory pose (no motion: x = pose (+) delta).
-    prior = params.motion._replace(srr=jnp.float32(0.0), srt=jnp.float32(0.0), str=jnp.float32(0.0),
-                                   stt=jnp.float32(0.0), min_translation_std=jnp.float32(PRIOR_STD[0]),
-                                   min_rotation_std=jnp.float32(PRIOR_STD[1]))
-    window_params = params._replace(motion=prior)
-
-    view = MapView(spec, hit_dist2)
+@functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))
+def _match_chunk(spec, hit_dist2, poses, ranges, sensor, params, iterations, lookup, usable_range, model_name):
+    sm = params.scan_match
+    model = SENSOR_MODELS[model_name]
 
     def one(pose, scan):
-        # The scan's own sharpness (gain 1) places the peaks; the heaviest mode is the match.
-        post = window_posterior(pose, hit_dist2, jnp.zeros(3, jnp.float32), scan, sensor, window_params,
-                                window_config, fit_gain=jnp.float32(1.0))
-        peak = post.peaks[jnp.argmax(post.log_masses)]
-        scored = within_usable_range(scan, window_config.max_insert_range)
-        score = model.match_score_fn(view, peak, scored, sensor, params.likelihood)
-        # The match's covariance: the tempered likelihood (the gain that makes the beams' evidence
-        # honest) normalised over the stencil round the peak, no prior, plus the proposal's floor.
-        candidates, _, spacing = stencil_poses(peak, params.scan_match)
-        log_lik = model.log_likelihoods_fn(view, candidates, scan, sensor, params.likelihood,
-                                           window_config.match_lookup)
+        result = match(spec, hit_dist2, pose, scan, sensor, params.likelihood, sm.linear_step, sm.angular_step,
+                       iterations, lookup, usable_range, model)
+        # The match's covariance: the tempered likelihood (the gain that makes the beams'
+        # evidence honest) normalised over the stencil, plus the proposal's floor.
+        candidates, _, spacing = stencil_poses(result.pose, sm)
+        log_lik = model.log_likelihoods_fn(MapView(spec, hit_dist2), candidates, scan, sensor, params.likelihood,
+                                           lookup)
         _, cov = weighted_mean_and_covariance(candidates, jax.nn.softmax(log_lik))
-        cov = cov + jnp.diag((params.scan_match.min_std_fraction * spacing) ** 2)
-        return peak, jnp.where(jnp.isfinite(post.log_eta), score, 0.0), cov
+        cov = cov + jnp.diag((sm.min_std_fraction * spacing) ** 2)
+        return result.pose, result.score, cov
 
     return jax.vmap(one)(poses, ranges)
 
