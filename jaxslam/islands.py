@@ -171,7 +171,7 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
     def island_step(k, s):
         return rbpf.step_with_score_terms(k, s, inputs, sensor, params, one)
 
-    if num_local == 1:  # one island: no vmap, so that it compiles to rbpf.filter's program
+    if num_islands == 1:  # a lone island: no vmap, so that it compiles to rbpf.filter's program
         islands, infos, terms = jax.tree.map(lambda x: x[None], island_step(keys[0], jax.tree.map(
             lambda x: x[0], state.islands)))
     else:
