@@ -114,13 +114,13 @@ def island_config(config: SlamConfig, num_islands: int) -> SlamConfig:
 def check_devices(num_islands: int, num_devices: int) -> None:
     """Refuse (ConfigError) a device count that does not divide the islands or exceeds the
     devices JAX sees, before any work."""
-    available = jax.device_count()
-    if num_devices < 1 or num_devices > available:
-        raise ConfigError(f"num_devices={num_devices} is not between 1 and the {available} devices JAX sees (on "
-                          f"CPU, set XLA_FLAGS=--xla_force_host_platform_device_count=... before importing jax)")
-    if num_islands % num_devices:
+    if num_devices < 1 or num_islands % num_devices:
         raise ConfigError(f"num_islands={num_islands} is not a multiple of num_devices={num_devices}: every device "
                           f"holds num_islands / num_devices islands")
+    available = jax.device_count()
+    if num_devices > available:
+        raise ConfigError(f"num_devices={num_devices} is more than the {available} devices JAX sees (on CPU, set "
+                          f"XLA_FLAGS=--xla_force_host_platform_device_count=... before importing jax)")
 
 
 def init(key: PRNGKeyArray, first_ranges: Float[Array, "B"], sensor: SensorSpec, params: SlamParams,
@@ -171,11 +171,15 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
     def island_step(k, s):
         return rbpf.step_with_score_terms(k, s, inputs, sensor, params, one)
 
-    if num_islands == 1:  # a lone island: no vmap, so that it compiles to rbpf.filter's program
+    # One island at a time (a loop, not a vmap): every island is then the same unbatched program
+    # whatever the device's island count, so that the device count changes no bit, and one
+    # island is rbpf.filter's program (a vmap fuses a batch of 1 and of 4 differently: the
+    # evidence and proposed poses differed in the last bits between 1 and 4 devices).
+    if num_local == 1:
         islands, infos, terms = jax.tree.map(lambda x: x[None], island_step(keys[0], jax.tree.map(
             lambda x: x[0], state.islands)))
     else:
-        islands, infos, terms = jax.vmap(island_step)(keys, state.islands)
+        islands, infos, terms = jax.lax.map(lambda args: island_step(*args), (keys, state.islands))
 
     # The islands' few floats, from every device: evidence, ESS, best particle and its pose, overflow.
     best_local = jnp.argmax(terms.log_weights, axis=1)
@@ -188,11 +192,8 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
         summary = jax.lax.all_gather(summary, axis_name, tiled=True)  # (I, 8)
     increments, ess_islands, best_log_weight = summary[:, 0], summary[:, 1], summary[:, 2]
 
-    update = particle_filter.reweight_and_resample(key_draw, jnp.zeros((num_islands, 3), jnp.float32),
-                                                   state.log_weights, increments,
-                                                   jnp.asarray(island_threshold, jnp.float32), config.resampler)
-    ancestors, order = resampling.keep_in_place(update.ancestors)
-    new_log_weights = update.new_log_weights[order]
+    ancestors, new_log_weights, update = resample_islands(key_draw, state.log_weights, increments, island_threshold,
+                                                          config.resampler)
     islands = _exchange(islands, ancestors, device, num_devices, axis_name)
 
     overall = update.log_weights + best_log_weight
@@ -212,6 +213,25 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
         pool_overflow=jnp.any(summary[:, 7] > 0),
     )
     return IslandState(islands, new_log_weights), info
+
+
+def resample_islands(key: PRNGKeyArray, log_weights: Float[Array, "I"], increments: Float[Array, "I"],
+                     island_threshold: Float[Array, ""] | float, resampler: str
+                     ) -> tuple[Int[Array, "I"], Float[Array, "I"], particle_filter.WeightUpdate]:
+    """The islands' weight update and selective resampling (the island bootstrap):
+    :func:`jaxslam.particle_filter.reweight_and_resample` of the islands' normalised
+    ``log_weights`` by their log-evidence ``increments``, with the draw arranged so that every
+    island drawn keeps its place (:func:`jaxslam.resampling.keep_in_place`).
+
+    Returns ``(ancestors, new_log_weights, update)``: island g takes island ``ancestors[g]``'s
+    state, the islands' log-weights after the step (uniform when resampled), and the update
+    (evidence, ESS, normalised weights before the resampling; its own ``ancestors`` unarranged).
+    """
+    update = particle_filter.reweight_and_resample(key, jnp.zeros(log_weights.shape + (3,), jnp.float32),
+                                                   log_weights, increments,
+                                                   jnp.asarray(island_threshold, jnp.float32), resampler)
+    ancestors, order = resampling.keep_in_place(update.ancestors)
+    return ancestors, update.new_log_weights[order], update
 
 
 def _exchange(islands: rbpf.SlamState, ancestors: Int[Array, "I"], device: Int[Array, ""], num_devices: int,

@@ -1,0 +1,68 @@
+"""The island filter (jaxslam.islands) at a fixed total N and island count over 1, 2 and 4 host
+devices: time per update (compile excluded, best of a few runs) and memory per device (XLA's
+memory analysis of the compiled program: arguments, outputs and temporaries of one device).
+
+Host CPU devices share the machine's cores: on a 2-core machine, 2 or 4 devices are not a speed
+test (they measure the cost of the sharding, not a gain); the memory per device is the point.
+
+    python benchmarks/bench_islands.py --particles 64 --islands 4 --scans 120
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--particles", type=int, default=64, help="total N")
+    parser.add_argument("--islands", type=int, default=4, help="I (a multiple of every device count)")
+    parser.add_argument("--devices", default="1,2,4", help="device counts to run")
+    parser.add_argument("--scans", type=int, default=120, help="scans of the simulated office")
+    parser.add_argument("--proposal", default="smp")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    counts = [int(d) for d in args.devices.split(",")]
+    # The host device count is fixed when jax starts: set it first.
+    os.environ["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={max(counts)}"
+    import jax
+    import numpy as np
+
+    from jaxslam import islands, rbpf
+    from jaxslam.config import RunSettings, SlamConfig, default_params
+    from jaxslam.sim import office_scenario
+
+    log = office_scenario(jax.random.key(3)).log.subset(np.arange(args.scans))
+    config = SlamConfig(num_particles=args.particles, proposal=args.proposal, max_insert_range=10.0, beam_stride=2,
+                        map_extent=128.0)
+    prepared = rbpf.prepare(log, config, RunSettings(linear_update=0.3, angular_update=0.25))[0]
+    steps = prepared.inputs.ranges.shape[0]
+    rows = []
+    for num_devices in counts:
+        fn = jax.jit(lambda key, d=num_devices: islands.filter(key, prepared, default_params(), config, args.islands,
+                                                                d))
+        start = time.perf_counter()
+        compiled = fn.lower(jax.random.key(0)).compile()
+        compile_s = time.perf_counter() - start
+        memory = compiled.memory_analysis()
+        times = []
+        for r in range(args.repeats):
+            start = time.perf_counter()
+            out = jax.block_until_ready(compiled(jax.random.key(r)))
+            times.append(time.perf_counter() - start)
+        row = {"devices": num_devices, "islands": args.islands, "particles": args.particles, "steps": steps,
+               "compile_s": round(compile_s, 1), "ms_per_update": round(1e3 * min(times) / steps, 2),
+               "exchanges": int(np.asarray(out.info.exchanged).sum()),
+               "per_device_mb": {k: round(getattr(memory, k + "_size_in_bytes") / 2**20, 2)
+                                 for k in ("argument", "output", "temp")} if memory is not None else None}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
