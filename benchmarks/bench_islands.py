@@ -5,7 +5,7 @@ memory analysis of the compiled program: arguments, outputs and temporaries of o
 Host CPU devices share the machine's cores: on a 2-core machine, 2 or 4 devices are not a speed
 test (they measure the cost of the sharding, not a gain); the memory per device is the point.
 
-    python benchmarks/bench_islands.py --particles 64 --islands 4 --scans 120
+    python benchmarks/bench_islands.py --particles 64 --islands 4 --scans 120 --out docs/results/bench_islands.json
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scans", type=int, default=120, help="scans of the simulated office")
     parser.add_argument("--proposal", default="smp")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", help="write the rows to this JSON file")
     args = parser.parse_args(argv)
     counts = [int(d) for d in args.devices.split(",")]
     # The host device count is fixed when jax starts: set it first.
@@ -54,13 +55,20 @@ def main(argv=None) -> int:
             start = time.perf_counter()
             out = jax.block_until_ready(compiled(jax.random.key(r)))
             times.append(time.perf_counter() - start)
+        final = (np.asarray(out.state.islands.poses), float(out.marginal_loglik))
+        if num_devices == counts[0]:
+            first_final = final
         row = {"devices": num_devices, "islands": args.islands, "particles": args.particles, "steps": steps,
                "compile_s": round(compile_s, 1), "ms_per_update": round(1e3 * min(times) / steps, 2),
                "exchanges": int(np.asarray(out.info.exchanged).sum()),
+               "same_as_first_count": bool(np.array_equal(final[0], first_final[0]) and final[1] == first_final[1]),
                "per_device_mb": {k: round(getattr(memory, k + "_size_in_bytes") / 2**20, 2)
                                  for k in ("argument", "output", "temp")} if memory is not None else None}
         rows.append(row)
         print(json.dumps(row), flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"args": vars(args), "rows": rows}, f, indent=1)
     return 0
 
 
