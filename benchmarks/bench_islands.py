@@ -1,6 +1,8 @@
 """The island filter (jaxslam.islands) at a fixed total N and island count over 1, 2 and 4 host
 devices: time per update (compile excluded, best of a few runs) and memory per device (XLA's
-memory analysis of the compiled program: arguments, outputs and temporaries of one device).
+memory analysis of the compiled program: arguments, outputs and temporaries of one device), with
+a device's islands stepped one after the other (``lax.map``, the default) and as one ``vmap``
+(``batch_islands=True``), timed alternately.
 
 Host CPU devices share the machine's cores: on a 2-core machine, 2 or 4 devices are not a speed
 test (they measure the cost of the sharding, not a gain); the memory per device is the point.
@@ -25,6 +27,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scans", type=int, default=120, help="scans of the simulated office")
     parser.add_argument("--proposal", default="smp")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--island-threshold", type=float, default=0.5, help="resample the islands below this x I")
     parser.add_argument("--out", help="write the rows to this JSON file")
     args = parser.parse_args(argv)
     counts = [int(d) for d in args.devices.split(",")]
@@ -42,30 +45,37 @@ def main(argv=None) -> int:
                         map_extent=128.0)
     prepared = rbpf.prepare(log, config, RunSettings(linear_update=0.3, angular_update=0.25))[0]
     steps = prepared.inputs.ranges.shape[0]
-    rows = []
+    rows, first_final = [], {}
     for num_devices in counts:
-        fn = jax.jit(lambda key, d=num_devices: islands.filter(key, prepared, default_params(), config, args.islands,
-                                                                d))
-        start = time.perf_counter()
-        compiled = fn.lower(jax.random.key(0)).compile()
-        compile_s = time.perf_counter() - start
-        memory = compiled.memory_analysis()
-        times = []
-        for r in range(args.repeats):
+        # Both ways of stepping a device's islands (islands.step), timed alternately; with one
+        # island per device they are the same program.
+        variants = (False, True) if args.islands > num_devices else (False,)
+        compiled, compile_s, times = {}, {}, {v: [] for v in variants}
+        for batch in variants:
+            fn = jax.jit(lambda key, d=num_devices, b=batch: islands.filter(
+                key, prepared, default_params(), config, args.islands, d, args.island_threshold, batch_islands=b))
             start = time.perf_counter()
-            out = jax.block_until_ready(compiled(jax.random.key(r)))
-            times.append(time.perf_counter() - start)
-        final = (np.asarray(out.state.islands.poses), float(out.marginal_loglik))
-        if num_devices == counts[0]:
-            first_final = final
-        row = {"devices": num_devices, "islands": args.islands, "particles": args.particles, "steps": steps,
-               "compile_s": round(compile_s, 1), "ms_per_update": round(1e3 * min(times) / steps, 2),
-               "exchanges": int(np.asarray(out.info.exchanged).sum()),
-               "same_as_first_count": bool(np.array_equal(final[0], first_final[0]) and final[1] == first_final[1]),
-               "per_device_mb": {k: round(getattr(memory, k + "_size_in_bytes") / 2**20, 2)
-                                 for k in ("argument", "output", "temp")} if memory is not None else None}
-        rows.append(row)
-        print(json.dumps(row), flush=True)
+            compiled[batch] = fn.lower(jax.random.key(0)).compile()
+            compile_s[batch] = time.perf_counter() - start
+        outs = {}
+        for r in range(args.repeats):
+            for batch in variants:
+                start = time.perf_counter()
+                outs[batch] = jax.block_until_ready(compiled[batch](jax.random.key(r)))
+                times[batch].append(time.perf_counter() - start)
+        for batch in variants:
+            out, memory = outs[batch], compiled[batch].memory_analysis()
+            final = (np.asarray(out.state.islands.poses), float(out.marginal_loglik))
+            first = first_final.setdefault(batch, final)
+            row = {"devices": num_devices, "islands": args.islands, "particles": args.particles, "steps": steps,
+                   "islands_stepped_by": "vmap" if batch else "lax.map",
+                   "compile_s": round(compile_s[batch], 1), "ms_per_update": round(1e3 * min(times[batch]) / steps, 2),
+                   "exchanges": int(np.asarray(out.info.exchanged).sum()),
+                   "same_as_first_count": bool(np.array_equal(final[0], first[0]) and final[1] == first[1]),
+                   "per_device_mb": {k: round(getattr(memory, k + "_size_in_bytes") / 2**20, 2)
+                                     for k in ("argument", "output", "temp")} if memory is not None else None}
+            rows.append(row)
+            print(json.dumps(row), flush=True)
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"args": vars(args), "rows": rows}, f, indent=1)

@@ -148,7 +148,7 @@ def island_keys(key: PRNGKeyArray, island_index: Int[Array, "L"], num_islands: i
 
 def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: SensorSpec, params: SlamParams,
          config: SlamConfig, island_threshold: Float[Array, ""] | float = 0.5, axis_name: str | None = None,
-         ) -> tuple[IslandState, IslandInfo]:
+         batch_islands: bool = False) -> tuple[IslandState, IslandInfo]:
     """One island step: every island takes :func:`jaxslam.rbpf.step_with_score_terms` with its
     own key, the island weights take the islands' evidence and are normalised over all islands,
     and when their ESS < ``island_threshold`` x I the islands are resampled as wholes (see the
@@ -159,6 +159,10 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
     the mesh axis ``axis_name``, it holds this device's I / D islands (``state.log_weights``
     stays all I): the step gathers the islands' few floats from every device and copies the
     islands an exchange needs across devices.
+
+    ``batch_islands`` (static): step the device's islands as one ``vmap`` rather than one after
+    the other (``lax.map``); faster where the islands are small, but the device count then
+    changes the last bits of the evidence (benchmarks/bench_islands.py).
     """
     num_islands = state.log_weights.shape[0]
     num_local = state.islands.log_weights.shape[0]
@@ -171,13 +175,15 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
     def island_step(k, s):
         return rbpf.step_with_score_terms(k, s, inputs, sensor, params, one)
 
-    # One island at a time (a loop, not a vmap): every island is then the same unbatched program
+    # By default one island at a time (a loop): every island is then the same unbatched program
     # whatever the device's island count, so that the device count changes no bit, and one
-    # island is rbpf.filter's program (a vmap fuses a batch of 1 and of 4 differently: the
-    # evidence and proposed poses differed in the last bits between 1 and 4 devices).
+    # island is rbpf.filter's program. A vmap fuses a batch of 1 and of 4 differently: the
+    # evidence and proposed poses differed in the last bits between 1 and 4 devices.
     if num_local == 1:
         islands, infos, terms = jax.tree.map(lambda x: x[None], island_step(keys[0], jax.tree.map(
             lambda x: x[0], state.islands)))
+    elif batch_islands:
+        islands, infos, terms = jax.vmap(island_step)(keys, state.islands)
     else:
         islands, infos, terms = jax.lax.map(lambda args: island_step(*args), (keys, state.islands))
 
@@ -281,11 +287,12 @@ FilterOutput = particle_filter.FilterOutput
 
 def filter(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, config: SlamConfig,
            num_islands: int, num_devices: int = 1, island_threshold: Float[Array, ""] | float = 0.5,
-           pool: PoolSize | None = None) -> FilterOutput:  # noqa: A001 (the module's filter, as rbpf's)
+           pool: PoolSize | None = None, batch_islands: bool = False
+           ) -> FilterOutput:  # noqa: A001 (the module's filter, as rbpf's)
     """The island filter over a whole log as one pure function: :func:`init`, then a
     ``lax.scan`` of :func:`step`, inside one ``shard_map`` over ``num_devices`` devices.
 
-    Jittable (``config``, ``num_islands``, ``num_devices`` and ``pool`` static); ``key`` and
+    Jittable (``config``, ``num_islands``, ``num_devices``, ``pool`` and ``batch_islands`` static); ``key`` and
     ``params`` and ``island_threshold`` traced. The settings are checked before any work
     (ConfigError: islands that do not divide the particles, devices that do not divide the
     islands or that JAX does not have). The per-step keys are split from ``key`` as
@@ -304,6 +311,8 @@ def filter(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, co
       island_threshold: resample the islands when their ESS < ``island_threshold`` x I.
       pool: static sizes of each island's pools (default :func:`jaxslam.rbpf.pool_size` of the
         island's config).
+      batch_islands: vmap a device's islands instead of looping over them (:func:`step`): the
+        result then depends on the device count in the last bits.
     """
     island_config(config, num_islands)
     check_devices(num_islands, num_devices)
@@ -320,7 +329,8 @@ def filter(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, co
                      prepared.initial_pose, pool=pool)
         state = state._replace(log_weights=jnp.full((num_islands,), -math.log(num_islands), jnp.float32))
         out = particle_filter.scan_filter(
-            lambda k, s, inp: step(k, s, inp, prepared.sensor, params, config, island_threshold, AXIS),
+            lambda k, s, inp: step(k, s, inp, prepared.sensor, params, config, island_threshold, AXIS,
+                                   batch_islands),
             key_steps, state, prepared.inputs, lambda info: info.log_evidence, checkpoint=False)
         overflow = jax.lax.all_gather(out.state.islands.maps.overflow, AXIS, tiled=True)
         return out._replace(marginal_loglik=jnp.where(jnp.any(overflow), -jnp.inf, out.marginal_loglik))
