@@ -292,8 +292,8 @@ def filter(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, co
     """The island filter over a whole log as one pure function: :func:`init`, then a
     ``lax.scan`` of :func:`step`, inside one ``shard_map`` over ``num_devices`` devices.
 
-    Jittable (``config``, ``num_islands``, ``num_devices``, ``pool`` and ``batch_islands`` static); ``key`` and
-    ``params`` and ``island_threshold`` traced. The settings are checked before any work
+    Jittable (``config``, ``num_islands``, ``num_devices``, ``pool`` and ``batch_islands``
+    static; ``key``, ``params`` and ``island_threshold`` traced). The settings are checked before any work
     (ConfigError: islands that do not divide the particles, devices that do not divide the
     islands or that JAX does not have). The per-step keys are split from ``key`` as
     :func:`jaxslam.rbpf.filter` does; with ``num_islands=1`` the result is its result bit for bit
@@ -339,5 +339,7 @@ def filter(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, co
     islands_first, islands_second = PartitionSpec(AXIS), PartitionSpec(None, AXIS)
     info_specs = IslandInfo(islands_second, *([replicated] * (len(IslandInfo._fields) - 1)))
     out_specs = FilterOutput(IslandState(islands_first, replicated), info_specs, replicated)
-    return jax.shard_map(on_device, mesh=mesh, in_specs=(replicated, replicated, replicated, replicated),
-                         out_specs=out_specs, check_vma=False)(key, prepared, params, jnp.asarray(island_threshold, jnp.float32))
+    # check_vma=False: the library's loops start from replicated constants while the islands vary
+    # over the mesh; the replicated outputs are computed alike on every device from gathered floats.
+    on_mesh = jax.shard_map(on_device, mesh=mesh, in_specs=(replicated,) * 4, out_specs=out_specs, check_vma=False)
+    return on_mesh(key, prepared, params, jnp.asarray(island_threshold, jnp.float32))

@@ -46,7 +46,8 @@ def one_island(prepared):
 
 
 def _leaves(tree) -> dict[str, np.ndarray]:
-    return {jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+    flat = jax.tree_util.tree_flatten_with_path(tree)[0]
+    return {jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in flat}
 
 
 def test_one_island_is_rbpf_filter_bit_for_bit(prepared, one_island):
