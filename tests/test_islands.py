@@ -182,6 +182,15 @@ def test_a_zero_weight_island_is_never_drawn():
             # Every island drawn keeps its own place; only those not drawn are replaced.
             np.testing.assert_array_equal(np.asarray(ancestors)[drawn], drawn)
             np.testing.assert_allclose(np.asarray(new_log_weights), np.log(0.25), rtol=1e-6)
+    # The island weights gain the islands' evidence; the step's evidence is their weighted sum.
+    previous = np.log(np.array([0.1, 0.2, 0.3, 0.4]))
+    finite = np.array([0.5, -1.0, 2.0, 0.0])
+    _, kept, update = islands.resample_islands(jax.random.key(0), jnp.asarray(previous, jnp.float32),
+                                               jnp.asarray(finite, jnp.float32), 0.0, "systematic")
+    evidence = np.log(np.sum(np.exp(previous + finite)))
+    np.testing.assert_allclose(float(update.log_evidence), evidence, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(kept), previous + finite - evidence, rtol=1e-5)
+    assert not bool(update.resampled)
 
 
 def test_bad_island_and_device_counts_are_refused_before_any_work(prepared):
