@@ -21,9 +21,10 @@ filter's.
 
 Devices: the island axis lies on a 1-D mesh (``jax.sharding.Mesh`` over ``num_devices``
 devices, axis :data:`AXIS`), and the whole filter (init and ``lax.scan``) runs inside one
-``jax.shard_map``: each device holds I / D islands and runs its step as a vmap over them. A
-step's cross-device traffic is one all-gather of a few floats per island (evidence, ESS, best
-particle) and, on an exchange, the states of the islands copied across devices: one
+``jax.shard_map``: each device holds I / D islands and steps them one after the other
+(``lax.map``; ``batch_islands``: as one vmap, faster, but equal across device counts only to
+rounding). A step's cross-device traffic is one all-gather of a few floats per island
+(evidence, ESS, best particle) and, on an exchange, the states of the islands copied across devices: one
 ``ppermute`` of one island per (device shift, local slot) pair that some copy needs, under a
 ``lax.cond`` on the (replicated) island draw, so that a step without exchange moves no map.
 One device is the same code, with one island per step key when I = 1
