@@ -121,3 +121,25 @@ def resample_if_needed(
     uniform = uniform + jnp.where(jnp.isfinite(picked), picked - jax.lax.stop_gradient(picked), 0.0)
     new_log_weights = jnp.where(do, uniform, normalized)
     return ancestors, new_log_weights, do
+
+
+def keep_in_place(ancestors: Int[Array, "N"]) -> tuple[Int[Array, "N"], Int[Array, "N"]]:
+    """The same draw with every drawn index in its own slot: ``(arranged, order)``, ``arranged =
+    ancestors[order]``, ``arranged[i] = i`` wherever ``i`` was drawn, and the extra copies of
+    the indices drawn more than once fill the slots of those never drawn (in increasing order).
+
+    A resampling's outcome is the multiset of ancestors, not their order: arranged so, the only
+    slots that change are those whose own occupant was not drawn, and no slot that is copied
+    from is itself overwritten (:mod:`jaxslam.islands` moves a whole island's maps only for the
+    islands replaced). ``order`` permutes whatever goes with the ancestors (the new log-weights
+    of :func:`resample_if_needed`, with their score terms)."""
+    n = ancestors.shape[0]
+    order = jnp.argsort(ancestors, stable=True)
+    drawn = ancestors[order]  # sorted
+    first = jnp.concatenate([jnp.ones((1,), bool), drawn[1:] != drawn[:-1]])
+    never_drawn = jnp.ones((n,), bool).at[ancestors].set(False)
+    empty_slots = jnp.nonzero(never_drawn, size=n, fill_value=n - 1)[0]
+    extra_rank = jnp.cumsum(~first) - 1  # the k-th extra copy goes to the k-th empty slot
+    slot = jnp.where(first, drawn, empty_slots[jnp.maximum(extra_rank, 0)])
+    arranged = jnp.zeros_like(ancestors).at[slot].set(drawn)
+    return arranged, jnp.zeros_like(order).at[slot].set(order).astype(jnp.int32)

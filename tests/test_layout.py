@@ -97,7 +97,7 @@ def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
     return seen
 
 
-FILTER_LAYER = ("jaxslam.rbpf", "jaxslam.particle_filter", "jaxslam.proposals", "jaxslam.sensor_model",
+FILTER_LAYER = ("jaxslam.rbpf", "jaxslam.islands", "jaxslam.particle_filter", "jaxslam.proposals", "jaxslam.sensor_model",
                 "jaxslam.localization.mcl", "jaxslam.localization.doors")
 """The pure filters: what they import must not reach the readers, the outputs or the host drivers."""
 

@@ -82,3 +82,16 @@ def test_score_bias_runs_end_to_end_on_the_linear_gaussian_model(tmp_path, capsy
     with pytest.raises(SystemExit):
         score_bias.main(["--out", str(tmp_path), "--lags", "-1"])
     assert "lags >= 0" in capsys.readouterr().err
+
+
+def test_learn_office_world_hall_fits_against_the_halls_own_terms(tmp_path):
+    """``--world hall`` sets up the second world: its simulated terms (not the office's) are the
+    truth a profile is taken at, and its known-path references are computed on it."""
+    out = tmp_path / "hall.json"
+    assert learn_office.main(["--world", "hall", "--proposal", "op", "--particles", "4", "--scans", "40",
+                              "--profile", "1", "--seeds", "2", "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert record["args"]["world"] == "hall"
+    assert record["truth"]["motion.srr"] == pytest.approx(0.08) and record["truth"]["motion.srt"] == pytest.approx(0.01)
+    assert set(record["known_path_motion_optimum"]) == set(learn_office.TERMS)
+    assert np.all(np.isfinite(record["profile"][0]["values"]))

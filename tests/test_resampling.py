@@ -268,3 +268,20 @@ def test_residual_keeps_deterministic_copies():
     assert np.all(c >= np.floor(n * w))
     # The random part draws the remaining M - sum(floor(M w)) = 6 slots from the residues.
     assert np.all((c - np.floor(n * w)).sum(axis=1) == n - np.floor(n * w).sum())
+
+
+def test_keep_in_place_moves_only_the_slots_not_drawn():
+    """Every drawn index in its own slot, the extra copies in the slots never drawn, the same
+    multiset, ``order`` the permutation that arranges it; checked on random draws."""
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 5, 16):
+        for _ in range(50):
+            ancestors = rng.integers(0, n, n).astype(np.int32)
+            arranged, order = (np.asarray(a) for a in R.keep_in_place(jnp.asarray(ancestors)))
+            np.testing.assert_array_equal(arranged, ancestors[order])
+            np.testing.assert_array_equal(np.sort(order), np.arange(n))
+            drawn = np.unique(ancestors)
+            np.testing.assert_array_equal(arranged[drawn], drawn)
+            moved = np.flatnonzero(arranged != np.arange(n))
+            assert not np.isin(moved, drawn).any()  # no source is overwritten
+    np.testing.assert_array_equal(np.asarray(R.keep_in_place(jnp.array([3, 3, 0, 1]))[0]), [0, 1, 3, 3])

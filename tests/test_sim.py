@@ -18,6 +18,7 @@ from jaxslam.sim import (
     circle_path,
     concat_paths,
     concat_worlds,
+    hall_scenario,
     make_world,
     noisy_odometry,
     office_scenario,
@@ -445,6 +446,27 @@ def test_office_path_never_crosses_a_wall(office):
     assert point_segment_distance(xy, office.world.segments).min() > 0.4
     # The path visits rooms on both sides of the corridor (not just the corridor).
     assert xy[:, 1].max() > 12.0 and xy[:, 1].min() < 2.0
+
+
+
+def test_hall_scenario_is_a_second_world_beside_the_office():
+    hall = hall_scenario(jax.random.key(0))
+    log, xy = hall.log, hall.true_poses[:, :2]
+    assert log.num_scans == 500 and log.num_beams == 180
+    step = hall.metadata["step_length"]
+    _check_steps(hall.true_poses, step, step / hall.metadata["turn_radius"], hall.metadata["turn_radius"])
+    assert np.hypot(*(xy[-1] - xy[0])) < 0.05  # a loop
+    assert not path_crossings(xy, hall.world.segments).any()
+    assert point_segment_distance(xy, hall.world.segments).min() > 0.4
+    # Other odometry terms than the office's, so a fit there is a second case, not a repeat.
+    office_terms = np.array(office_scenario(jax.random.key(0)).metadata["motion_params"][:4], np.float64)
+    hall_terms = np.array(hall.metadata["motion_params"][:4], np.float64)
+    assert np.all(np.abs(np.log(hall_terms / office_terms)) > 0.3)
+    # An open hall: most beams end beyond the office's 2 m corridor, and some reach no wall.
+    ranges = log.ranges
+    assert np.median(ranges[ranges < 10.0]) > 4.0 and np.mean(ranges >= 10.0) > 0.1
+    again = hall_scenario(jax.random.key(0))
+    np.testing.assert_array_equal(again.log.ranges, log.ranges)
 
 
 def _hit_groups(scenario):

@@ -6,6 +6,8 @@
   Burgard, "Look-ahead Proposals for Robust Grid-based SLAM with Rao-Blackwellized
   Particle Filters" (Figs. 1 and 4): 15 laps around a lone box with a 4 m laser,
   then back to a checkpoint X whose surroundings were mapped at the start.
+* :func:`hall_scenario`: an open hall with two rows of pillars, a figure-of-eight tour: a
+  second world for checks that should not be the office's doing (learning's fit tables).
 * :func:`symmetric_junction_scenario`: a corridor that forks into two identical lanes; from
   inside a lane the scan cannot tell which lane the robot is in.
 
@@ -168,31 +170,114 @@ def office_scenario(
       A :class:`Scenario`; metadata holds ``motion_params``, ``range_noise_std``,
       ``step_length``, ``dt``, ``turn_radius``, ``start`` ((2,) m) and ``path_length`` (m).
     """
-    if num_scans < 2:
-        raise ValueError(f"office_scenario: num_scans must be at least 2, got {num_scans}")
     if motion is None:
         motion = motion_params(0.05, 0.02, 0.05, 0.05, 0.001, 0.001)
-    world = office_world()
-    waypoints = office_waypoints()
+    return _waypoint_scenario(key, "office", office_world(), office_waypoints(), OFFICE_TURN_RADIUS, num_scans,
+                              num_beams, range_max, range_noise_std, speed, motion)
+
+
+def _waypoint_scenario(key, name: str, world: SegmentWorld, waypoints: np.ndarray, turn_radius: float,
+                       num_scans: int, num_beams: int, range_max: float, range_noise_std: float, speed: float,
+                       motion: MotionParams) -> Scenario:
+    """A tour through ``waypoints`` in ``world`` sampled at ``num_scans`` poses of equal arc length
+    (corners arcs of ``turn_radius``), scanned by a 180-degree laser of ``num_beams`` beams:
+    the one builder of :func:`office_scenario` and :func:`hall_scenario`."""
+    if num_scans < 2:
+        raise ValueError(f"{name}_scenario: num_scans must be at least 2, got {num_scans}")
     # The step that puts exactly num_scans poses on the path, the last one on its end.
-    length = waypoint_path_length(waypoints, OFFICE_TURN_RADIUS)
+    length = waypoint_path_length(waypoints, turn_radius)
     step = length / (num_scans - 1)
-    true_poses = waypoint_path(waypoints, step, step / OFFICE_TURN_RADIUS, turn_radius=OFFICE_TURN_RADIUS)
-    if true_poses.shape[0] != num_scans:  # a guard: the office path has no turns on the spot
-        raise AssertionError(f"office path has {true_poses.shape[0]} poses, expected {num_scans}")
+    true_poses = waypoint_path(waypoints, step, step / turn_radius, turn_radius=turn_radius)
+    if true_poses.shape[0] != num_scans:  # a guard: these tours have no turns on the spot
+        raise AssertionError(f"{name} path has {true_poses.shape[0]} poses, expected {num_scans}")
     sensor = make_sensor(uniform_beams(num_beams, np.pi), range_min=0.05, range_max=range_max)
     dt = step / speed
-    log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<office scenario>")
+    log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source=f"<{name} scenario>")
     metadata = dict(
         motion_params=motion,
         range_noise_std=float(range_noise_std),
         step_length=step,
         dt=dt,
-        turn_radius=OFFICE_TURN_RADIUS,
+        turn_radius=turn_radius,
         start=waypoints[0].copy(),
         path_length=length,
     )
     return Scenario(log, world, log.ground_truth, metadata)
+
+
+# ------------------------------------------------------------------------------- hall
+
+HALL_SIZE = (24.0, 16.0)
+"""Outer dimensions (m) of the hall."""
+HALL_TURN_RADIUS = 1.0
+"""Radius (m) of the hall tour's rounded corners."""
+
+
+def hall_world() -> SegmentWorld:
+    """An open hall, unlike the office's corridors: 24 m x 16 m outer walls, two rows of
+    round and square pillars, shelving along the north and south walls with gaps, and an
+    alcove in the east wall. Most of a scan is long beams to distant walls and short ones to
+    isolated pillars; there is no corridor to constrain the heading.
+
+    Groups: "outer", "pillars", "shelves".
+    """
+    width, height = HALL_SIZE
+    outer = polyline_segments([[0, 0], [width, 0], [width, 6.5], [width + 2.0, 6.5], [width + 2.0, 9.5],
+                               [width, 9.5], [width, height], [0, height]], closed=True)
+    pillars = []
+    for i, x in enumerate((4.0, 9.0, 14.0, 19.0)):
+        for y in (5.0, 11.0):
+            if (i + (y > 8)) % 2:  # round and square pillars alternate
+                ring = [[x + 0.3 * np.cos(a), y + 0.3 * np.sin(a)] for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+                pillars.append(polyline_segments(ring, closed=True))
+            else:
+                pillars.append(box_segments(x, y, 0.6, 0.6))
+    pillars = np.concatenate(pillars)
+    shelves = np.concatenate([
+        box_segments(3.0, 15.4, 4.0, 0.6), box_segments(10.5, 15.4, 5.0, 0.6), box_segments(19.0, 15.4, 3.0, 0.6),
+        box_segments(5.5, 0.6, 5.0, 0.6), box_segments(15.0, 0.6, 3.0, 0.6, angle=0.0),
+        box_segments(21.0, 2.5, 1.0, 2.0, angle=0.3),
+    ])
+    world = make_world(outer, bounds=(-1.0, -1.0, width + 3.0, height + 1.0), groups={"outer": np.arange(outer.shape[0])})
+    return concat_worlds(
+        world,
+        make_world(pillars, world.bounds, groups={"pillars": np.arange(pillars.shape[0])}),
+        make_world(shelves, world.bounds, groups={"shelves": np.arange(shelves.shape[0])}),
+    )
+
+
+def hall_waypoints() -> np.ndarray:
+    """(P, 2) waypoints (m) of the hall tour: a figure of eight between the pillar rows, through
+    the middle twice, round the east pillars and the west pillars, back to the start."""
+    return np.array([
+        [2.0, 8.0], [11.5, 8.0], [11.5, 13.2], [21.5, 13.2], [21.5, 8.0], [16.5, 8.0], [16.5, 2.8],
+        [6.5, 2.8], [6.5, 8.0], [11.5, 8.0], [11.5, 2.8], [2.0, 2.8], [2.0, 8.0],
+    ])
+
+
+def hall_scenario(
+    key: PRNGKeyArray,
+    num_scans: int = 500,
+    num_beams: int = 180,
+    range_max: float = 10.0,
+    range_noise_std: float = 0.02,
+    speed: float = 1.0,
+    motion: MotionParams | None = None,
+) -> Scenario:
+    """A second simulated dataset beside the office (:func:`office_scenario`), for checking that
+    what holds there is not the office's doing: a figure-of-eight tour of :func:`hall_world`
+    (:func:`hall_waypoints`, corners of radius :data:`HALL_TURN_RADIUS`) sampled at
+    ``num_scans`` poses of equal arc length, the same laser and, by default, odometry noise of
+    the same form with other terms: srr = 0.08 m/m, srt = 0.01 m/rad, str = 0.03 rad/m,
+    stt = 0.08 rad/rad, minimum stds 1 mm and 0.001 rad.
+
+    Returns:
+      A :class:`Scenario`; metadata as :func:`office_scenario`'s.
+    """
+    if motion is None:
+        motion = motion_params(0.08, 0.01, 0.03, 0.08, 0.001, 0.001)
+    return _waypoint_scenario(key, "hall", hall_world(), hall_waypoints(), HALL_TURN_RADIUS, num_scans, num_beams,
+                              range_max, range_noise_std, speed, motion)
 
 
 # -------------------------------------------------------------------------- box world
