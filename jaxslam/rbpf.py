@@ -188,9 +188,17 @@ def step_with_score_terms(
     # No gradient reaches the previous poses: the maps they built do not move with them (the
     # insertion is not differentiable), and a pose moved against a fixed map is a biased and
     # very noisy motion gradient (motion.sample_with_score).
-    out: ProposalOutput = jax.vmap(propose_fn, in_axes=(0, 0, paged_map.FIELD_AXES, None, None, None, None))(
-        jax.random.split(key_prop, n), jax.lax.stop_gradient(state.poses), paged_map.fields(state.maps), lik_inputs,
-        lik_sensor, params, config)
+    # In blocks of config.particle_block particles: the window posterior's candidates times beams
+    # would otherwise be the step's largest intermediate, N times over.
+    field = paged_map.fields(state.maps)
+
+    def propose_one(particle):
+        key, pose, directory = particle
+        return propose_fn(key, pose, field._replace(directory=directory), lik_inputs, lik_sensor, params, config)
+
+    out: ProposalOutput = particle_filter.map_in_blocks(
+        propose_one, (jax.random.split(key_prop, n), jax.lax.stop_gradient(state.poses), field.directory),
+        config.particle_block)
 
     update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
                                                    params.resample_threshold, config.resampler)
@@ -198,7 +206,8 @@ def step_with_score_terms(
     survivors = jnp.zeros((n,), bool).at[update.ancestors].set(True)
     maps, outside = paged_map.insert_scans(spec, state.maps, jax.lax.stop_gradient(out.pose), inputs.ranges, sensor,
                                            jax.lax.stop_gradient(params.insertion), config.max_insert_range,
-                                           config.field_radius, survivors)  # not differentiable: see init
+                                           config.field_radius, survivors,
+                                           config.particle_block)  # not differentiable: see init
     # An insertion that did not fit wrote nothing: the step is not taken.
     taken = active & ~maps.overflow
     ancestors = jnp.where(taken, update.ancestors, jnp.arange(n, dtype=update.ancestors.dtype))
