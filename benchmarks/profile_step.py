@@ -134,10 +134,11 @@ def main(argv=None):
     propose_fn = PROPOSALS[config.proposal].propose_fn
 
     @jax.jit
-    def proposals(key, state):
-        return jax.vmap(propose_fn, in_axes=(0, 0, paged_map.FIELD_AXES, None, None, None, None))(
-            jax.random.split(key, n), state.poses, paged_map.fields(state.maps), lik_inputs, lik_sensor, params,
-            config)
+    def proposals(key, state):  # as rbpf.step runs them: config.particle_block at a time
+        field = paged_map.fields(state.maps)
+        return particle_filter.map_in_blocks(
+            lambda p: propose_fn(p[0], p[1], field._replace(directory=p[2]), lik_inputs, lik_sensor, params, config),
+            (jax.random.split(key, n), state.poses, field.directory), config.particle_block)
 
     out = proposals(jax.random.key(2), state)
     update = particle_filter.reweight_and_resample(jax.random.key(3), out.pose, state.log_weights,
@@ -148,7 +149,8 @@ def main(argv=None):
     @jax.jit
     def insertion(maps, poses, survivors):
         return paged_map.insert_scans(config.grid, maps, poses, step_inputs.ranges, sensor, params.insertion,
-                                      config.max_insert_range, config.field_radius, survivors)
+                                      config.max_insert_range, config.field_radius, survivors,
+                                      config.particle_block)
 
     resample_maps = jax.jit(paged_map.resample)
     step = jax.jit(lambda key, state: rbpf.step(key, state, step_inputs, sensor, params, config))

@@ -91,16 +91,21 @@ class SlamInfo(NamedTuple):
 def pool_size(config: SlamConfig) -> PoolSize:
     """The maps' pools a run starts with (see :class:`~jaxslam.paged_map.PagedMaps`). An insertion
     copies or creates up to about 20 tiles per particle (64-cell tiles, 15 m beams; more after a
-    resampling, fewer when the particles own their tiles) and up to 4 blocks; the pools start
-    with room for that many and a few steps of growth, and :func:`jaxslam.slam.run` grows them
-    when a step needs more (one recompile each time, reported)."""
+    resampling, fewer when the particles own their tiles) and up to 4 blocks. The tile pool
+    starts with room for three such requests: what the particles hold (on Intel's first 3,000
+    scans at most 1.9 requests' worth at the end, at N = 30 to 1,000) and the next request. It
+    is the largest allocation per particle (0.9 MB at 64-cell tiles), so it starts no larger:
+    :func:`jaxslam.slam.run` grows the pools when a step needs more (one recompile each time,
+    reported; while it grows both the old and the new pools are held, so starting smaller and
+    growing costs more peak memory than starting large enough:
+    docs/notes/2026-11-26-memory-per-particle.md)."""
     spec = config.grid
     k = spec.window_tiles(config.max_insert_range, config.field_radius)
     kb = spec.window_blocks(k)
     n = config.num_particles
     max_new_tiles = n * min(k * k, 24) + k * k
     max_new_blocks = n * kb * kb + kb * kb
-    return PoolSize(4 * max_new_tiles + 256, max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)
+    return PoolSize(3 * max_new_tiles + 256, max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)
 
 
 @jax.jit(static_argnames=("config", "pool"))
