@@ -72,7 +72,7 @@ def main(argv=None):
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     ap.add_argument("--max-scans", type=int, default=3000)
     ap.add_argument("--warm-chunks", type=int, default=1, help="chunks of 32 steps run before measuring")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=3, help="timed calls of each part (0: memory analysis only)")
     ap.add_argument("--top", type=int, default=12, help="largest buffers listed")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
@@ -162,7 +162,7 @@ def main(argv=None):
     report["parts"] = {}
     for name, (fn, fn_args) in parts.items():
         report["parts"][name] = {"memory": _memory(fn.lower(*fn_args).compile()),
-                                 "seconds": _best_time(fn, fn_args, args.repeats)}
+                                 "seconds": _best_time(fn, fn_args, args.repeats) if args.repeats else None}
     report["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(json.dumps({k: v for k, v in report.items() if k != "top_buffers"}, indent=1))
     for row in report["top_buffers"]:

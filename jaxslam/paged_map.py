@@ -754,7 +754,8 @@ def _pool_index(spec: PagedGridSpec, writable_slot: Int[Array, "N*(KK+1)"], cell
 def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses: Float[Array, "N 3"],
                  ranges: Float[Array, "B"], sensor: SensorSpec, pages: _WindowPages, grants: _Grants,
                  active: Bool[Array, "N"], params: InsertionParams, max_insert_range: float, field_radius: int,
-                 particle_block: int | None) -> tuple[Float[Array, "C T T"], UInt8[Array, "C T T"]]:
+                 particle_block: int | None, targets: _ScanTargets | None = None
+                 ) -> tuple[Float[Array, "C T T"], UInt8[Array, "C T T"]]:
     """All particles' updates scattered into the pools, each into tiles its writer owns (no two
     particles write one slot): the same updates as a dense grid's
     (:func:`jaxslam.occupancy.update_cells`). Cells of inactive particles, and all cells when
@@ -762,7 +763,8 @@ def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses
     ``particle_block`` particles at a time (a ``lax.scan`` over blocks, the pools its carry):
     their (block, beams, samples) indices are the insertion's largest intermediates. Particles
     write disjoint cells and every sample of a kind adds the same value, so the blocks' order
-    changes no bit. Returns the log-odds and field pools."""
+    changes no bit. ``targets``: all particles' samples, already computed (one block). Returns
+    the log-odds and field pools."""
     capacity = tiles.refcount.shape[0]
     n, num_window_tiles = pages.tile_slots.shape
     slots = jnp.where(grants.tiles, grants.tile_slots, pages.tile_slots.reshape(-1))
@@ -773,17 +775,19 @@ def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses
                                      jnp.full((n, 1), capacity, jnp.int32)], axis=1)
     _, d2 = field_kernel(field_radius)
 
-    def write_block(pools, block):
+    def write_block(pools, block, block_targets=None):
         block_poses, block_writable = block
-        targets = _scan_targets(spec, window, block_poses, ranges, sensor, params, max_insert_range, field_radius)
+        if block_targets is None:
+            block_targets = _scan_targets(spec, window, block_poses, ranges, sensor, params, max_insert_range,
+                                          field_radius)
         free, ends, splats = (_pool_index(spec, block_writable.reshape(-1), cells, capacity)
-                              for cells in (targets.free, targets.ends, targets.splats))
+                              for cells in (block_targets.free, block_targets.ends, block_targets.splats))
         return update_cells(*pools, free, ends, splats, d2, params), None
 
     pools = (tiles.logodds.reshape(-1), tiles.hit_dist2.reshape(-1))
     size = n if particle_block is None else even_block_size(n, particle_block)
     if size >= n:
-        (logodds, hit_dist2), _ = write_block(pools, (poses, writable_slot))
+        (logodds, hit_dist2), _ = write_block(pools, (poses, writable_slot), targets)
     else:
         # Padding particles (past N) write nothing: every tile of theirs is unwritable.
         num_blocks = -(-n // size)
@@ -836,15 +840,21 @@ def insert_scans(
     """
     window = _window_shape(spec, max_insert_range, field_radius)
     active = jnp.ones((poses.shape[0],), bool) if active is None else jnp.asarray(active, bool)
-    summary = _scan_summaries(spec, window, poses, ranges, sensor, params, max_insert_range, field_radius,
-                              particle_block)
+    if particle_block is None or even_block_size(poses.shape[0], particle_block) >= poses.shape[0]:
+        # One block: the beam samples are computed once, for the requests and the writes alike.
+        targets = _scan_targets(spec, window, poses, ranges, sensor, params, max_insert_range, field_radius)
+        summary = _ScanSummary(targets.touched, targets.window_start, targets.outside)
+    else:
+        targets = None
+        summary = _scan_summaries(spec, window, poses, ranges, sensor, params, max_insert_range, field_radius,
+                                  particle_block)
     layout = _window_layout(spec, window, summary.window_start)
     pages = _window_pages(spec, maps, layout)
     grants = _grant_slots(maps, _requests(summary.touched, active, layout, pages))
     blocks = _copy_blocks(spec, maps, layout, pages, grants)
     tiles = _copy_tiles(maps, layout, pages, grants, blocks)
     logodds, hit_dist2 = _write_cells(spec, window, tiles, poses, ranges, sensor, pages, grants, active, params,
-                                      max_insert_range, field_radius, particle_block)
+                                      max_insert_range, field_radius, particle_block, targets)
     new_maps = PagedMaps(
         directory=blocks.directory,
         blocks=tiles.entries.reshape(maps.blocks.shape),
