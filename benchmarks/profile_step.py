@@ -10,7 +10,7 @@ sweep``) for ``--warm-chunks`` chunks of 32 steps, then, from that state:
 * the steady-state time of each part and of the whole step (best of ``--repeats``);
 * the peak resident memory of the process.
 
-    python benchmarks/profile_step.py --particles 1000 --out /tmp/profile_1000.json
+    python benchmarks/profile_step.py --particles 1000 --out profile_1000.json
 
 The figures go to ``--out`` (JSON) and stdout. ``bench_maps.py breakdown`` runs this once per N.
 """
