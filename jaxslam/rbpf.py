@@ -93,7 +93,8 @@ def pool_size(config: SlamConfig) -> PoolSize:
     copies or creates up to about 20 tiles per particle (64-cell tiles, 15 m beams; more after a
     resampling, fewer when the particles own their tiles) and up to 4 blocks. The tile pool
     starts with room for three such requests: what the particles hold (on Intel's first 3,000
-    scans at most 1.9 requests' worth at the end, at N = 30 to 1,000) and the next request. It
+    scans 1.9 to 2.1 requests' worth at the end, at N = 30 to 1,000) and the next request (there
+    at most 0.74 of one). It
     is the largest allocation per particle (0.9 MB at 64-cell tiles), so it starts no larger:
     :func:`jaxslam.slam.run` grows the pools when a step needs more (one recompile each time,
     reported; while it grows both the old and the new pools are held, so starting smaller and
