@@ -12,7 +12,9 @@ sweep``) for ``--warm-chunks`` chunks of 32 steps, then, from that state:
 
     python benchmarks/profile_step.py --particles 1000 --out profile_1000.json
 
-The figures go to ``--out`` (JSON) and stdout. ``bench_maps.py breakdown`` runs this once per N.
+The figures go to ``--out`` (JSON) and stdout; run one process per N. The parts are called
+without donating the maps, so the insertion's and the whole step's times include a copy of the
+pools (their memory analysis counts it as an output); the chunk's figures are the run's.
 """
 
 from __future__ import annotations
