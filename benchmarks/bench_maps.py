@@ -9,8 +9,9 @@ Sections (each merges its figures into ``--out``, a JSON file):
   the ratios are against the first.
 * ``killian``: the whole MIT Killian log, SMP, 30 particles: peak memory, real-time factor.
 * ``sweep``: Intel's first ``--max-scans`` scans at N = ``--particles``: peak memory, time per
-  processed scan (compile excluded), and the bytes each extra particle costs (a least-squares
-  slope of peak memory against N).
+  processed scan (compile excluded), the bytes each extra particle costs (a least-squares
+  slope of peak memory against N) and the log-log slope of the time against N. With
+  ``--previous DIR [DIR ...]`` the same runs in those checkouts too, N by N, alternating.
 * ``vmap``: the simulated office of ``jaxslam demo``, 8 seeds: one ``vmap`` of the whole filter
   over the seeds against a loop of the same 8 runs (both compiled first, then timed).
 
@@ -19,7 +20,7 @@ Every run is a separate process (peak memory per run, from ``os.wait4``); logs a
 one invocation only (the machine is shared).
 
     python benchmarks/bench_maps.py intel --previous ../prev --out docs/results/bench_maps.json
-    python benchmarks/bench_maps.py sweep --particles 30 100 300 1000 --max-scans 3000
+    python benchmarks/bench_maps.py sweep --particles 30 100 300 1000 --max-scans 3000 --previous ../before
     python benchmarks/bench_maps.py killian
     python benchmarks/bench_maps.py vmap --seeds 8
 """
@@ -92,18 +93,37 @@ def section_killian(args) -> dict:
     return row
 
 
-def section_sweep(args) -> dict:
-    rows = []
-    for n in args.particles:
-        row = run_map(args.data / "intel.sort.bag", n, max_scans=args.max_scans)
-        steps = max(row["scans_processed"] - 1, 1)
-        row["seconds_per_update"] = (row["filter_s"] - row["compile_s"]) / steps
-        rows.append(row)
-        print(f"N={n}: {row['seconds_per_update'] * 1000:.1f} ms per update, peak {row['peak_mb']:.0f} MB", flush=True)
-    ns = np.array([r_n for r_n in args.particles], float)
+def _sweep_fit(particles: list[int], rows: list[dict]) -> dict:
+    """The least-squares MB per extra particle (peak against N) and the log-log slope of the time
+    per update against N."""
+    ns = np.array(particles, float)
     peaks = np.array([r["peak_mb"] for r in rows])
-    slope = float(np.polyfit(ns, peaks, 1)[0]) if len(rows) > 1 else None
-    return {"max_scans": args.max_scans, "rows": rows, "mb_per_extra_particle": slope}
+    seconds = np.array([r["seconds_per_update"] for r in rows])
+    if len(rows) < 2:
+        return {"mb_per_extra_particle": None, "loglog_slope": None}
+    return {"mb_per_extra_particle": float(np.polyfit(ns, peaks, 1)[0]),
+            "loglog_slope": float(np.polyfit(np.log(ns), np.log(seconds), 1)[0])}
+
+
+def section_sweep(args) -> dict:
+    """Intel's first ``--max-scans`` scans at each N; with ``--previous``, the same runs in each
+    earlier checkout too, N by N, one after the other (the machine's load then hits both alike)."""
+    repos = [("this", REPO)] + [(f"previous_{p.name}" if i else "previous", p.resolve())
+                                for i, p in enumerate(args.previous or [])]
+    rows = {name: [] for name, _ in repos}
+    for n in args.particles:
+        for name, repo in repos:
+            row = run_map(args.data / "intel.sort.bag", n, max_scans=args.max_scans, repo=repo)
+            steps = max(row["scans_processed"] - 1, 1)
+            row["seconds_per_update"] = (row["filter_s"] - row["compile_s"]) / steps
+            rows[name].append(row)
+            print(f"{name} N={n}: {row['seconds_per_update'] * 1000:.1f} ms per update, peak {row['peak_mb']:.0f} MB",
+                  flush=True)
+    out = {"max_scans": args.max_scans, "particles": args.particles, "rows": rows["this"],
+           **_sweep_fit(args.particles, rows["this"])}
+    for name, _ in repos[1:]:
+        out[name] = {"rows": rows[name], **_sweep_fit(args.particles, rows[name])}
+    return out
 
 
 def section_vmap(args) -> dict:
@@ -159,7 +179,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sections", nargs="+", choices=sorted(SECTIONS))
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="folder of the logs")
-    ap.add_argument("--previous", type=Path, nargs="+", help="checkouts of earlier commits to compare with (intel)")
+    ap.add_argument("--previous", type=Path, nargs="+", help="checkouts of earlier commits to compare with (intel, sweep)")
     ap.add_argument("--particles", type=int, nargs="+", default=[30, 100, 300, 1000])
     ap.add_argument("--max-scans", type=int, default=3000, help="sweep: scans of Intel to use")
     ap.add_argument("--seeds", type=int, default=8)

@@ -97,6 +97,13 @@ class SlamConfig:
     """Modes the window posterior keeps: its coarse local maxima, each refined on its own."""
     window_keep: int = 3
     """Cells each mode keeps per level (each splits into 8 at the next)."""
+    particle_block: int = 128
+    """Particles a step processes at once in its two per-particle stages, the proposals and the
+    scan insertion (a ``lax.map`` over blocks of this many, each block vmapped): their
+    intermediates (the window posterior's candidate poses times beams, the insertion's beam
+    samples) then cost this many particles' worth, not N's. It changes no value; larger blocks
+    give a GPU more parallel work, smaller ones less memory (the figures:
+    docs/notes/2026-11-26-memory-per-particle.md)."""
     num_localizers: int = 100
     """L, localizer particles per SLAM particle in the look-ahead proposal."""
     horizon: int = 5
@@ -141,6 +148,7 @@ class SlamConfig:
             (1 <= self.window_modes <= self.window_cells**3,
              f"window_modes must be in 1..window_cells^3, got {self.window_modes}"),
             (self.window_keep >= 1, f"window_keep must be >= 1, got {self.window_keep}"),
+            (self.particle_block >= 1, f"particle_block must be >= 1, got {self.particle_block}"),
             (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
             (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),
             (self.score_lag is None or self.score_lag >= 0, f"score_lag must be None or >= 0, got {self.score_lag}"),

@@ -71,6 +71,7 @@ from jaxslam.grid import GridSpec, world_to_cell
 from jaxslam.laser import SensorSpec, laser_rays
 from jaxslam.occupancy import (FAR, LOGODDS_DTYPE, InsertionParams, ScanCells, field_kernel, scan_cells,
                                update_cells)
+from jaxslam.particle_filter import even_block_size, map_in_blocks
 
 UNWRITTEN = -1
 """Directory or block entry of a block or tile the particle never wrote."""
@@ -325,14 +326,15 @@ def _window_start(spec: PagedGridSpec, pose: Float[Array, "3"], sensor: SensorSp
 # Inserting scans. insert_scans runs the stages below in this order, each a function of the
 # previous stages' NamedTuples:
 #   _window_shape     the static size of the window of tiles (and of blocks) one scan can change
-#   _scan_targets     where each updated cell goes: a tile of the particle's window, a place in it
+#   _scan_summaries   the window and the tiles each particle's scan touches, a block of particles at a time
 #   _window_layout    where each window tile lies: a block of the window of blocks, an entry in it
 #   _window_pages     the slots each particle's directory and blocks give its window now
 #   _requests         the tiles and blocks a particle writes but does not own
 #   _grant_slots      free slots for all particles' requests, by prefix sums; all or nothing
 #   _copy_blocks      granted blocks become copies (or fresh); directories and references follow
 #   _copy_tiles       granted tiles become copies (or fresh); the writers' blocks point at them
-#   _write_cells      the scans' updates, scattered into tiles each writer now owns
+#   _write_cells      the scans' updates, scattered into tiles each writer now owns, a block of
+#                     particles at a time (_scan_targets: where each of a block's updated cells goes)
 
 
 class _Window(NamedTuple):
@@ -466,6 +468,31 @@ def _scan_targets(spec: PagedGridSpec, window: _Window, poses: Float[Array, "N 3
                                  field_radius)
 
     return computed_once(jax.vmap(one), poses, jnp.arange(poses.shape[0], dtype=jnp.int32))
+
+
+class _ScanSummary(NamedTuple):
+    """What the insertion needs of every particle's scan before it writes (``N`` leading): the
+    per-sample targets are recomputed block by block when it writes (:func:`_write_cells`)."""
+
+    touched: Bool[Array, "N KK"]
+    """The window tiles the scan may change."""
+    window_start: Int[Array, "N 2"]
+    """(row, col) of each window's first tile in the virtual grid."""
+    outside: Int[Array, "N"]
+    """Beam samples that fell outside the virtual grid."""
+
+
+def _scan_summaries(spec: PagedGridSpec, window: _Window, poses: Float[Array, "N 3"], ranges: Float[Array, "B"],
+                    sensor: SensorSpec, params: InsertionParams, max_insert_range: float, field_radius: int,
+                    particle_block: int | None) -> _ScanSummary:
+    """Every particle's touched tiles, window and samples outside the grid, ``particle_block``
+    particles at a time (their beam samples cost a block's memory, not N's)."""
+    def one(pose):
+        targets = _one_scan_targets(spec, window, pose, jnp.int32(0), ranges, sensor, params, max_insert_range,
+                                    field_radius)
+        return _ScanSummary(targets.touched, targets.window_start, targets.outside)
+
+    return map_in_blocks(one, poses, particle_block)
 
 
 class _WindowLayout(NamedTuple):
@@ -674,14 +701,45 @@ def _copy_tiles(maps: PagedMaps, layout: _WindowLayout, pages: _WindowPages, gra
     requests = jnp.nonzero(grants.tiles, size=max_new_tiles, fill_value=num_window_tiles)[0]
     source = jnp.concatenate([old_slots, jnp.full((1,), UNWRITTEN, old_slots.dtype)])[requests]
     target = jnp.where(requests < num_window_tiles, maps.free_slots, capacity)
-    logodds = maps.logodds.at[target].set(_tile_values(maps.logodds, source, 0.0), mode="drop")
-    hit_dist2 = maps.hit_dist2.at[target].set(_tile_values(maps.hit_dist2, source, FAR), mode="drop")
+    logodds, hit_dist2 = _copy_tile_rounds(maps.logodds, maps.hit_dist2, source, target,
+                                           jnp.sum(grants.tiles).astype(jnp.int32))
     refcount = (blocks.refcount.at[jnp.where(grants.tiles & (old_slots >= 0), old_slots, capacity)]
                 .add(-1, mode="drop").at[grants.tile_slots].add(1, mode="drop"))
     writer_block = jnp.take_along_axis(blocks.window_blocks, layout.tile_block, axis=1).reshape(-1)
     entries = blocks.entries.at[jnp.where(grants.tiles, writer_block, block_capacity),
                                 layout.tile_in_block.reshape(-1)].set(grants.tile_slots, mode="drop")
     return _TileCopies(logodds, hit_dist2, refcount, entries)
+
+
+TILES_PER_COPY_ROUND = 256
+"""Tiles :func:`_copy_tile_rounds` copies per round (3 MB at 64-cell tiles)."""
+
+
+def _copy_tile_rounds(logodds: Float[Array, "C T T"], hit_dist2: UInt8[Array, "C T T"], source: Int[Array, "M"],
+                      target: Int[Array, "M"], count: Int[Array, ""]) -> tuple[Array, Array]:
+    """Tile ``target[j]`` of both pools becomes a copy of tile ``source[j]`` (a fresh tile where
+    the source is :data:`UNWRITTEN`) for the first ``count`` j, :data:`TILES_PER_COPY_ROUND` at a
+    time in a ``while_loop`` of ``ceil(count / TILES_PER_COPY_ROUND)`` rounds: the gathered
+    copies cost one round's memory, not the M tiles one insertion may request, and only the
+    requested tiles are read. Targets are free slots and sources tiles in use, so no round reads
+    what an earlier one wrote."""
+    size = TILES_PER_COPY_ROUND
+    padded = -(-source.shape[0] // size) * size
+    capacity = logodds.shape[0]
+    source = jnp.concatenate([source, jnp.full((padded - source.shape[0],), UNWRITTEN, source.dtype)])
+    target = jnp.concatenate([target, jnp.full((padded - target.shape[0],), capacity, target.dtype)])
+
+    def copy_round(carry):
+        done, logodds, hit_dist2 = carry
+        sources = jax.lax.dynamic_slice_in_dim(source, done, size)
+        targets = jax.lax.dynamic_slice_in_dim(target, done, size)
+        logodds = logodds.at[targets].set(_tile_values(logodds, sources, 0.0), mode="drop")
+        hit_dist2 = hit_dist2.at[targets].set(_tile_values(hit_dist2, sources, FAR), mode="drop")
+        return done + size, logodds, hit_dist2
+
+    _, logodds, hit_dist2 = jax.lax.while_loop(lambda carry: carry[0] < count, copy_round,
+                                               (jnp.int32(0), logodds, hit_dist2))
+    return logodds, hit_dist2
 
 
 def _pool_index(spec: PagedGridSpec, writable_slot: Int[Array, "N*(KK+1)"], cells: _CellTargets,
@@ -693,13 +751,20 @@ def _pool_index(spec: PagedGridSpec, writable_slot: Int[Array, "N*(KK+1)"], cell
     return jnp.where(slot < capacity, slot * (t * t) + cells.place, capacity * t * t)
 
 
-def _write_cells(spec: PagedGridSpec, tiles: _TileCopies, targets: _ScanTargets, pages: _WindowPages,
-                 grants: _Grants, active: Bool[Array, "N"], params: InsertionParams,
-                 field_radius: int) -> tuple[Float[Array, "C T T"], UInt8[Array, "C T T"]]:
-    """All particles' updates scattered into the pools at once, each into tiles its writer owns
-    (no two particles write one slot): the same updates as a dense grid's
+def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses: Float[Array, "N 3"],
+                 ranges: Float[Array, "B"], sensor: SensorSpec, pages: _WindowPages, grants: _Grants,
+                 active: Bool[Array, "N"], params: InsertionParams, max_insert_range: float, field_radius: int,
+                 particle_block: int | None, targets: _ScanTargets | None = None
+                 ) -> tuple[Float[Array, "C T T"], UInt8[Array, "C T T"]]:
+    """All particles' updates scattered into the pools, each into tiles its writer owns (no two
+    particles write one slot): the same updates as a dense grid's
     (:func:`jaxslam.occupancy.update_cells`). Cells of inactive particles, and all cells when
-    the grants did not fit, are dropped. Returns the log-odds and field pools."""
+    the grants did not fit, are dropped. The particles' beam samples are computed and scattered
+    ``particle_block`` particles at a time (a ``lax.scan`` over blocks, the pools its carry):
+    their (block, beams, samples) indices are the insertion's largest intermediates. Particles
+    write disjoint cells and every sample of a kind adds the same value, so the blocks' order
+    changes no bit. ``targets``: all particles' samples, already computed (one block). Returns
+    the log-odds and field pools."""
     capacity = tiles.refcount.shape[0]
     n, num_window_tiles = pages.tile_slots.shape
     slots = jnp.where(grants.tiles, grants.tile_slots, pages.tile_slots.reshape(-1))
@@ -707,12 +772,32 @@ def _write_cells(spec: PagedGridSpec, tiles: _TileCopies, targets: _ScanTargets,
     writable_slot = jnp.where(writable & jnp.repeat(active, num_window_tiles), slots, capacity)
     # One more per particle: its "no tile" index (K K), never writable.
     writable_slot = jnp.concatenate([writable_slot.reshape(n, num_window_tiles),
-                                     jnp.full((n, 1), capacity, jnp.int32)], axis=1).reshape(-1)
+                                     jnp.full((n, 1), capacity, jnp.int32)], axis=1)
     _, d2 = field_kernel(field_radius)
-    free, ends, splats = (_pool_index(spec, writable_slot, cells, capacity)
-                          for cells in (targets.free, targets.ends, targets.splats))
-    logodds, hit_dist2 = update_cells(tiles.logodds.reshape(-1), tiles.hit_dist2.reshape(-1), free, ends, splats,
-                                      d2, params)
+
+    def write_block(pools, block, block_targets=None):
+        block_poses, block_writable = block
+        if block_targets is None:
+            block_targets = _scan_targets(spec, window, block_poses, ranges, sensor, params, max_insert_range,
+                                          field_radius)
+        free, ends, splats = (_pool_index(spec, block_writable.reshape(-1), cells, capacity)
+                              for cells in (block_targets.free, block_targets.ends, block_targets.splats))
+        return update_cells(*pools, free, ends, splats, d2, params), None
+
+    pools = (tiles.logodds.reshape(-1), tiles.hit_dist2.reshape(-1))
+    size = n if particle_block is None else even_block_size(n, particle_block)
+    if size >= n:
+        (logodds, hit_dist2), _ = write_block(pools, (poses, writable_slot), targets)
+    else:
+        # Padding particles (past N) write nothing: every tile of theirs is unwritable.
+        num_blocks = -(-n // size)
+        pad = num_blocks * size - n
+        padded_poses = jnp.concatenate([poses, jnp.broadcast_to(poses[:1], (pad, 3))])
+        padded_writable = jnp.concatenate([writable_slot, jnp.full((pad, num_window_tiles + 1), capacity,
+                                                                   writable_slot.dtype)])
+        (logodds, hit_dist2), _ = jax.lax.scan(write_block, pools,
+                                               (padded_poses.reshape(num_blocks, size, 3),
+                                                padded_writable.reshape(num_blocks, size, -1)))
     return logodds.reshape(tiles.logodds.shape), hit_dist2.reshape(tiles.hit_dist2.shape)
 
 
@@ -726,6 +811,7 @@ def insert_scans(
     max_insert_range: float,
     field_radius: int,
     active: Bool[Array, "N"] | None = None,
+    particle_block: int | None = None,
 ) -> tuple[PagedMaps, Int[Array, "N"]]:
     """Insert one scan into every ``active`` particle's map (default all), particle n's taken at
     ``poses[n]``; an inactive particle's map is left as it was.
@@ -745,17 +831,30 @@ def insert_scans(
     place instead of copying them (a read of a pool that no data dependence places before its
     in-place update forces a copy of the whole pool).
 
+    ``particle_block`` (static; None: all at once) particles' beam samples are computed at a
+    time, in two passes (the tiles each touches, then, once the slots are granted, the writes):
+    the insertion's memory then grows with the tiles, not with N x beams x samples; the result
+    is the same bit for bit.
+
     Returns the new maps and, per particle, the beam samples that fell outside the virtual grid.
     """
     window = _window_shape(spec, max_insert_range, field_radius)
     active = jnp.ones((poses.shape[0],), bool) if active is None else jnp.asarray(active, bool)
-    targets = _scan_targets(spec, window, poses, ranges, sensor, params, max_insert_range, field_radius)
-    layout = _window_layout(spec, window, targets.window_start)
+    if particle_block is None or even_block_size(poses.shape[0], particle_block) >= poses.shape[0]:
+        # One block: the beam samples are computed once, for the requests and the writes alike.
+        targets = _scan_targets(spec, window, poses, ranges, sensor, params, max_insert_range, field_radius)
+        summary = _ScanSummary(targets.touched, targets.window_start, targets.outside)
+    else:
+        targets = None
+        summary = _scan_summaries(spec, window, poses, ranges, sensor, params, max_insert_range, field_radius,
+                                  particle_block)
+    layout = _window_layout(spec, window, summary.window_start)
     pages = _window_pages(spec, maps, layout)
-    grants = _grant_slots(maps, _requests(targets.touched, active, layout, pages))
+    grants = _grant_slots(maps, _requests(summary.touched, active, layout, pages))
     blocks = _copy_blocks(spec, maps, layout, pages, grants)
     tiles = _copy_tiles(maps, layout, pages, grants, blocks)
-    logodds, hit_dist2 = _write_cells(spec, tiles, targets, pages, grants, active, params, field_radius)
+    logodds, hit_dist2 = _write_cells(spec, window, tiles, poses, ranges, sensor, pages, grants, active, params,
+                                      max_insert_range, field_radius, particle_block, targets)
     new_maps = PagedMaps(
         directory=blocks.directory,
         blocks=tiles.entries.reshape(maps.blocks.shape),
@@ -769,7 +868,7 @@ def insert_scans(
         peak_request=jnp.maximum(maps.peak_request, grants.tile_count),
         peak_block_request=jnp.maximum(maps.peak_block_request, grants.block_count),
     )
-    return new_maps, targets.outside.astype(jnp.int32)
+    return new_maps, summary.outside.astype(jnp.int32)
 
 
 def resample(maps: PagedMaps, ancestors: Int[Array, "N2"]) -> PagedMaps:

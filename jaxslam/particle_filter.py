@@ -105,6 +105,27 @@ class FilterOutput(NamedTuple):
     :func:`jaxslam.resampling.resample_if_needed`."""
 
 
+def even_block_size(count: int, most: int) -> int:
+    """The block size that cuts ``count`` items into as few blocks of at most ``most`` as possible,
+    as even as possible (1,000 particles in blocks of at most 128: 8 of 125), so that a
+    blocked map over them has no remainder block, or a small one, to compile and run apart."""
+    if count < 1 or most < 1:
+        raise ValueError(f"even_block_size needs a positive count and block size, got {count} and {most}")
+    num_blocks = -(-count // most)
+    return -(-count // num_blocks)
+
+
+def map_in_blocks(fn: Callable, xs, most: int | None):
+    """``jax.vmap(fn)(xs)``, computed ``most`` particles (leading items) at a time at most: a
+    ``lax.map`` over blocks of :func:`even_block_size`, each block vmapped. The same values as
+    the one vmap; its intermediates cost a block's worth of memory, not all items'. ``most``
+    None: one vmap."""
+    count = jax.tree.leaves(xs)[0].shape[0]
+    if most is None or most >= count:
+        return jax.vmap(fn)(xs)
+    return jax.lax.map(fn, xs, batch_size=even_block_size(count, most))
+
+
 def scan_steps(step_fn: Callable, state, keys: PRNGKeyArray, inputs, checkpoint: bool = False):
     """``step_fn(key, state, inputs_t) -> (state, info)`` over the leading axis of ``keys`` and
     ``inputs`` in one ``lax.scan``: ``(final state, stacked infos)``. The one loop body of every

@@ -91,16 +91,22 @@ class SlamInfo(NamedTuple):
 def pool_size(config: SlamConfig) -> PoolSize:
     """The maps' pools a run starts with (see :class:`~jaxslam.paged_map.PagedMaps`). An insertion
     copies or creates up to about 20 tiles per particle (64-cell tiles, 15 m beams; more after a
-    resampling, fewer when the particles own their tiles) and up to 4 blocks; the pools start
-    with room for that many and a few steps of growth, and :func:`jaxslam.slam.run` grows them
-    when a step needs more (one recompile each time, reported)."""
+    resampling, fewer when the particles own their tiles) and up to 4 blocks. The tile pool
+    starts with room for three such requests: what the particles hold (on Intel's first 3,000
+    scans 1.9 to 2.1 requests' worth at the end, at N = 30 to 1,000) and the next request (there
+    at most 0.74 of one). It
+    is the largest allocation per particle (0.9 MB at 64-cell tiles), so it starts no larger:
+    :func:`jaxslam.slam.run` grows the pools when a step needs more (one recompile each time,
+    reported; while it grows both the old and the new pools are held, so starting smaller and
+    growing costs more peak memory than starting large enough:
+    docs/notes/2026-11-26-memory-per-particle.md)."""
     spec = config.grid
     k = spec.window_tiles(config.max_insert_range, config.field_radius)
     kb = spec.window_blocks(k)
     n = config.num_particles
     max_new_tiles = n * min(k * k, 24) + k * k
     max_new_blocks = n * kb * kb + kb * kb
-    return PoolSize(4 * max_new_tiles + 256, max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)
+    return PoolSize(3 * max_new_tiles + 256, max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)
 
 
 @jax.jit(static_argnames=("config", "pool"))
@@ -188,9 +194,17 @@ def step_with_score_terms(
     # No gradient reaches the previous poses: the maps they built do not move with them (the
     # insertion is not differentiable), and a pose moved against a fixed map is a biased and
     # very noisy motion gradient (motion.sample_with_score).
-    out: ProposalOutput = jax.vmap(propose_fn, in_axes=(0, 0, paged_map.FIELD_AXES, None, None, None, None))(
-        jax.random.split(key_prop, n), jax.lax.stop_gradient(state.poses), paged_map.fields(state.maps), lik_inputs,
-        lik_sensor, params, config)
+    # In blocks of config.particle_block particles: the window posterior's candidates times beams
+    # would otherwise be the step's largest intermediate, N times over.
+    field = paged_map.fields(state.maps)
+
+    def propose_one(particle):
+        key, pose, directory = particle
+        return propose_fn(key, pose, field._replace(directory=directory), lik_inputs, lik_sensor, params, config)
+
+    out: ProposalOutput = particle_filter.map_in_blocks(
+        propose_one, (jax.random.split(key_prop, n), jax.lax.stop_gradient(state.poses), field.directory),
+        config.particle_block)
 
     update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
                                                    params.resample_threshold, config.resampler)
@@ -198,7 +212,8 @@ def step_with_score_terms(
     survivors = jnp.zeros((n,), bool).at[update.ancestors].set(True)
     maps, outside = paged_map.insert_scans(spec, state.maps, jax.lax.stop_gradient(out.pose), inputs.ranges, sensor,
                                            jax.lax.stop_gradient(params.insertion), config.max_insert_range,
-                                           config.field_radius, survivors)  # not differentiable: see init
+                                           config.field_radius, survivors,
+                                           config.particle_block)  # not differentiable: see init
     # An insertion that did not fit wrote nothing: the step is not taken.
     taken = active & ~maps.overflow
     ancestors = jnp.where(taken, update.ancestors, jnp.arange(n, dtype=update.ancestors.dtype))

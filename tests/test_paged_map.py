@@ -364,3 +364,53 @@ def test_the_checker_catches_a_broken_insertion(cow_maps):
         P.check_invariants(SPEC, after._replace(**no_peaks), before_insertion=before._replace(**no_peaks))
     with pytest.raises(ValueError, match="logodds"):
         P.check_invariants(SPEC, after._replace(logodds=after.logodds.astype(jnp.float32)))
+
+
+@pytest.mark.parametrize("block", [1, 3, 7])
+def test_an_insertion_in_blocks_of_particles_gives_the_same_maps_bit_for_bit(block):
+    """``particle_block`` changes no bit: blocks of 1, of 3 (7 particles as 3 blocks of 3, two
+    padding particles) and of all 7, against the insertion of all at once, through insertions
+    (some particles inactive, some close together) and resamplings."""
+    rng = np.random.default_rng(11)
+    num = 7
+    whole = blocked = P.empty(SPEC, num, capacity=900, block_capacity=90)
+    for step in range(4):
+        poses, ranges = random_scan(rng, num)
+        poses = poses.at[1:4].set(poses[0] + jnp.asarray(rng.normal(0, 0.2, (3, 3)), jnp.float32))
+        active = jnp.asarray(rng.random(num) < 0.8)
+        whole, outside = insert_paged(SPEC, whole, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS, active)
+        blocked, blocked_outside = jax.jit(P.insert_scans, static_argnums=(0, 6, 7, 9))(
+            SPEC, blocked, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS, active, block)
+        ancestors = jnp.asarray(rng.integers(0, num, num), jnp.int32)
+        whole, blocked = resample_paged(whole, ancestors), resample_paged(blocked, ancestors)
+        np.testing.assert_array_equal(np.asarray(outside), np.asarray(blocked_outside))
+        for a, b, name in zip(whole, blocked, P.PagedMaps._fields):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f"{name} after step {step}")
+
+
+def test_tile_copies_in_rounds_copy_exactly_the_requested_tiles():
+    """More requested tiles than one round holds: every target gets its source (or a fresh tile),
+    nothing else changes."""
+    rng = np.random.default_rng(2)
+    capacity, count = 3 * P.TILES_PER_COPY_ROUND, P.TILES_PER_COPY_ROUND + 5
+    logodds = jnp.asarray(rng.normal(size=(capacity, 4, 4)), jnp.float16)
+    field = jnp.asarray(rng.integers(0, 255, (capacity, 4, 4)), jnp.uint8)
+    source = np.concatenate([np.arange(count) % 50, np.full(10, 3)]).astype(np.int32)
+    source[7] = P.UNWRITTEN
+    target = np.concatenate([capacity - 1 - np.arange(count), np.full(10, capacity)]).astype(np.int32)
+    new_logodds, new_field = jax.jit(P._copy_tile_rounds)(logodds, field, jnp.asarray(source), jnp.asarray(target),
+                                                          jnp.int32(count))
+    expected_logodds, expected_field = np.array(logodds), np.array(field)
+    for s, t in zip(source[:count], target[:count]):
+        expected_logodds[t] = 0.0 if s < 0 else np.asarray(logodds)[s]
+        expected_field[t] = FAR if s < 0 else np.asarray(field)[s]
+    np.testing.assert_array_equal(np.asarray(new_logodds), expected_logodds)
+    np.testing.assert_array_equal(np.asarray(new_field), expected_field)
+
+
+def test_even_block_size_cuts_into_as_few_and_as_even_blocks_as_possible():
+    from jaxslam.particle_filter import even_block_size
+
+    assert [even_block_size(n, 128) for n in (30, 128, 129, 300, 1000, 1001)] == [30, 128, 65, 100, 125, 126]
+    with pytest.raises(ValueError, match="positive count and block size"):
+        even_block_size(10, 0)
