@@ -19,8 +19,8 @@ Every run is a separate process (peak memory per run, from ``os.wait4``); logs a
 ``--data`` (default ``../shared/data`` beside the repository). Ratios are meaningful within
 one invocation only (the machine is shared).
 
-    python benchmarks/bench_maps.py intel --previous ../prev --out docs/results/bench_maps.json
-    python benchmarks/bench_maps.py sweep --particles 30 100 300 1000 --max-scans 3000 --previous ../before
+    python benchmarks/bench_maps.py intel --previous OTHER_CHECKOUT --out docs/results/bench_maps.json
+    python benchmarks/bench_maps.py sweep --particles 30 100 300 1000 --max-scans 3000 --previous OTHER_CHECKOUT
     python benchmarks/bench_maps.py killian
     python benchmarks/bench_maps.py vmap --seeds 8
 """
