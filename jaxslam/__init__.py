@@ -2,8 +2,9 @@
 
 The public API, re-exported by name; submodules hold the rest: the SLAM filter
 (``jaxslam.rbpf``, pure; its proposals in ``jaxslam.proposals``, its laser models in
-``jaxslam.sensor_model``; islands of it over devices in ``jaxslam.islands``), SLAM on a whole log from the host (``jaxslam.slam.run``), localization
-(``jaxslam.localization``: MCL and the door filter), the log readers (``jaxslam.io``) and
+``jaxslam.sensor_model``; islands of it over devices in ``jaxslam.islands``), SLAM on a whole
+log from the host (``jaxslam.slam.run``; several runs over devices: ``slam.run_batch``),
+localization (``jaxslam.localization``: MCL and the door filter), the log readers (``jaxslam.io``) and
 the simulator (``jaxslam.sim``, not imported here).
 """
 

@@ -169,6 +169,26 @@ def test_an_exchange_copies_whole_maps(four_islands):
     assert np.isfinite(float(out.marginal_loglik))
 
 
+def test_island_weights_carry_over_from_step_to_step(four_islands):
+    """After a step without exchange, the next step's island weights are the last ones times the
+    islands' evidence, normalised (NumPy, float64): the weights are carried, not reset (a filter
+    that reset them every step passed the statistical test above, which exchanges at most steps)."""
+    out = four_islands(jax.random.key(1))
+    weights = np.asarray(out.info.island_log_weights, np.float64)  # (S, I), after each update
+    increments = np.asarray(out.info.islands.log_evidence, np.float64)  # (S, I)
+    exchanged = np.asarray(out.info.exchanged)
+    carried = np.flatnonzero(~exchanged[:-1])
+    assert carried.size >= 2, exchanged  # the run must have steps to check
+    for t in carried:
+        want = weights[t] + increments[t + 1]
+        want -= np.log(np.sum(np.exp(want - want.max()))) + want.max()
+        np.testing.assert_allclose(weights[t + 1], want, atol=1e-4)
+    # After an exchange the islands start level again.
+    for t in np.flatnonzero(exchanged[:-1]):
+        want = np.log(0.25) + increments[t + 1]
+        want -= np.log(np.sum(np.exp(want - want.max()))) + want.max()
+        np.testing.assert_allclose(weights[t + 1], want, atol=1e-4)
+
 def test_a_zero_weight_island_is_never_drawn():
     log_weights = jnp.log(jnp.full((4,), 0.25))
     increments = jnp.array([0.0, -jnp.inf, 3.0, -2.0])
