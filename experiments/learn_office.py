@@ -80,7 +80,8 @@ def setup_office(office: int, args) -> dict:
     minimum_stds = {name: truth[name] for name in ("motion.min_translation_std", "motion.min_rotation_std")}
     config, settings, params = build_setup({**DEMO_DEFAULTS, "linear_update": 0.0, "angular_update": 0.0,
                                             "proposal": args.proposal, "num_particles": args.particles,
-                                            "likelihood.gain": args.gain, **minimum_stds})
+                                            "likelihood.gain": args.gain, "smp_weight": "importance",
+                                            **minimum_stds})
     config = dataclasses.replace(config, likelihood_lookup="bilinear")
     if args.resolution != config.resolution:  # the same field radius in metres (at most 11 cells)
         radius = int(min(11, max(1, round(config.field_radius * config.resolution / args.resolution))))

@@ -115,6 +115,17 @@ class SlamConfig:
     localizers spread with the odometry and the particles inherit the spread; started from the
     match they stay pinned to the map (the figures:
     docs/notes/2026-11-25-robustness-table-and-the-library-lp.md)."""
+    smp_weight: str = "quadrature"
+    """The SMP's log-weight increment. "quadrature" (the default, the published tables'): the log
+    of the window posterior's summed stencil masses, a Rao-Blackwellised estimate of
+    p(z_t | x_{t-1}, m, u_t) with little spread between particles, but a Riemann sum on the
+    stencil's spacing (``scan_match.linear_step``, ``angular_step``): where the posterior is much
+    narrower than that (accurate odometry, every scan an update) it overstates the evidence by
+    nats a step, and its gradient is not a score. "importance": the proper importance weight of
+    the drawn pose, log p(z_t | x_t, m)^gain + log p(x_t | x_{t-1}, u_t) - log q(x_t) with q the
+    window posterior's mixture, an unbiased estimate of the same quantity whose gradient is the
+    score of the drawn pose; what ``learning.slam_learning_setup`` sets (the figures:
+    docs/notes/2026-11-26-smp-weights-for-learning.md)."""
     score_lag: int | None = None
     """Which score estimate the gradient of ``rbpf.filter``'s ``marginal_loglik`` is (its value
     is the same): None, the path-space score over the final particles' ancestral paths; an int L
@@ -152,6 +163,8 @@ class SlamConfig:
             (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
             (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),
             (self.score_lag is None or self.score_lag >= 0, f"score_lag must be None or >= 0, got {self.score_lag}"),
+            (self.smp_weight in ("quadrature", "importance"),
+             f"smp_weight must be 'quadrature' or 'importance', got {self.smp_weight!r}"),
             (self.lookahead_initial in ("odometry", "scan_match"),
              f"lookahead_initial must be 'odometry' or 'scan_match', got {self.lookahead_initial!r}"),
         ]

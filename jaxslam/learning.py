@@ -226,6 +226,7 @@ def structurally_zero(objective_fn: Callable[[dict], Float[Array, ""]], coords: 
 LEARNING_SETTINGS: dict[str, Any] = {
     "likelihood.gain": 1.0,           # the untempered likelihood: a tempered one peaks elsewhere
     "likelihood_lookup": "bilinear",  # weights continuous in the pose: the SMP's pathwise gradient needs it
+    "smp_weight": "importance",       # the SMP's proper weight: its gradient is the drawn pose's score
     "linear_update": 0.0,             # every scan an update: the motion model is the one that made the data
     "angular_update": 0.0,
 }

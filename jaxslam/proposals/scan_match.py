@@ -7,10 +7,17 @@
    1, the scan's own sharpness), and the mode's mass (the stencil's Riemann sum at the gain).
 3. Draw a mode by its mass, then x_t from its Gaussian: a window with two modes sends particles
    to both in proportion to their mass.
-4. The log-weight increment is the log of the summed masses, the quadrature of
+4. The log-weight increment (``config.smp_weight``) estimates
    p(z_t | x_{t-1}, m, u_t) = int p(z | x, m) p(x | x_{t-1}, u) dx, the same quantity the OP's
    increment estimates, so that particles which fall back to the OP (a failed match: the
-   heaviest mode's score under ``scan_match.min_score``) stay comparable.
+   heaviest mode's score under ``scan_match.min_score``) stay comparable:
+
+   * "quadrature" (the default): the log of the summed masses. Its gradient goes through the
+     draw and the masses (pathwise), which is not a score estimate.
+   * "importance": log gamma(x_t) - log q(x_t), gamma = p(z_t | x_t, m)^gain p(x_t | x_{t-1}, u_t)
+     and q the mixture drawn from. The draw and q carry no gradient, so the increment's is
+     d log gamma(x_t), the score of the drawn pose: the draw's own score d log q and the weight's
+     -d log q cancel, as for the LP's localizers (:mod:`jaxslam.proposals.lookahead`).
 
 GMapping (and this library until 2026-11-26) climbed the likelihood alone from the prediction
 and fitted one Gaussian round the climb's end; the results of both: docs/results.md.
@@ -21,21 +28,41 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxslam import window_posterior
+from jaxslam import motion, window_posterior
+from jaxslam.map_view import MapView
 from jaxslam.proposals import odometry
 from jaxslam.proposals.base import ProposalOutput, StepInputs
+from jaxslam.sensor_model import sensor_model
 
 
 def propose(key, pose, field, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
     """One SMP draw for one particle (see the module docstring)."""
     key_sample, key_fallback = jax.random.split(key)
+    importance = config.smp_weight == "importance"
     posterior = window_posterior.window_posterior(pose, field, inputs.motion, inputs.ranges, sensor, params, config,
                                                   fit_gain=1.0)
-    smp_pose = window_posterior.sample(key_sample, posterior, window_posterior.mixture_log_weights(posterior))
+    if importance:
+        posterior = jax.lax.stop_gradient(posterior)
+    log_mixture = window_posterior.mixture_log_weights(posterior)
+    smp_pose = window_posterior.sample(key_sample, posterior, log_mixture)
+    increment = posterior.log_eta
+    if importance:
+        increment = _importance_log_weight(smp_pose, posterior, log_mixture, pose, field, inputs, sensor, params,
+                                           config)
     fallback = ~posterior.matched
     op = odometry.propose(key_fallback, pose, field, inputs, sensor, params, config)
     return ProposalOutput(
         jnp.where(fallback, op.pose, smp_pose),
-        jnp.where(fallback, op.log_weight_increment, posterior.log_eta),
+        jnp.where(fallback, op.log_weight_increment, increment),
         fallback,
     )
+
+
+def _importance_log_weight(drawn, posterior, log_mixture, pose, field, inputs: StepInputs, sensor, params, config):
+    """log gamma(x_t) - log q(x_t) at the drawn pose (no gradient in the pose or q), with gradient
+    d log gamma(x_t); NaN-safe where gamma is 0."""
+    log_lik = sensor_model(config).log_likelihoods_fn(MapView(config.grid, field), drawn[None], inputs.ranges, sensor,
+                                                      params.likelihood, config.likelihood_lookup)[0]
+    log_gamma = log_lik + motion.log_density(drawn, pose, inputs.motion, params.motion)
+    value = jax.lax.stop_gradient(log_gamma) - window_posterior.log_density(drawn, posterior, log_mixture)
+    return value + jnp.where(jnp.isfinite(log_gamma), log_gamma - jax.lax.stop_gradient(log_gamma), 0.0)
