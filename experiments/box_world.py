@@ -53,8 +53,8 @@ DEFAULT_CONFIG = Path(__file__).resolve().parent / "box_world.json"
 WORLD_KEYS = ("success_ra", "rotation_weight", "motion_scale", "grid_margin", "grid_resolution",
               "insert_range_margin")
 """The json's numbers that every run of a folder shares (with the table's scenario)."""
-RUN_FIELDS = ("seed", "ra", "ra_position", "ra_heading", "best_particle_error", "seconds", "num_steps",
-              "num_fallbacks", "num_degenerate", "num_resamplings", "min_ess")
+RUN_FIELDS = ("seed", "ra", "ra_position", "ra_heading", "best_particle_error", "closest_particle_error", "seconds",
+              "num_steps", "num_fallbacks", "num_degenerate", "num_resamplings", "min_ess")
 """A run record's fields (besides its cell's key)."""
 
 
@@ -190,9 +190,12 @@ def score_run(seed: int, result, scenario, world: dict, seconds: float) -> dict:
     ends = (first, last, truth[idx[first]], truth[idx[last]])
     ra = revisiting_accuracy(paths, log_w, *ends, lam)
     ra_position = revisiting_accuracy(paths, log_w, *ends, 0.0)  # RA is linear in lambda
+    errors = passage_errors(paths, *ends, lam)  # (N,): each final particle's own RA
     run = {
         "seed": seed, "ra": ra, "ra_position": ra_position, "ra_heading": (ra - ra_position) / lam if lam else None,
-        "best_particle_error": float(passage_errors(paths, *ends, lam)[result.best_particle]), "seconds": seconds,
+        "best_particle_error": float(errors[result.best_particle]),
+        # Is any history near the truth at all (the weights' failure to pick it), or none?
+        "closest_particle_error": float(errors.min()), "seconds": seconds,
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
         "min_ess": float(result.info.ess.min()),

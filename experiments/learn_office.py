@@ -63,7 +63,7 @@ def setup_office(office: int, args) -> dict:
     from jaxslam.cli import DEMO_DEFAULTS
     from jaxslam.config import build_setup, params_from_dict, params_to_dict
     from jaxslam.geometry import between
-    from jaxslam.learning import fit
+    from jaxslam.learning import LEARNING_SETTINGS, fit
     from jaxslam.sim import hall_scenario, office_scenario
 
     make_scenario = {"office": office_scenario, "hall": hall_scenario}[args.world]
@@ -78,11 +78,10 @@ def setup_office(office: int, args) -> dict:
     # composes as a random walk, std ~ sqrt(steps), which no linear model matches), and the
     # minimum stds are the simulator's (the library's defaults, 1 cm and 5 mrad, are not learned).
     minimum_stds = {name: truth[name] for name in ("motion.min_translation_std", "motion.min_rotation_std")}
-    config, settings, params = build_setup({**DEMO_DEFAULTS, "linear_update": 0.0, "angular_update": 0.0,
-                                            "proposal": args.proposal, "num_particles": args.particles,
-                                            "likelihood.gain": args.gain, "smp_weight": "importance",
+    # learning.LEARNING_SETTINGS over the demo's office settings (its 10 m laser, every beam).
+    config, settings, params = build_setup({**DEMO_DEFAULTS, **LEARNING_SETTINGS, "proposal": args.proposal,
+                                            "num_particles": args.particles, "likelihood.gain": args.gain,
                                             **minimum_stds})
-    config = dataclasses.replace(config, likelihood_lookup="bilinear")
     if args.resolution != config.resolution:  # the same field radius in metres (at most 11 cells)
         radius = int(min(11, max(1, round(config.field_radius * config.resolution / args.resolution))))
         config = dataclasses.replace(config, resolution=args.resolution, map_extent=64.0, field_radius=radius)
@@ -248,7 +247,7 @@ def main(argv=None) -> int:
 
     from jaxslam import rbpf
     from jaxslam.config import params_from_dict, params_to_dict
-    from jaxslam.learning import fit
+    from jaxslam.learning import LEARNING_SETTINGS, fit
 
     if args.score:
         return score_at_truth(args)

@@ -225,8 +225,13 @@ def structurally_zero(objective_fn: Callable[[dict], Float[Array, ""]], coords: 
 
 LEARNING_SETTINGS: dict[str, Any] = {
     "likelihood.gain": 1.0,           # the untempered likelihood: a tempered one peaks elsewhere
-    "likelihood_lookup": "bilinear",  # weights continuous in the pose: the SMP's pathwise gradient needs it
+    "likelihood_lookup": "bilinear",  # weights continuous in the pose (the fits in docs/results.md use it)
     "smp_weight": "importance",       # the SMP's proper weight: its gradient is the drawn pose's score
+    # The stencil the SMP's Gaussian is fitted on (and the floor of its std, a tenth of it): finer
+    # than a step's posterior when every scan is an update (the default 5 cm and 0.05 rad are for
+    # half-metre steps; at 1 cm the office's weights keep twice the ESS: docs/results.md).
+    "scan_match.linear_step": 0.01,
+    "scan_match.angular_step": 0.01,
     "linear_update": 0.0,             # every scan an update: the motion model is the one that made the data
     "angular_update": 0.0,
 }

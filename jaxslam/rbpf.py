@@ -417,8 +417,9 @@ def filter(key: PRNGKeyArray, prepared: PreparedLog, params: SlamParams, config:
     steps (benchmarks/bench_gradients.py; the LP's horizon keeps nothing: it runs without
     gradient, :mod:`jaxslam.proposals.lookahead`). The OP's and the LP's motion-noise gradients
     are score estimates (:func:`jaxslam.motion.sample_with_score`), with either lookup; the SMP's
-    goes through the step's own draw and needs ``likelihood_lookup="bilinear"`` (the nearest-cell
-    weights are piecewise constant in the pose).
+    is the drawn pose's score with ``config.smp_weight="importance"`` (what learning sets) and
+    goes through the draw with the default "quadrature", which is not a score estimate
+    (:mod:`jaxslam.proposals.scan_match`).
 
     Args:
       key: the run's key.

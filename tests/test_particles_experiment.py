@@ -66,6 +66,14 @@ def test_failures_judge_logs_against_the_best_run_at_any_n_and_the_box_world_by_
     assert rows[("fr-clinic", "smp", 30)]["failed"] == 1 and rows[("fr-clinic", "smp", 30)]["runs"] == 2
     assert rows[("fr-clinic", "smp", 30)]["error_mean"] == pytest.approx(0.195)
     assert rows[("fr-clinic", "smp", 30)]["error_se"] == pytest.approx(np.std([0.30, 0.09], ddof=1) / np.sqrt(2))
+    assert rows[("fr-clinic", "smp", 30)]["closest_particle_error_median"] is None  # a log scores one trajectory
+
+
+def test_the_box_worlds_closest_particle_is_the_median_over_runs():
+    runs = [dict(_run("box", "smp", 100, s, 5.0), closest_particle_error=e) for s, e in enumerate((0.1, 3.0, 0.3))]
+    row = particles.summary_rows(runs, 0.2)[0]
+    assert row["closest_particle_error_median"] == pytest.approx(0.3)
+    assert "| 5.000 ± 0.000 | 0.300 |" in particles.markdown([row])
 
 
 def test_table_and_figure_are_written(tmp_path):
