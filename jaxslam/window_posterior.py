@@ -287,3 +287,15 @@ def log_density(poses: Float[Array, "... 3"], posterior: WindowPosterior, log_mi
     log_det = jnp.sum(jnp.log(jnp.diagonal(posterior.chols, axis1=-2, axis2=-1)), axis=-1)
     per_mode = -0.5 * jnp.sum(z**2, axis=-1) - log_det - 1.5 * LOG_2PI
     return jax.scipy.special.logsumexp(log_mixture + per_mode, axis=-1)
+
+
+def importance_log_weights(poses: Float[Array, "... 3"], log_likelihoods: Float[Array, "..."], pose: Float[Array, "3"],
+                           motion_step: Float[Array, "3"], motion_params, posterior: WindowPosterior,
+                           log_mixture: Float[Array, "M"]) -> Float[Array, "..."]:
+    """log gamma(x) - log q(x) at ``poses`` drawn from the mixture (:func:`sample`): gamma the
+    target, ``log_likelihoods`` (the scan's, tempered as the caller weighs) times the motion prior
+    p(x | ``pose``, ``motion_step``), q the mixture. With the posterior and the poses carrying no
+    gradient, its gradient is d log gamma, the drawn poses' score (the SMP's "importance" weight,
+    the LP's scan-matched localizers)."""
+    return (log_likelihoods + motion.log_density(poses, pose, motion_step, motion_params)
+            - log_density(poses, posterior, log_mixture))

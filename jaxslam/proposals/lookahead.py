@@ -466,9 +466,9 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
             pose, field, inputs.motion, inputs.ranges, sensor, params, config, fit_gain=localizer_gain))
         log_mixture = window_posterior.mixture_log_weights(posterior, LOCALIZER_UNIFORM_SHARE)
         matched_t = window_posterior.sample(jax.random.fold_in(key_initial, 1), posterior, log_mixture, (num,))
-        log_motion = motion.log_density(matched_t, pose, inputs.motion, params.motion)
-        log_weight_t = (log_likelihood(matched_t, (inputs.motion, inputs.ranges)) + log_motion
-                        - window_posterior.log_density(matched_t, posterior, log_mixture))
+        log_weight_t = window_posterior.importance_log_weights(
+            matched_t, log_likelihood(matched_t, (inputs.motion, inputs.ranges)), pose, inputs.motion, params.motion,
+            posterior, log_mixture)
         poses_t = jnp.where(posterior.matched, matched_t, poses_t)
         log_lik_t = jnp.where(posterior.matched, log_weight_t, log_lik_t)
     draw, horizon, history = lookahead_core(

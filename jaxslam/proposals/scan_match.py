@@ -28,7 +28,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxslam import motion, window_posterior
+from jaxslam import window_posterior
 from jaxslam.map_view import MapView
 from jaxslam.proposals import odometry
 from jaxslam.proposals.base import ProposalOutput, StepInputs
@@ -46,9 +46,11 @@ def propose(key, pose, field, inputs: StepInputs, sensor, params, config) -> Pro
     log_mixture = window_posterior.mixture_log_weights(posterior)
     smp_pose = window_posterior.sample(key_sample, posterior, log_mixture)
     increment = posterior.log_eta
-    if importance:
-        increment = _importance_log_weight(smp_pose, posterior, log_mixture, pose, field, inputs, sensor, params,
-                                           config)
+    if importance:  # the drawn pose carries no gradient (the posterior has none): see the docstring
+        log_lik = sensor_model(config).log_likelihoods_fn(MapView(config.grid, field), smp_pose[None], inputs.ranges,
+                                                          sensor, params.likelihood, config.likelihood_lookup)[0]
+        increment = window_posterior.importance_log_weights(smp_pose, log_lik, pose, inputs.motion, params.motion,
+                                                            posterior, log_mixture)
     fallback = ~posterior.matched
     op = odometry.propose(key_fallback, pose, field, inputs, sensor, params, config)
     return ProposalOutput(
@@ -57,12 +59,3 @@ def propose(key, pose, field, inputs: StepInputs, sensor, params, config) -> Pro
         fallback,
     )
 
-
-def _importance_log_weight(drawn, posterior, log_mixture, pose, field, inputs: StepInputs, sensor, params, config):
-    """log gamma(x_t) - log q(x_t) at the drawn pose (no gradient in the pose or q), with gradient
-    d log gamma(x_t); NaN-safe where gamma is 0."""
-    log_lik = sensor_model(config).log_likelihoods_fn(MapView(config.grid, field), drawn[None], inputs.ranges, sensor,
-                                                      params.likelihood, config.likelihood_lookup)[0]
-    log_gamma = log_lik + motion.log_density(drawn, pose, inputs.motion, params.motion)
-    value = jax.lax.stop_gradient(log_gamma) - window_posterior.log_density(drawn, posterior, log_mixture)
-    return value + jnp.where(jnp.isfinite(log_gamma), log_gamma - jax.lax.stop_gradient(log_gamma), 0.0)
