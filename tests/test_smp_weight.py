@@ -128,3 +128,23 @@ def test_smp_weight_is_checked_and_learning_sets_importance():
     config, _, _ = slam_learning_setup()
     assert config.smp_weight == "importance"
     assert SlamConfig().smp_weight == "quadrature"
+
+
+def test_the_filter_with_the_learning_setup_has_finite_score_gradients():
+    """The whole filter, SMP with ``slam_learning_setup`` (the importance weight), 30 office scans:
+    the value and every parameter's gradient are finite and each motion term's is nonzero (the
+    drawn poses' scores)."""
+    from jaxslam import rbpf
+    from jaxslam.sim import office_scenario
+
+    log = office_scenario(jax.random.key(0)).log.subset(np.arange(30))
+    config, settings, params = slam_learning_setup({"proposal": "smp", "num_particles": 4, "max_insert_range": 10.0,
+                                                    "beam_stride": 2, "map_extent": 128.0})
+    prepared, _, _ = rbpf.prepare(log, config, settings)
+    value, grads = jax.jit(jax.value_and_grad(
+        lambda p: rbpf.filter(jax.random.key(1), prepared, p, config).marginal_loglik))(params)
+    assert np.isfinite(float(value))
+    bad = [jax.tree_util.keystr(path) for path, g in jax.tree_util.tree_flatten_with_path(grads)[0]
+           if not np.isfinite(float(g))]
+    assert not bad, bad
+    assert all(float(getattr(grads.motion, name)) != 0.0 for name in ("srr", "srt", "str", "stt"))
