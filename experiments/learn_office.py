@@ -247,7 +247,7 @@ def main(argv=None) -> int:
 
     from jaxslam import rbpf
     from jaxslam.config import params_from_dict, params_to_dict
-    from jaxslam.learning import LEARNING_SETTINGS, fit
+    from jaxslam.learning import fit
 
     if args.score:
         return score_at_truth(args)
