@@ -5,7 +5,10 @@ fixed-lag smoothed score (:func:`jaxslam.particle_filter.fixed_lag_score`) at a 
 * Linear-Gaussian model (tests/linear_gaussian.py: x_t = a x_t-1 + N(0, q), y_t = x_t + N(0, r),
   theta = (0.9, 0.5, 0.3)): the bootstrap filter in the OP's score form
   (``score_log_likelihood``) against the Kalman filter's exact score d log p(y | theta) / d theta,
-  on ``--seeds`` simulated datasets, over ``--lg-keys`` filter keys each.
+  on ``--seeds`` simulated datasets, over ``--lg-keys`` filter keys each; and, beside it, the
+  path-space score of the fully adapted proposal (``proposal="adapted"``: each state drawn from
+  its exact posterior given the previous state and the observation, weighed by gamma / q), the
+  counterpart of the SMP's importance weight (docs/notes/2026-11-26-smp-weights-for-learning.md).
 * The simulated office (:func:`jaxslam.sim.office_scenario`, set up as
   experiments/learn_office.py does: OP, every scan an update, the simulator's minimum stds,
   bilinear lookup, gain 1, the first ``--scans`` scans, the motion terms at the simulated values
@@ -46,6 +49,10 @@ MOTION = ("motion.srr", "motion.srt", "motion.str", "motion.stt")
 OFFICE_NAMES = MOTION + ("likelihood.sigma",)
 
 
+ADAPTED = "adapted proposal"
+"""The linear-Gaussian model's estimator with the fully adapted proposal (the SMP's counterpart)."""
+
+
 def estimator_names(lags) -> list[str]:
     return ["path-space"] + [f"lag {lag}" for lag in lags]
 
@@ -72,6 +79,16 @@ def linear_gaussian(args, bar) -> list[dict]:
                              "reference": float(exact[i]), "bias": float(g.mean() - exact[i]),
                              "sd": float(g.std(ddof=1)), "se": float(g.std(ddof=1) / np.sqrt(g.size))})
             bar.update(1)
+        # The SMP's counterpart (the fully adapted proposal, weighed by gamma / q): the path-space score.
+        grad_fn = jax.jit(jax.vmap(jax.grad(lambda th, k: score_log_likelihood(
+            th, k, ys, args.lg_particles, "systematic", args.lg_threshold, None, "adapted")), in_axes=(None, 0)))
+        grads = np.asarray(grad_fn(THETA, keys), np.float64)
+        for i, param in enumerate("aqr"):
+            g = grads[:, i]
+            rows.append({"model": "linear-Gaussian", "seed": seed, "parameter": param, "estimator": ADAPTED,
+                         "reference": float(exact[i]), "bias": float(g.mean() - exact[i]),
+                         "sd": float(g.std(ddof=1)), "se": float(g.std(ddof=1) / np.sqrt(g.size))})
+        bar.update(1)
     return rows
 
 
@@ -237,7 +254,8 @@ def distinct_ancestors(ancestors: np.ndarray, lag: int) -> list[int]:
 
 def summary_table(rows, model, params, lags) -> str:
     """Markdown: per parameter and estimator, the bias and sd of every seed, and the mean |bias|."""
-    names = estimator_names(lags)
+    names = [n for n in estimator_names(lags) + [ADAPTED]
+             if any(r["model"] == model and r["estimator"] == n for r in rows)]
     seeds = sorted({r["seed"] for r in rows if r["model"] == model})
     head = "| parameter | estimator | " + " | ".join(f"seed {s}: bias ± se (sd)" for s in seeds) + \
         " | mean abs bias | mean sd |"
@@ -321,7 +339,7 @@ def main(argv=None) -> int:
         (out / "score_bias_fits.md").write_text(text + "\n")
         print(text)
         return 0
-    total = args.seeds * (1 + len(args.lags)) + (0 if args.skip_office else
+    total = args.seeds * (2 + len(args.lags)) + (0 if args.skip_office else
                                                  args.seeds * (args.office_keys + args.ref_keys))
     with tqdm(total=total, desc="score estimates", unit="batch") as bar:
         rows = linear_gaussian(args, bar)

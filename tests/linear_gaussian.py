@@ -62,13 +62,28 @@ def particle_log_likelihood(theta, key, ys, num_particles, resampler, resample_t
     return log_evidence.sum()
 
 
+def adapted_draw(key, theta, x_prev, y):
+    """The fully adapted proposal, the analogue of the SMP's importance weight: x_t drawn from its
+    exact posterior given x_t-1 and y_t (no gradient), weighed by gamma / q. Returns ``(x,
+    increments)``: the increments are log p(y_t | x_t-1) in value (gamma / q is constant) with
+    gradient d log gamma(x_t) = d log f(x_t | x_t-1) + d log g(y_t | x_t), the drawn state's score."""
+    a, q, r = theta
+    var = 1.0 / (1.0 / q + 1.0 / r)
+    mean = var * (a * x_prev / q + y / r)
+    no_grad = jax.lax.stop_gradient
+    x = no_grad(mean + jnp.sqrt(var) * jax.random.normal(key, x_prev.shape))
+    log_gamma = norm.logpdf(y, x, jnp.sqrt(r)) + norm.logpdf(x, a * x_prev, jnp.sqrt(q))
+    return x, log_gamma - no_grad(norm.logpdf(x, mean, jnp.sqrt(var)))
+
+
 def score_log_likelihood(theta, key, ys, num_particles, resampler="systematic", resample_threshold=1.0,
-                         score_lag=None):
+                         score_lag=None, proposal="bootstrap"):
     """The bootstrap filter's estimate of log p(y_1:T | theta) in the form the RBPF's OP learns
     by (:func:`jaxslam.motion.sample_with_score`): the states carry no gradient, and each
     particle's increment adds log f(x_t | x_t-1) - stop_gradient(itself), 0 in value, so that the
     gradient is a Fisher-identity score estimate, built by ``particle_filter.scan_filter``:
-    the path-space score (``score_lag`` None) or the fixed-lag smoothed one (an int)."""
+    the path-space score (``score_lag`` None) or the fixed-lag smoothed one (an int).
+    ``proposal="adapted"`` draws from :func:`adapted_draw` instead (the SMP's counterpart)."""
     from jaxslam.particle_filter import scan_filter
 
     a, q, r = theta
@@ -79,9 +94,12 @@ def score_log_likelihood(theta, key, ys, num_particles, resampler="systematic", 
     def step(k, carry, y):
         x_prev, log_weights = carry
         k_move, k_resample = jax.random.split(k)
-        x = jax.lax.stop_gradient(a * x_prev + jnp.sqrt(q) * jax.random.normal(k_move, (num_particles,)))
-        log_f = norm.logpdf(x, a * x_prev, jnp.sqrt(q))
-        increments = norm.logpdf(y, x, jnp.sqrt(r)) + log_f - jax.lax.stop_gradient(log_f)
+        if proposal == "adapted":
+            x, increments = adapted_draw(k_move, theta, x_prev, y)
+        else:
+            x = jax.lax.stop_gradient(a * x_prev + jnp.sqrt(q) * jax.random.normal(k_move, (num_particles,)))
+            log_f = norm.logpdf(x, a * x_prev, jnp.sqrt(q))
+            increments = norm.logpdf(y, x, jnp.sqrt(r)) + log_f - jax.lax.stop_gradient(log_f)
         poses = jnp.stack([x, jnp.zeros_like(x), jnp.zeros_like(x)], axis=-1)
         update = reweight_and_resample(k_resample, poses, log_weights, increments, jnp.float32(resample_threshold),
                                        resampler)

@@ -148,3 +148,23 @@ def test_the_filter_with_the_learning_setup_has_finite_score_gradients():
            if not np.isfinite(float(g))]
     assert not bad, bad
     assert all(float(getattr(grads.motion, name)) != 0.0 for name in ("srr", "srt", "str", "stt"))
+
+
+def test_the_linear_gaussian_counterpart_weighs_by_the_predictive_with_the_drawn_states_score():
+    """tests/linear_gaussian.adapted_draw, the SMP's importance weight where q is the exact local
+    posterior (experiments/score_bias.py measures its score's bias): the increment is
+    log N(y; a x_prev, q + r) in value for every draw, and its gradient is d log gamma at the drawn
+    state, gamma = N(x; a x_prev, q) N(y; x, r), computed by hand."""
+    from linear_gaussian import THETA, adapted_draw
+
+    x_prev, y = jnp.linspace(-1.0, 1.0, 7), jnp.float32(0.4)
+    x, increments = adapted_draw(jax.random.key(3), THETA, x_prev, y)
+    a, q, r = (float(v) for v in THETA)
+    xp, xs = np.asarray(x_prev, np.float64), np.asarray(x, np.float64)
+    predictive = -0.5 * np.log(2 * np.pi * (q + r)) - 0.5 * (float(y) - a * xp) ** 2 / (q + r)
+    np.testing.assert_allclose(np.asarray(increments), predictive, rtol=1e-5, atol=1e-5)
+    grads = np.asarray(jax.jacrev(lambda th: adapted_draw(jax.random.key(3), th, x_prev, y)[1])(THETA))
+    by_hand = np.stack([(xs - a * xp) * xp / q,                                   # d/da of log f
+                        -0.5 / q + 0.5 * (xs - a * xp) ** 2 / q**2,               # d/dq of log f
+                        -0.5 / r + 0.5 * (float(y) - xs) ** 2 / r**2], axis=-1)   # d/dr of log g
+    np.testing.assert_allclose(grads, by_hand, rtol=1e-4, atol=1e-5)
