@@ -125,4 +125,6 @@ def test_slam_learning_setup_sets_what_a_fit_needs():
     assert float(params.motion.min_translation_std) == pytest.approx(0.001) and config.proposal == "op"
     with pytest.warns(UserWarning, match="likelihood.gain"):
         slam_learning_setup({"likelihood.gain": 0.1})
-    assert set(LEARNING_SETTINGS) == {"likelihood.gain", "likelihood_lookup", "linear_update", "angular_update"}
+    assert set(LEARNING_SETTINGS) == {"likelihood.gain", "likelihood_lookup", "linear_update", "angular_update",
+                                      "smp_weight", "scan_match.linear_step", "scan_match.angular_step"}
+    assert config.smp_weight == "importance" and float(params.scan_match.linear_step) == pytest.approx(0.01)
