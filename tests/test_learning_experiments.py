@@ -76,9 +76,10 @@ def test_score_bias_runs_end_to_end_on_the_linear_gaussian_model(tmp_path, capsy
                             "--lg-steps", "10", "--lg-particles", "8", "--lags", "0", "3"]) == 0
     record = json.loads((tmp_path / "score_bias.json").read_text())
     assert record["args"]["out"] == "OUT/"  # no path of the machine it ran on
-    assert {r["estimator"] for r in record["rows"]} == {"path-space", "lag 0", "lag 3"}
+    assert {r["estimator"] for r in record["rows"]} == {"path-space", "lag 0", "lag 3", "adapted proposal"}
     assert all(np.isfinite(r["bias"]) and r["sd"] >= 0 for r in record["rows"])
-    assert "| a | lag 3 |" in (tmp_path / "score_bias.md").read_text()
+    table = (tmp_path / "score_bias.md").read_text()
+    assert "| a | lag 3 |" in table and "| r | adapted proposal |" in table
     with pytest.raises(SystemExit):
         score_bias.main(["--out", str(tmp_path), "--lags", "-1"])
     assert "lags >= 0" in capsys.readouterr().err
