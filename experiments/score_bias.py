@@ -69,9 +69,12 @@ def linear_gaussian(args, bar) -> list[dict]:
         ys = simulate(jax.random.key(100 + seed), THETA, args.lg_steps)
         exact = np.asarray(kalman_score(THETA, ys), np.float64)
         keys = jax.random.split(jax.random.key(200 + seed), args.lg_keys)
-        for name, lag in zip(estimator_names(args.lags), [None, *args.lags]):
-            grad_fn = jax.jit(jax.vmap(jax.grad(lambda th, k, lag=lag: score_log_likelihood(
-                th, k, ys, args.lg_particles, "systematic", args.lg_threshold, lag)), in_axes=(None, 0)))
+        # The bootstrap's estimators, then the SMP's counterpart: the fully adapted proposal,
+        # weighed by gamma / q, with the path-space score.
+        estimators = [(name, lag, "bootstrap") for name, lag in zip(estimator_names(args.lags), [None, *args.lags])]
+        for name, lag, proposal in estimators + [(ADAPTED, None, "adapted")]:
+            grad_fn = jax.jit(jax.vmap(jax.grad(lambda th, k, lag=lag, proposal=proposal: score_log_likelihood(
+                th, k, ys, args.lg_particles, "systematic", args.lg_threshold, lag, proposal)), in_axes=(None, 0)))
             grads = np.asarray(grad_fn(THETA, keys), np.float64)
             for i, param in enumerate("aqr"):
                 g = grads[:, i]
@@ -79,16 +82,6 @@ def linear_gaussian(args, bar) -> list[dict]:
                              "reference": float(exact[i]), "bias": float(g.mean() - exact[i]),
                              "sd": float(g.std(ddof=1)), "se": float(g.std(ddof=1) / np.sqrt(g.size))})
             bar.update(1)
-        # The SMP's counterpart (the fully adapted proposal, weighed by gamma / q): the path-space score.
-        grad_fn = jax.jit(jax.vmap(jax.grad(lambda th, k: score_log_likelihood(
-            th, k, ys, args.lg_particles, "systematic", args.lg_threshold, None, "adapted")), in_axes=(None, 0)))
-        grads = np.asarray(grad_fn(THETA, keys), np.float64)
-        for i, param in enumerate("aqr"):
-            g = grads[:, i]
-            rows.append({"model": "linear-Gaussian", "seed": seed, "parameter": param, "estimator": ADAPTED,
-                         "reference": float(exact[i]), "bias": float(g.mean() - exact[i]),
-                         "sd": float(g.std(ddof=1)), "se": float(g.std(ddof=1) / np.sqrt(g.size))})
-        bar.update(1)
     return rows
 
 
