@@ -168,3 +168,23 @@ def test_the_linear_gaussian_counterpart_weighs_by_the_predictive_with_the_drawn
                         -0.5 / q + 0.5 * (xs - a * xp) ** 2 / q**2,               # d/dq of log f
                         -0.5 / r + 0.5 * (float(y) - xs) ** 2 / r**2], axis=-1)   # d/dr of log g
     np.testing.assert_allclose(grads, by_hand, rtol=1e-4, atol=1e-5)
+
+
+if __name__ == "__main__":  # python3 tests/test_smp_weight.py: the note's table, 20,000 draws
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    NUM_DRAWS = 20_000
+    field, pose, inputs = step.__wrapped__()
+    evidence, autodiff, central = _reference(field, pose, inputs, _config("importance"))
+    print(f"lattice: log evidence {evidence:.2f}, gradient {np.round(autodiff, 3)} (central differences "
+          f"{np.round(central, 3)})")
+    for smp_weight in ("quadrature", "importance"):
+        values, grads = _draws(field, pose, inputs, _config(smp_weight))
+        weights = np.exp(values - values.max())
+        normalised = weights / weights.sum()
+        score = normalised @ grads
+        se = np.sqrt(np.sum(normalised[:, None] ** 2 * (grads - score) ** 2, axis=0))
+        print(f"{smp_weight}: log evidence {np.log(weights.mean()) + values.max():.2f}, gradient {np.round(score, 3)} "
+              f"± {np.round(se, 3)}")
