@@ -21,3 +21,18 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real datasets not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_functions():
+    """Each test module's compiled functions and cached constants are dropped when it ends. An
+    xdist worker otherwise keeps every executable it ever built: about 6 GB a worker by the end
+    of the suite, which a 24 GB CI machine running two workers and the notebooks' kernels did not
+    survive (a worker died in the last minutes of the 2026-11-26 run)."""
+    yield
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
