@@ -16,8 +16,8 @@ office: docs/notes/2026-11-26-fixed-lag-score.md).
 
 Learn with the SMP (:func:`slam_learning_setup` sets its importance weight): it draws from the
 window posterior, so far fewer of its draws lose their weight in a step than the OP's, and a
-fit from twice the truth on the simulated office ends within 10 % of the known path's optimum
-at 50 particles, where the OP's ends at 0.65x in srt with 200
+fit from twice the truth on the simulated office ends with every motion term within 10 % of the
+known path's optimum (sigma at 1.16x) at 50 particles, where the OP's ends at 0.65x in srt with 200
 (docs/notes/2026-11-26-smp-weights-for-learning.md).
 
 Fit with the untempered likelihood (``likelihood.gain`` 1 for the RBPF, ``likelihood_gain`` 1
