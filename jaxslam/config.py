@@ -283,6 +283,19 @@ class ScanMatchParams(NamedTuple):
     """... but at least this (m) in x and y ..."""
     window_min_theta: Float[Array, ""]
     """... and this (rad) in heading."""
+    slip_trigger: Float[Array, ""]
+    """The slip search runs at a step when the heaviest particle's posterior probability that the
+    step's odometry slipped is above this (its window posterior's evidence under the slip
+    component against the usual motion model; 1 never runs it). The odometry is common to every
+    particle, so one particle can tell. See :func:`jaxslam.rbpf.slip_log_odds`."""
+    slip_probability: Float[Array, ""]
+    """epsilon, the prior probability that a step's odometry slipped: the motion model is then the
+    mixture (1 - epsilon) p(x | x_{t-1}, u_t) + epsilon N(x_{t-1} (+) u_t, diag(slip stds^2))."""
+    slip_std_xy: Float[Array, ""]
+    """The slip component's std (m) in x and y, whatever the step's motion: a slip's size does
+    not scale with the distance driven."""
+    slip_std_theta: Float[Array, ""]
+    """... and in heading (rad)."""
 
 
 class LookaheadParams(NamedTuple):
@@ -335,6 +348,8 @@ _DEFAULTS: dict[str, float] = {
     "scan_match.linear_step": 0.05, "scan_match.angular_step": 0.05, "scan_match.min_score": 0.15,
     "scan_match.min_std_fraction": 0.1,
     "scan_match.window_sigmas": 3.0, "scan_match.window_min_xy": 0.1, "scan_match.window_min_theta": 0.1,
+    "scan_match.slip_trigger": 0.5, "scan_match.slip_probability": 0.01, "scan_match.slip_std_xy": 0.3,
+    "scan_match.slip_std_theta": 0.35,
     "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
     "lookahead.selection_correction": 1.0,
     "resample_threshold": 0.5,
@@ -376,6 +391,10 @@ _PARAM_RANGES: dict[str, tuple[Any, str]] = {
     "scan_match.window_sigmas": (_above(0.0), "> 0"),
     "scan_match.window_min_xy": (_above(0.0), "> 0 (m)"),
     "scan_match.window_min_theta": (_above(0.0), "> 0 (rad)"),
+    "scan_match.slip_trigger": (lambda v: 0.0 <= v <= 1.0, "in [0, 1] (a probability; 1 never searches)"),
+    "scan_match.slip_probability": (lambda v: 0.0 <= v < 1.0, "in [0, 1) (0: a slip is never drawn)"),
+    "scan_match.slip_std_xy": (_above(0.0), "> 0 (m)"),
+    "scan_match.slip_std_theta": (_above(0.0), "> 0 (rad)"),
     "lookahead.alpha": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
     # Above 1 is allowed (ESS <= L): the localizers are then resampled at every step of the horizon.
     "lookahead.resample_threshold": (_at_least(0.0), ">= 0 (a fraction of L: 0 never resamples, above 1 always)"),

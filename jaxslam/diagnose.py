@@ -16,7 +16,9 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
   corrections; a wrong closure shows as a large one.
 * ``spread`` (m): the particles' proposed positions' standard deviation (root of the trace).
 * ``fallbacks``: particles whose scan match failed (SMP) or whose localizers lost all weight
-  (LP); ``log_evidence``: the step's log p(z_t | z_1:t-1) estimate.
+  (LP); ``slipped``: particles that drew from the odometry's slip component (the filter's slip
+  search, :func:`jaxslam.rbpf.slip_log_odds`; ``slip_steps`` in the summary and ``slips`` in the
+  events list the steps); ``log_evidence``: the step's log p(z_t | z_1:t-1) estimate.
 * with relations: every relation's translational and rotational error at the time of its later
   scan, and where on the best path that was.
 
@@ -46,7 +48,7 @@ def step_record(log, result) -> dict[str, np.ndarray]:
     ``scan_index`` (S,) the processed scans; ``timestamp`` (S,) s; ``odometry`` (S, 3) and
     ``best_path`` (S, 3) at them; for the S - 1 steps: ``ess``, ``resampled``, ``ancestors``
     (S-1, N), ``proposed_poses`` (S-1, N, 3) float32, ``log_evidence``, ``num_fallbacks``,
-    ``best_particle``; ``num_particles`` ().
+    ``num_slipped``, ``best_particle``; ``num_particles`` ().
     """
     info = result.info
     index = np.asarray(result.selection.indices)
@@ -61,6 +63,7 @@ def step_record(log, result) -> dict[str, np.ndarray]:
         "proposed_poses": result.to_world(info.proposed_poses).astype(np.float32),
         "log_evidence": np.asarray(info.log_evidence, np.float32),
         "num_fallbacks": np.asarray(info.num_fallbacks, np.int32),
+        "num_slipped": np.asarray(info.num_slipped, np.int32),
         "best_particle": np.asarray(info.best_particle, np.int32),
         "num_particles": np.int64(result.config.num_particles),
     }
@@ -127,6 +130,8 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         "distinct_ancestors": distinct, "surviving_lineages": lineages,
         "correction_trans": correction_trans, "correction_rot": correction_rot, "spread": spread,
         "fallbacks": np.asarray(record["num_fallbacks"]), "log_evidence": np.asarray(record["log_evidence"]),
+        # Records written before the slip search have no slips.
+        "slipped": np.asarray(record["num_slipped"]) if "num_slipped" in record else np.zeros(steps, np.int64),
     }
 
     start = float(np.asarray(record["timestamp"])[0])
@@ -137,7 +142,9 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
 
     order = np.argsort(-correction_trans, kind="stable")[:NUM_EVENTS]
     events = {"largest_corrections": [dict(place(i), trans=float(correction_trans[i]), rot=float(correction_rot[i]))
-                                      for i in order]}
+                                      for i in order],
+              "slips": [dict(place(int(i)), particles=int(series["slipped"][i]), trans=float(correction_trans[i]),
+                             rot=float(correction_rot[i])) for i in np.flatnonzero(series["slipped"])]}
     summary = {
         "steps": steps, "num_particles": n,
         "resampling_steps": int(np.sum(series["resampled"])),
@@ -146,6 +153,7 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
                                                     if np.any(series["resampled"]) else None),
         "coalescence_step": int(single[-1] + 1) if single.size else None,
         "fallbacks": int(np.sum(series["fallbacks"])),
+        "slip_steps": int(np.count_nonzero(series["slipped"])),
     }
     out = {"summary": summary, "series": {k: np.asarray(v).tolist() for k, v in series.items()}, "events": events}
     if relations is not None:
@@ -192,7 +200,8 @@ def plot_diagnosis(diagnosis: dict, record: dict[str, np.ndarray], title: str = 
                        (s["surviving_lineages"], "the step's particles with final descendants"))),
         ("correction of odometry", ((s["correction_trans"], "translation (m)"),
                                     (np.degrees(s["correction_rot"]) / 10.0, "rotation (10 deg)"))),
-        ("spread, fallbacks", ((s["spread"], "particle spread (m)"), (s["fallbacks"], "fallbacks"))),
+        ("spread, fallbacks", ((s["spread"], "particle spread (m)"), (s["fallbacks"], "fallbacks"),
+                               (s["slipped"], "particles drawn from the slip component"))),
     )
     for ax, (ylabel, lines) in zip(axes[1:4], panels):
         for values, label in lines:

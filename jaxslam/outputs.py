@@ -82,6 +82,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         "resampling_steps": int(np.sum(info.resampled)),
         "mean_ess": float(np.mean(info.ess)) if info.ess.size else None,
         "fallbacks": int(np.sum(info.num_fallbacks)),
+        "slip_steps": int(np.count_nonzero(info.num_slipped)),
         "log_evidence": float(np.sum(info.log_evidence)),
         "map_pool": dict(result.map_pool),
         "warnings": list(getattr(log, "warnings", ())) + run_warnings(result)

@@ -26,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from jaxslam import paged_map, particle_filter
+from jaxslam import motion, paged_map, particle_filter, window_posterior
+from jaxslam.motion import MotionParams
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, SlamParams
 from jaxslam.grid import in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
@@ -75,6 +76,9 @@ class SlamInfo(NamedTuple):
     """After the step, particle i descends from proposed particle ``ancestors[i]``."""
     num_fallbacks: Int[Array, ""]
     """Particles whose proposal fell back (SMP: failed match; LP: no weight)."""
+    num_slipped: Int[Array, ""]
+    """Particles whose new pose came from the odometry's slip component (:func:`slip_mixture`;
+    0 at a step where the slip search did not run)."""
     outside_samples: Int[Array, ""]
     """Beam samples (all particles) that fell outside the virtual grid and were dropped."""
     poses_outside: Int[Array, ""]
@@ -198,13 +202,37 @@ def step_with_score_terms(
     # would otherwise be the step's largest intermediate, N times over.
     field = paged_map.fields(state.maps)
 
-    def propose_one(particle):
-        key, pose, directory = particle
-        return propose_fn(key, pose, field._replace(directory=directory), lik_inputs, lik_sensor, params, config)
+    def propose_all(key, step_motion):
+        def propose_one(particle):
+            key, pose, directory = particle
+            return propose_fn(key, pose, field._replace(directory=directory), lik_inputs, lik_sensor, params,
+                              config, step_motion)
 
-    out: ProposalOutput = particle_filter.map_in_blocks(
-        propose_one, (jax.random.split(key_prop, n), jax.lax.stop_gradient(state.poses), field.directory),
-        config.particle_block)
+        return particle_filter.map_in_blocks(
+            propose_one, (jax.random.split(key, n), jax.lax.stop_gradient(state.poses), field.directory),
+            config.particle_block)
+
+    out: ProposalOutput = propose_all(key_prop, None)
+    num_slipped = jnp.int32(0)
+    if searches_window(config):
+        # The slip search. The odometry is common to every particle, so one particle can tell
+        # whether this step's odometry slipped: the heaviest, whose map is the filter's best.
+        # When its posterior puts more than scan_match.slip_trigger on the slip component, the
+        # proposals run again under it and every particle draws from the mixture
+        # (slip_mixture); at other steps the slip component's share is taken as 0.
+        heaviest = jnp.argmax(state.log_weights)
+        slip_odds = jax.lax.stop_gradient(slip_log_odds(
+            state.poses[heaviest], field._replace(directory=field.directory[heaviest]), lik_inputs, lik_sensor,
+            params, config))
+
+        def with_slip(out):
+            slipped = propose_all(jax.random.fold_in(key_prop, _TAG_SLIP), slip_motion(params))
+            return slip_mixture(jax.random.fold_in(key_prop, _TAG_SLIP_CHOICE), out, slipped,
+                                params.scan_match.slip_probability)
+
+        triggered = jax.nn.sigmoid(slip_odds) > params.scan_match.slip_trigger
+        out, chose_slip = jax.lax.cond(triggered, with_slip, lambda out: (out, jnp.zeros((n,), bool)), out)
+        num_slipped = jnp.sum(chose_slip).astype(jnp.int32)
 
     update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
                                                    params.resample_threshold, config.resampler)
@@ -233,6 +261,7 @@ def step_with_score_terms(
         proposed_poses=out.pose,
         ancestors=ancestors,
         num_fallbacks=jnp.sum(out.fallback).astype(jnp.int32),
+        num_slipped=num_slipped,
         outside_samples=jnp.sum(outside).astype(jnp.int32),
         poses_outside=jnp.sum(~in_bounds(spec.grid, world_to_cell(spec.grid, out.pose[:, :2]))).astype(jnp.int32),
         tiles_in_use=paged_map.tiles_in_use(maps).astype(jnp.int32),
@@ -244,6 +273,80 @@ def step_with_score_terms(
     terms = particle_filter.ScoreTerms(jnp.where(taken, update.log_weights, state.log_weights),
                                        jnp.where(taken, update.score_terms.increments, 0.0), ancestors)
     return new_state, info, terms
+
+
+_TAG_SLIP, _TAG_SLIP_CHOICE = 0x511, 0x512  # fold-in tags of the slip search's keys
+
+
+def searches_window(config: SlamConfig) -> bool:
+    """Whether ``config``'s proposal searches the window posterior (the SMP, the LP from the
+    match), and so reports failed matches and gets the slip search (static)."""
+    return config.proposal == "smp" or (config.proposal == "lp" and config.lookahead_initial == "scan_match")
+
+
+def slip_motion(params: SlamParams) -> MotionParams:
+    """The motion model's slip component: zero-mean noise of ``scan_match.slip_std_xy`` (x, y) and
+    ``slip_std_theta`` (heading) round the odometry's prediction, whatever the motion (the window
+    posterior is then sized from these stds)."""
+    sm = params.scan_match
+    zero = jnp.zeros_like(sm.slip_std_xy)
+    return motion.motion_params(zero, zero, zero, zero, sm.slip_std_xy, sm.slip_std_theta)
+
+
+def slip_log_odds(pose: Float[Array, "3"], field, inputs: StepInputs, sensor: SensorSpec, params: SlamParams,
+                  config: SlamConfig) -> Float[Array, ""]:
+    """log [epsilon eta_slip / ((1 - epsilon) eta_usual)] for one particle: the posterior log-odds
+    that this step's odometry slipped, eta_c the window posterior's evidence (its ``log_eta``)
+    under the usual motion model and under its slip component (:func:`slip_motion`), epsilon
+    ``scan_match.slip_probability``. ``inputs`` and ``sensor`` beam-subsampled as the proposals'."""
+    def log_evidence(step_params):
+        return window_posterior.window_posterior(pose, field, inputs.motion, inputs.ranges, sensor, step_params,
+                                                 config, fit_gain=1.0).log_eta
+
+    eps = params.scan_match.slip_probability
+    log_eps = jnp.where(eps > 0, jnp.log(jnp.where(eps > 0, eps, 1.0)), -jnp.inf)
+    odds = log_eps + log_evidence(params._replace(motion=slip_motion(params))) - jnp.log1p(-eps) - log_evidence(params)
+    return jnp.where(jnp.isnan(odds), -jnp.inf, odds)
+
+
+def slip_mixture(key: PRNGKeyArray, usual: ProposalOutput, slipped: ProposalOutput,
+                 slip_probability: Float[Array, ""]) -> tuple[ProposalOutput, Bool[Array, "N"]]:
+    """Each particle's draw under the motion model (1 - epsilon) p_usual + epsilon p_slip, from
+    one draw under each component.
+
+    Each proposal's increment estimates its component's evidence eta_c = p(z_t | x_{t-1}, m, u_t)
+    under that component. The particle keeps the slip draw with probability
+    epsilon eta_slip / ((1 - epsilon) eta_usual + epsilon eta_slip) and its increment is the
+    log of that denominator, whichever draw it keeps: the evidence under the mixture (where
+    each draw is from its component's posterior, the proposal is then the mixture's posterior
+    and this is its exact weight). Increments of -inf under both give -inf and the usual draw.
+
+    Args:
+      key: for the choices.
+      usual, slipped: (N,)-batched outputs of the proposals under the usual motion model and
+        under :func:`slip_motion`.
+      slip_probability: epsilon in [0, 1).
+
+    Returns:
+      ``(mixed, chose_slip)``: the outputs kept (the increment replaced) and (N,) bool.
+    """
+    eps = jnp.asarray(slip_probability, usual.log_weight_increment.dtype)
+    # Double where: epsilon = 0 must give a -inf log and no NaN gradient.
+    log_eps = jnp.where(eps > 0, jnp.log(jnp.where(eps > 0, eps, 1.0)), -jnp.inf)
+    log_usual = jnp.log1p(-eps) + usual.log_weight_increment
+    log_slip = log_eps + slipped.log_weight_increment
+    # Double where: logaddexp(-inf, -inf) has a NaN gradient, which a sum over particles spreads.
+    none = jnp.isneginf(log_usual) & jnp.isneginf(log_slip)
+    total = jnp.where(none, -jnp.inf, jnp.logaddexp(jnp.where(none, 0.0, log_usual), jnp.where(none, 0.0, log_slip)))
+    finite = jnp.isfinite(total)
+    slip_share = jnp.exp(jnp.where(finite, log_slip - jnp.where(finite, total, 0.0), -jnp.inf))
+    chose_slip = jax.random.uniform(key, total.shape) < jax.lax.stop_gradient(slip_share)
+
+    def pick(a, b):
+        return jnp.where(chose_slip.reshape(chose_slip.shape + (1,) * (a.ndim - 1)), b, a)
+
+    mixed = jax.tree.map(pick, usual, slipped)
+    return mixed._replace(log_weight_increment=total), chose_slip
 
 
 def _noop_inputs(inputs: StepInputs) -> StepInputs:

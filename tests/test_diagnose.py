@@ -110,3 +110,14 @@ def test_diagnose_command_reads_a_map_run(tmp_path, capsys):
     # A folder without the record: one clear line, exit 2, before any work.
     assert main(["diagnose", str(tmp_path / "d")]) == 2
     assert "steps.npz does not exist" in capsys.readouterr().err
+
+
+def test_the_steps_that_drew_from_the_slip_component_are_listed():
+    record = synthetic_record()
+    assert diagnose(record)["summary"]["slip_steps"] == 0  # a record written before the slip search
+    slipped = np.zeros(record["ancestors"].shape[0], np.int32)
+    slipped[7] = 3
+    out = diagnose(dict(record, num_slipped=slipped))
+    assert out["summary"]["slip_steps"] == 1
+    assert [(e["step"], e["particles"]) for e in out["events"]["slips"]] == [(8, 3)]
+    assert out["series"]["slipped"][7] == 3

@@ -119,7 +119,7 @@ def test_every_weight_zero_resets_to_uniform_and_reports_it(room_map, monkeypatc
     weights; the step says ``degenerate`` and its log-evidence is -inf."""
     inputs, pose = _inputs()
 
-    def hopeless(key, pose, grid_map, inputs, sensor, params, config):
+    def hopeless(key, pose, grid_map, inputs, sensor, params, config, step_motion=None):
         inc = jnp.where(jax.random.uniform(key) < 0.5, -jnp.inf, jnp.nan)
         return ProposalOutput(pose, inc, jnp.bool_(True))
 

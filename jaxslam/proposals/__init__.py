@@ -18,7 +18,7 @@ class Proposal(NamedTuple):
     """A proposal of the RBPF."""
 
     propose_fn: Callable[..., ProposalOutput]
-    """``propose_fn(key, pose, field, inputs, sensor, params, config) -> ProposalOutput`` for one
+    """``propose_fn(key, pose, field, inputs, sensor, params, config, step_motion=None) -> ProposalOutput`` for one
     particle (the filter vmaps it; :mod:`jaxslam.proposals.base`)."""
     looks_ahead: bool
     """Whether each step needs the next ``config.horizon`` scans (``StepInputs.future_*``)."""

@@ -3,9 +3,11 @@
 A proposal draws one SLAM particle's next pose given its previous pose and its map
 m_{t-1}, and returns the log-weight increment. All proposals share the signature
 
-    propose(key, pose, field, inputs, sensor, params, config) -> ProposalOutput
+    propose(key, pose, field, inputs, sensor, params, config, step_motion=None) -> ProposalOutput
 
-for ONE particle; the RBPF vmaps it over particles. ``field`` is the particle's likelihood
+for ONE particle; ``step_motion`` is the motion model of step t (None: ``params.motion``; the
+filter's slip search passes the slip component, :func:`jaxslam.rbpf.slip_motion`), while the
+look-ahead's horizon keeps ``params.motion``; the RBPF vmaps it over particles. ``field`` is the particle's likelihood
 field m_{t-1} (a :class:`~jaxslam.paged_map.PagedField`: its directory and the shared pools; a
 dense (H, W) field also works where ``config.grid`` is a dense :class:`~jaxslam.grid.GridSpec`). ``inputs.ranges`` and
 ``inputs.future_ranges`` are already beam-subsampled (``config.beam_stride``),
@@ -43,3 +45,8 @@ class ProposalOutput(NamedTuple):
     """log w_t - log w_{t-1}."""
     fallback: Bool[Array, ""]
     """SMP: the match failed and the odometry proposal was used. LP: no localizer kept weight."""
+
+
+def step_params(params, step_motion):
+    """``params`` with the motion model of step t: ``step_motion``, or ``params.motion`` when None."""
+    return params if step_motion is None else params._replace(motion=step_motion)

@@ -88,7 +88,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion, resampling
-from jaxslam.proposals.base import ProposalOutput, StepInputs
+from jaxslam.proposals.base import ProposalOutput, StepInputs, step_params
 from jaxslam.laser import SensorSpec
 from jaxslam.map_view import MapView
 from jaxslam.sensor_model import SensorModel, sensor_model
@@ -431,7 +431,7 @@ class LookaheadExplanation(NamedTuple):
     """The localizer cloud at every horizon step."""
 
 
-def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, return_history):
+def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, return_history, step_motion=None):
     spec = config.grid
     num = config.num_localizers
     # The localizer filter weighs with its own gain (default 1: the scan's own sharpness, as the
@@ -450,7 +450,9 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
     start = jnp.broadcast_to(pose, (num, 3))
     key_initial = jax.random.fold_in(key, _TAG_INITIAL)
     # motion.sample's draw, with no pathwise gradient; its score (0 in value) goes into g_i.
-    poses_t, score_t = motion.sample_with_score(key_initial, start, inputs.motion, params.motion)
+    # Step t's motion model (the slip search's component, or params.motion); the horizon keeps params.motion.
+    params_t = step_params(params, step_motion)
+    poses_t, score_t = motion.sample_with_score(key_initial, start, inputs.motion, params_t.motion)
     log_lik_t = log_likelihood(poses_t, (inputs.motion, inputs.ranges)) + score_t
     if config.lookahead_initial == "scan_match":
         # Draw the time-t localizers from the window posterior's mixture instead (every mode gets
@@ -463,11 +465,11 @@ def _propose_impl(key, pose, field, inputs: StepInputs, sensor, params, config, 
         # importance weight cancel (module docstring, "Gradients"), so neither the draw nor log q
         # needs one, and the search's discrete choices have none to give.
         posterior = jax.lax.stop_gradient(window_posterior.window_posterior(
-            pose, field, inputs.motion, inputs.ranges, sensor, params, config, fit_gain=localizer_gain))
+            pose, field, inputs.motion, inputs.ranges, sensor, params_t, config, fit_gain=localizer_gain))
         log_mixture = window_posterior.mixture_log_weights(posterior, LOCALIZER_UNIFORM_SHARE)
         matched_t = window_posterior.sample(jax.random.fold_in(key_initial, 1), posterior, log_mixture, (num,))
         log_weight_t = window_posterior.importance_log_weights(
-            matched_t, log_likelihood(matched_t, (inputs.motion, inputs.ranges)), pose, inputs.motion, params.motion,
+            matched_t, log_likelihood(matched_t, (inputs.motion, inputs.ranges)), pose, inputs.motion, params_t.motion,
             posterior, log_mixture)
         poses_t = jnp.where(posterior.matched, matched_t, poses_t)
         log_lik_t = jnp.where(posterior.matched, log_weight_t, log_lik_t)
@@ -488,15 +490,18 @@ def propose(
     sensor: SensorSpec,
     params,
     config,
+    step_motion=None,
 ) -> ProposalOutput:
-    """One LP draw for one SLAM particle (see the module docstring).
+    """One LP draw for one SLAM particle (see the module docstring); ``step_motion``: the motion
+    model of step t's draw (None: ``params.motion``; the horizon's moves keep ``params.motion``).
 
     Uses ``config.num_localizers`` (L), the K = ``config.horizon`` future scans in
     ``inputs`` (invalid ones skipped), ``params.lookahead.alpha`` and
     ``params.lookahead.resample_threshold``; the map stays ``field`` (m_{t-1}'s likelihood field)
     over the whole horizon. ``fallback`` is True when no time-t sample kept weight.
     """
-    poses_t, _, draw, _, _ = _propose_impl(key, pose, field, inputs, sensor, params, config, False)
+    poses_t, _, draw, _, _ = _propose_impl(key, pose, field, inputs, sensor, params, config, False,
+                                                         step_motion)
     return ProposalOutput(poses_t[draw.index], draw.log_weight_increment, draw.fallback)
 
 

@@ -31,12 +31,14 @@ import jax.numpy as jnp
 from jaxslam import window_posterior
 from jaxslam.map_view import MapView
 from jaxslam.proposals import odometry
-from jaxslam.proposals.base import ProposalOutput, StepInputs
+from jaxslam.proposals.base import ProposalOutput, StepInputs, step_params
 from jaxslam.sensor_model import sensor_model
 
 
-def propose(key, pose, field, inputs: StepInputs, sensor, params, config) -> ProposalOutput:
-    """One SMP draw for one particle (see the module docstring)."""
+def propose(key, pose, field, inputs: StepInputs, sensor, params, config, step_motion=None) -> ProposalOutput:
+    """One SMP draw for one particle (see the module docstring); ``step_motion``: the motion
+    model of this step (None: ``params.motion``; :mod:`jaxslam.proposals.base`)."""
+    params = step_params(params, step_motion)
     key_sample, key_fallback = jax.random.split(key)
     importance = config.smp_weight == "importance"
     posterior = window_posterior.window_posterior(pose, field, inputs.motion, inputs.ranges, sensor, params, config,
