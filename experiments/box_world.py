@@ -54,7 +54,7 @@ WORLD_KEYS = ("success_ra", "rotation_weight", "motion_scale", "grid_margin", "g
               "insert_range_margin")
 """The json's numbers that every run of a folder shares (with the table's scenario)."""
 RUN_FIELDS = ("seed", "ra", "ra_position", "ra_heading", "best_particle_error", "closest_particle_error", "seconds",
-              "num_steps", "num_fallbacks", "num_degenerate", "num_resamplings", "min_ess")
+              "num_steps", "num_fallbacks", "num_slip_steps", "num_degenerate", "num_resamplings", "min_ess")
 """A run record's fields (besides its cell's key)."""
 
 
@@ -197,6 +197,7 @@ def score_run(seed: int, result, scenario, world: dict, seconds: float) -> dict:
         # Is any history near the truth at all (the weights' failure to pick it), or none?
         "closest_particle_error": float(errors.min()), "seconds": seconds,
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
+        "num_slip_steps": int(np.count_nonzero(result.info.num_slipped)),
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),
         "min_ess": float(result.info.ess.min()),
     }

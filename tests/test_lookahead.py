@@ -652,3 +652,27 @@ def test_horizon_evidence_gradient_keeps_the_resampling_score():
         d = np.asarray(d, np.float64)
         mean, se = d.mean(), d.std(ddof=1) / math.sqrt(d.size)
         assert abs(mean - want) < 4 * se, (name, mean, se, want)
+
+
+def test_the_steps_motion_model_moves_the_time_t_localizers_and_the_horizon_keeps_its_own(room_field):
+    """``step_motion`` (the filter's slip search passes the slip component) draws the time-t
+    localizers; the horizon's moves keep ``params.motion``: with that noiseless, every localizer
+    at horizon step s is its time-t origin moved by the odometry exactly."""
+    from jaxslam.geometry import compose
+    from jaxslam.motion import motion_params
+
+    params = default_params()._replace(motion=motion_params(0.0, 0.0, 0.0, 0.0))
+    slip = motion_params(0.0, 0.0, 0.0, 0.0, 0.3, 0.35)
+    inputs, pose = room_inputs(3)
+    config = lp_config(num_localizers=400, horizon=3)
+    ex = _jit_explain(jax.random.key(2), pose, room_field, inputs, SENSOR, params, config, slip)
+    offsets = np.asarray(ex.poses_t) - np.asarray(compose(pose, inputs.motion))
+    # The time-t draw has the slip component's stds (Monte Carlo error of a std over 400 draws: 3.5 %).
+    np.testing.assert_allclose(offsets.std(axis=0), [0.3, 0.3, 0.35], rtol=0.15)
+    for s in range(3):
+        expected = ex.poses_t[ex.history.origin[s]]
+        for u in inputs.future_motions[:s + 1]:
+            expected = compose(expected, u)
+        np.testing.assert_allclose(np.asarray(ex.history.states[s]), np.asarray(expected), atol=1e-5)
+    out = _jit_propose(jax.random.key(2), pose, room_field, inputs, SENSOR, params, config, slip)
+    np.testing.assert_array_equal(out.pose, ex.poses_t[ex.draw.index])

@@ -513,9 +513,10 @@ def explain(
     sensor: SensorSpec,
     params,
     config,
+    step_motion=None,
 ) -> LookaheadExplanation:
-    """The same draw as :func:`propose` (same key, same result) with its intermediate
-    quantities: the time-t samples, the horizon's clouds, V, p and J."""
+    """The same draw as :func:`propose` (same key and ``step_motion``, same result) with its
+    intermediate quantities: the time-t samples, the horizon's clouds, V, p and J."""
     poses_t, log_lik_t, draw, horizon, history = _propose_impl(
-        key, pose, field, inputs, sensor, params, config, True)
+        key, pose, field, inputs, sensor, params, config, True, step_motion)
     return LookaheadExplanation(poses_t, log_lik_t, draw, horizon, history)
