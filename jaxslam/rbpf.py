@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from jaxslam import motion, paged_map, particle_filter, window_posterior
+from jaxslam import motion, paged_map, particle_filter, resampling, window_posterior
 from jaxslam.motion import MotionParams
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, SlamParams
 from jaxslam.grid import in_bounds, world_to_cell
@@ -280,7 +280,7 @@ _TAG_SLIP, _TAG_SLIP_CHOICE = 0x511, 0x512  # fold-in tags of the slip search's 
 
 def searches_window(config: SlamConfig) -> bool:
     """Whether ``config``'s proposal searches the window posterior (the SMP, the LP from the
-    match), and so reports failed matches and gets the slip search (static)."""
+    match), and so gets the slip search (static)."""
     return config.proposal == "smp" or (config.proposal == "lp" and config.lookahead_initial == "scan_match")
 
 
@@ -304,8 +304,8 @@ def slip_log_odds(pose: Float[Array, "3"], field, inputs: StepInputs, sensor: Se
                                                  config, fit_gain=1.0).log_eta
 
     eps = params.scan_match.slip_probability
-    log_eps = jnp.where(eps > 0, jnp.log(jnp.where(eps > 0, eps, 1.0)), -jnp.inf)
-    odds = log_eps + log_evidence(params._replace(motion=slip_motion(params))) - jnp.log1p(-eps) - log_evidence(params)
+    slipped = log_evidence(params._replace(motion=slip_motion(params)))
+    odds = resampling.safe_log(eps) + slipped - jnp.log1p(-eps) - log_evidence(params)
     return jnp.where(jnp.isnan(odds), -jnp.inf, odds)
 
 
@@ -331,10 +331,8 @@ def slip_mixture(key: PRNGKeyArray, usual: ProposalOutput, slipped: ProposalOutp
       ``(mixed, chose_slip)``: the outputs kept (the increment replaced) and (N,) bool.
     """
     eps = jnp.asarray(slip_probability, usual.log_weight_increment.dtype)
-    # Double where: epsilon = 0 must give a -inf log and no NaN gradient.
-    log_eps = jnp.where(eps > 0, jnp.log(jnp.where(eps > 0, eps, 1.0)), -jnp.inf)
     log_usual = jnp.log1p(-eps) + usual.log_weight_increment
-    log_slip = log_eps + slipped.log_weight_increment
+    log_slip = resampling.safe_log(eps) + slipped.log_weight_increment
     # Double where: logaddexp(-inf, -inf) has a NaN gradient, which a sum over particles spreads.
     none = jnp.isneginf(log_usual) & jnp.isneginf(log_slip)
     total = jnp.where(none, -jnp.inf, jnp.logaddexp(jnp.where(none, 0.0, log_usual), jnp.where(none, 0.0, log_slip)))

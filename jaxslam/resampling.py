@@ -77,10 +77,16 @@ def residual(key: PRNGKeyArray, log_weights: Float[Array, "N"], num_samples: int
     deterministic = jnp.minimum(jnp.searchsorted(starts + copies, slots, side="right"), n - 1)
     num_det = jnp.sum(copies)
     residues = num_samples * weights - copies
-    log_res = jnp.where(residues > 0, jnp.log(jnp.where(residues > 0, residues, 1.0)), -jnp.inf)
+    log_res = safe_log(residues)
     random_part = multinomial(key, log_res, num_samples)
     # If every residue is zero (num_det == num_samples) the random part is never used.
     return jnp.where(slots < num_det, deterministic, random_part).astype(jnp.int32)
+
+
+def safe_log(x: Float[Array, "..."]) -> Float[Array, "..."]:
+    """log(x) for x >= 0: -inf where x is 0, with no NaN in the gradient there (double where)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.log(jnp.where(positive, x, 1.0)), -jnp.inf)
 
 
 RESAMPLERS: dict[str, ResampleFn] = {

@@ -81,7 +81,8 @@ def test_the_mixture_at_its_edges():
     assert np.isfinite(float(jax.grad(first_increment)(0.0)))
     # At epsilon = 0.2, the gradient of the log-evidence against the reference's finite difference.
     h = 1e-3
-    numeric = (_reference(usual_inc, slip_inc, 0.2 + h)[0][3] - _reference(usual_inc, slip_inc, 0.2 - h)[0][3]) / (2 * h)
+    numeric = (_reference(usual_inc, slip_inc, 0.2 + h)[0][3]
+               - _reference(usual_inc, slip_inc, 0.2 - h)[0][3]) / (2 * h)
     assert float(jax.grad(first_increment)(0.2)) == pytest.approx(numeric, rel=1e-3)
 
 

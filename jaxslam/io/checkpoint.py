@@ -13,7 +13,7 @@ from jaxslam.paged_map import PagedMaps
 from jaxslam.rbpf import SlamInfo, SlamState
 from jaxslam.slam import RunProgress
 
-CHECKPOINT_VERSION = 3  # 2: paged maps; 3: two-level page tables
+CHECKPOINT_VERSION = 4  # 2: paged maps; 3: two-level page tables; 4: SlamInfo.num_slipped (the slip search)
 
 
 def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:

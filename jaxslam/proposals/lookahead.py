@@ -290,7 +290,7 @@ def selection_log_probs(
 def _mixture_log_weights(alpha):
     """(log(1 - alpha), log(alpha)), -inf at the ends without NaN in anything derived from them."""
     log_rest = jnp.where(alpha < 1.0, jnp.log1p(-jnp.where(alpha < 1.0, alpha, 0.0)), -jnp.inf)
-    log_alpha = jnp.where(alpha > 0.0, jnp.log(jnp.where(alpha > 0.0, alpha, 1.0)), -jnp.inf)
+    log_alpha = resampling.safe_log(alpha)
     return log_rest, log_alpha
 
 
