@@ -27,7 +27,6 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion, paged_map, particle_filter, resampling, window_posterior
-from jaxslam.motion import MotionParams
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, SlamParams
 from jaxslam.grid import in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
@@ -284,7 +283,7 @@ def searches_window(config: SlamConfig) -> bool:
     return config.proposal == "smp" or (config.proposal == "lp" and config.lookahead_initial == "scan_match")
 
 
-def slip_motion(params: SlamParams) -> MotionParams:
+def slip_motion(params: SlamParams) -> motion.MotionParams:
     """The motion model's slip component: zero-mean noise of ``scan_match.slip_std_xy`` (x, y) and
     ``slip_std_theta`` (heading) round the odometry's prediction, whatever the motion (the window
     posterior is then sized from these stds)."""
