@@ -34,7 +34,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
 from jaxslam.grid import GridSpec, cell_clip_bound, flat_index
-from jaxslam.laser import SensorSpec, laser_rays
+from jaxslam.laser import SensorSpec, laser_rays, valid_returns
 
 LOGODDS_DTYPE = jnp.float16
 """Storage type of the log-odds: a dense map's and the paged maps' tile pool (see the module docstring)."""
@@ -82,6 +82,89 @@ def field_kernel(radius: int) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([dr[keep], dc[keep]], axis=-1).astype(np.int32), np.minimum(d2[keep], FAR).astype(np.uint8)
 
 
+class ScanRays(NamedTuple):
+    """One scan's beams as the insertion traces them (``B`` beams); every sample's cell follows
+    from these (:func:`sample_floors`), so a caller can compute the samples it needs only."""
+
+    origin: Float[Array, "2"]
+    """The laser's world position (m)."""
+    direction: Float[Array, "B 2"]
+    """Each beam's unit direction in the world."""
+    free_len: Float[Array, "B"]
+    """Metres along each beam whose cells are cleared (0 for a beam below range_min)."""
+    end_floor: Float[Array, "B 2"]
+    """Each beam's endpoint as floored (x, y) cell coordinates, unclipped floats."""
+    returned: Bool[Array, "B"]
+    """Beams whose endpoint marks its cell occupied and registers in the field."""
+
+
+def samples_per_beam(spec: GridSpec, max_insert_range: float) -> int:
+    """Samples traced along every beam: one per cell length up to ``max_insert_range`` (static)."""
+    return int(math.ceil(max_insert_range / spec.resolution)) + 1
+
+
+def free_lengths(ranges: Float[Array, "B"], sensor: SensorSpec, params: InsertionParams,
+                 max_insert_range: float) -> Float[Array, "B"]:
+    """Metres along each beam whose cells a scan clears (the same at every pose): up to the
+    endpoint, or ``no_return_free_range`` (never past range_max) for a "no return" beam; none
+    for a beam below range_min."""
+    no_return = ranges >= sensor.range_max
+    no_return_len = jnp.minimum(jnp.minimum(params.no_return_free_range, sensor.range_max), max_insert_range)
+    free_len = jnp.where(no_return, no_return_len, jnp.minimum(ranges, max_insert_range))
+    return jnp.where((ranges < sensor.range_min) & ~no_return, 0.0, free_len)
+
+
+def scan_rays(
+    spec: GridSpec,
+    pose: Float[Array, "3"],
+    ranges: Float[Array, "B"],
+    sensor: SensorSpec,
+    params: InsertionParams,
+    max_insert_range: float,
+) -> ScanRays:
+    """The beams of one scan taken at robot ``pose``: where they start, where they point, how far
+    they clear and which of them mark their endpoint (see :func:`scan_cells`)."""
+    origin, angle = laser_rays(pose, sensor)
+    returned = valid_returns(ranges, sensor) & (ranges < max_insert_range)
+    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)  # (B, 2)
+    end_points = origin + ranges[:, None] * direction  # (B, 2)
+    corner = jnp.asarray(spec.origin, jnp.float32)
+    free_len = free_lengths(ranges, sensor, params, max_insert_range)
+    return ScanRays(origin, direction, free_len, jnp.floor((end_points - corner) / spec.resolution), returned)
+
+
+def sample_distances(spec: GridSpec, sample: Int[Array, "..."]) -> Float[Array, "..."]:
+    """Metres from the laser to sample ``sample`` of a beam (one sample per cell length)."""
+    return sample.astype(jnp.float32) * spec.resolution
+
+
+def sample_floors(spec: GridSpec, rays: ScanRays, beam: Int[Array, "..."], sample: Int[Array, "..."]
+                  ) -> Float[Array, "... 2"]:
+    """Floored (x, y) cell coordinates, as unclipped floats, of sample ``sample`` of beam
+    ``beam`` (broadcast together). Floats, so that the duplicate and endpoint tests do not merge
+    distinct cells far outside the grid (the int cells are clipped there)."""
+    points = rays.origin + sample_distances(spec, sample)[..., None] * rays.direction[beam]
+    return jnp.floor((points - jnp.asarray(spec.origin, jnp.float32)) / spec.resolution)
+
+
+def cleared_samples(spec: GridSpec, free_len: Float[Array, "B"], num_samples: int) -> Int[Array, "B"]:
+    """How many of each beam's first samples lie before its free length ``free_len`` (m): those,
+    and only those, may clear their cell (a prefix of the beam: the distances grow with the
+    sample)."""
+    dist = sample_distances(spec, jnp.arange(num_samples))
+    return jnp.sum(dist[None, :] < free_len[:, None], axis=1).astype(jnp.int32)
+
+
+def clears_cell(rays: ScanRays, beam: Int[Array, "..."], floors: Float[Array, "... 2"],
+                previous_floors: Float[Array, "... 2"], first: Bool[Array, "..."]) -> Bool[Array, "..."]:
+    """Whether a sample before its beam's free length clears its cell: it is the beam's first
+    sample in that cell (``first``: the beam's first sample; ``previous_floors``: the sample
+    before's cell) and not a returned beam's endpoint cell."""
+    same_as_prev = ~first & jnp.all(floors == previous_floors, axis=-1)
+    is_end = jnp.all(floors == rays.end_floor[beam], axis=-1) & rays.returned[beam]
+    return ~same_as_prev & ~is_end
+
+
 class ScanCells(NamedTuple):
     """The cells one scan updates, as (row, col) cells of a grid (they may lie outside it)."""
 
@@ -110,37 +193,48 @@ def scan_cells(
     return" beam (r >= range_max) clears free space up to ``no_return_free_range``, but never
     past range_max (the laser says nothing of the space beyond its reach), and marks nothing.
     Beams are traced up to ``max_insert_range`` metres (static: it sets the number of samples
-    per beam, one per cell).
+    per beam, one per cell, :func:`samples_per_beam`). Every sample of every beam: the paged
+    maps compute the samples before each beam's free length only (the same cells, from the same
+    :func:`sample_floors`).
     """
-    res = spec.resolution
-    num_samples = int(math.ceil(max_insert_range / res)) + 1
-    origin, angle = laser_rays(pose, sensor)
-    no_return = ranges >= sensor.range_max
-    returned = (~no_return) & (ranges >= sensor.range_min) & (ranges < max_insert_range)
-    no_return_len = jnp.minimum(jnp.minimum(params.no_return_free_range, sensor.range_max), max_insert_range)
-    free_len = jnp.where(no_return, no_return_len, jnp.minimum(ranges, max_insert_range))
-    free_len = jnp.where((ranges < sensor.range_min) & ~no_return, 0.0, free_len)
-    direction = jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)  # (B, 2)
-
-    dist = jnp.arange(num_samples, dtype=jnp.float32) * res  # (S,)
-    points = origin + dist[None, :, None] * direction[:, None, :]  # (B, S, 2)
-    end_points = origin + ranges[:, None] * direction  # (B, 2)
-    # Floored cell coordinates as unclipped floats for the duplicate and endpoint tests (the int
-    # cells are clipped far from the grid, which would merge distinct cells outside it).
-    corner = jnp.asarray(spec.origin, jnp.float32)
-    sample_xy = jnp.floor((points - corner) / res)
-    end_xy = jnp.floor((end_points - corner) / res)
-    same_as_prev = jnp.concatenate(
-        [jnp.zeros((sample_xy.shape[0], 1), bool), jnp.all(sample_xy[:, 1:] == sample_xy[:, :-1], axis=-1)], axis=1)
-    is_end = jnp.all(sample_xy == end_xy[:, None, :], axis=-1) & returned[:, None]
-    free = (dist[None, :] < free_len[:, None]) & ~same_as_prev & ~is_end  # (B, S)
-    return ScanCells(_floored_to_cells(spec, sample_xy), free, _floored_to_cells(spec, end_xy), returned)
+    rays = scan_rays(spec, pose, ranges, sensor, params, max_insert_range)
+    num_samples = samples_per_beam(spec, max_insert_range)
+    beam, sample = jnp.arange(ranges.shape[0])[:, None], jnp.arange(num_samples)[None, :]
+    sample_xy = sample_floors(spec, rays, beam, sample)  # (B, S, 2)
+    previous_xy = jnp.concatenate([sample_xy[:, :1], sample_xy[:, :-1]], axis=1)
+    free = ((sample < cleared_samples(spec, rays.free_len, num_samples)[:, None])
+            & clears_cell(rays, beam, sample_xy, previous_xy, sample == 0))  # (B, S)
+    return ScanCells(floored_to_cells(spec, sample_xy), free, floored_to_cells(spec, rays.end_floor), rays.returned)
 
 
-def _floored_to_cells(spec: GridSpec, xy: Float[Array, "... 2"]) -> Int[Array, "... 2"]:
+def floored_to_cells(spec: GridSpec, xy: Float[Array, "... 2"]) -> Int[Array, "... 2"]:
     """Floored float (x, y) cell coordinates as int32 (row, col), clipped as ``world_to_cell`` clips."""
     big = cell_clip_bound(spec)
     return jnp.clip(xy[..., ::-1], -big, big).astype(jnp.int32)
+
+
+def clear_cells(logodds: Float[Array, "M"], free_idx: Int[Array, "..."], params: InsertionParams
+                ) -> Float[Array, "M"]:
+    """``logodds_free`` added to flat cells ``free_idx`` (once per entry), clamped below at
+    ``logodds_min``; an index equal to the storage size (M) changes nothing."""
+    free_idx, dtype = free_idx.reshape(-1), logodds.dtype
+    logodds = logodds.at[free_idx].add(params.logodds_free.astype(dtype), mode="drop")
+    return logodds.at[free_idx].max(params.logodds_min.astype(dtype), mode="drop")
+
+
+def mark_cells(logodds: Float[Array, "M"], end_idx: Int[Array, "..."], params: InsertionParams
+               ) -> Float[Array, "M"]:
+    """``logodds_occupied`` added to flat cells ``end_idx``, clamped above at ``logodds_max``."""
+    end_idx, dtype = end_idx.reshape(-1), logodds.dtype
+    logodds = logodds.at[end_idx].add(params.logodds_occupied.astype(dtype), mode="drop")
+    return logodds.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
+
+
+def splat_field(hit_dist2: UInt8[Array, "M"], splat_idx: Int[Array, "... K"], splat_d2: UInt8[Array, "K"]
+                ) -> UInt8[Array, "M"]:
+    """Flat cells ``splat_idx[..., k]`` take the min of their field and ``splat_d2[k]``."""
+    splat_d2 = jnp.broadcast_to(jnp.asarray(splat_d2), splat_idx.shape)
+    return hit_dist2.at[splat_idx.reshape(-1)].min(splat_d2.reshape(-1), mode="drop")
 
 
 def update_cells(
@@ -152,24 +246,18 @@ def update_cells(
     splat_d2: UInt8[Array, "K"],
     params: InsertionParams,
 ) -> tuple[Float[Array, "M"], UInt8[Array, "M"]]:
-    """Apply scans' updates to flat cell storage (a dense map's cells, or a pool of tiles).
-
-    ``free_idx`` cells get ``logodds_free`` (once per entry), ``end_idx`` cells
-    ``logodds_occupied``; ``splat_idx[..., k]`` cells take the min of their field and
-    ``splat_d2[k]``. An index equal to the storage size (M) updates nothing (the scatters skip
-    it without touching memory). The static-state binary Bayes update in log-odds (an addition,
-    see :mod:`jaxslam.binary_bayes`), then the clamp as scatter-max / scatter-min on the touched
-    cells: free cells only decrease and endpoint cells only increase, so each needs one bound.
+    """Apply scans' updates to flat cell storage (a dense map's cells, or a pool of tiles), in
+    this order: :func:`clear_cells` ``free_idx``, :func:`mark_cells` ``end_idx``,
+    :func:`splat_field` ``splat_idx``. An index equal to the storage size (M) updates nothing
+    (the scatters skip it without touching memory). The static-state binary Bayes update in
+    log-odds (an addition, see :mod:`jaxslam.binary_bayes`), then the clamp as scatter-max /
+    scatter-min on the touched cells: free cells only decrease and endpoint cells only
+    increase, so each needs one bound. The paged maps apply the same three in the same order,
+    the cleared cells a chunk at a time (the clamp commutes with the chunks: each bound is
+    applied after every addition to a cell, and a cell below the lower bound stays there).
     """
-    dtype = logodds.dtype
-    free_idx, end_idx = free_idx.reshape(-1), end_idx.reshape(-1)
-    logodds = logodds.at[free_idx].add(params.logodds_free.astype(dtype), mode="drop")
-    logodds = logodds.at[free_idx].max(params.logodds_min.astype(dtype), mode="drop")
-    logodds = logodds.at[end_idx].add(params.logodds_occupied.astype(dtype), mode="drop")
-    logodds = logodds.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
-    splat_d2 = jnp.broadcast_to(jnp.asarray(splat_d2), splat_idx.shape)
-    hit_dist2 = hit_dist2.at[splat_idx.reshape(-1)].min(splat_d2.reshape(-1), mode="drop")
-    return logodds, hit_dist2
+    logodds = mark_cells(clear_cells(logodds, free_idx, params), end_idx, params)
+    return logodds, splat_field(hit_dist2, splat_idx, splat_d2)
 
 
 def insert_scan(
