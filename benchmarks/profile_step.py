@@ -7,7 +7,9 @@ sweep``) for ``--warm-chunks`` chunks of 32 steps, then, from that state:
   .memory_analysis()``: arguments, outputs, temporaries) and of the step's parts compiled
   alone (the proposals under the filter's vmap, the insertion, the resampling of the maps);
 * the largest buffers of the chunk's buffer assignment (``--xla_dump_to``), by what they hold;
-* the steady-state time of each part and of the whole step (best of ``--repeats``);
+* the steady-state time of each part and of the whole step (best of ``--repeats``), and the
+  time per update of the run's own compiled chunk over the next 32 steps (``chunk_ms_per_update``:
+  what a run pays per update, compilation excluded);
 * the peak resident memory of the process.
 
     python benchmarks/profile_step.py --particles 1000 --out profile_1000.json
@@ -165,6 +167,15 @@ def main(argv=None):
     for name, (fn, fn_args) in parts.items():
         report["parts"][name] = {"memory": _memory(fn.lower(*fn_args).compile()),
                                  "seconds": _best_time(fn, fn_args, args.repeats) if args.repeats else None}
+    # The run's own program in steady state: the next chunk of 32 steps, the maps donated as in
+    # slam.run (the parts above copy the pools; this does not).
+    state = jax.tree.map(jnp.copy, state)
+    t0 = time.perf_counter()
+    state, info = compiled(state, jax.random.split(jax.random.fold_in(key_steps, args.warm_chunks), chunk),
+                           chunk_inputs(args.warm_chunks), valid, sensor, params)
+    jax.block_until_ready(state)
+    report["chunk_ms_per_update"] = 1e3 * (time.perf_counter() - t0) / chunk
+    report["chunk_overflowed"] = bool(info.pool_overflow.any())
     report["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(json.dumps({k: v for k, v in report.items() if k != "top_buffers"}, indent=1))
     for row in report["top_buffers"]:

@@ -9,6 +9,10 @@ loop whose trip count XLA cannot know are always materialised, by vectorised cod
 (and is in fact always 1 or 2, with the same result). ``jax.lax.optimization_barrier`` does not
 do this: XLA's CPU pipeline drops it before fusion. The measurements are in
 ``docs/notes/2026-11-23-paged-maps-in-the-filters.md``.
+
+Also here, the other loop workaround the maps need: :func:`loop_bound`, a ``while_loop``'s trip
+count that stays one number under ``vmap`` (a batched predicate makes JAX select every carry,
+the map pools included, at every round).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
 
 
 def computed_once(fn, first, *rest):
@@ -51,3 +56,21 @@ def _computed_once_jvp(fn, primals, tangents):
     """The loop's forward values with ``fn``'s own tangents."""
     _, tangents_out = jax.jvp(fn, primals, tangents)
     return _computed_once(fn, *primals), tangents_out
+
+
+@custom_vmap
+def loop_bound(count):
+    """``count`` (an int scalar), as the bound of a ``while_loop`` whose rounds past a run's own
+    count change nothing (they read and write nothing live). Under ``vmap`` it is the largest
+    count of the batch, one number, not a batched one: JAX batches a ``while_loop`` whose
+    predicate is batched by selecting between the old and the new value of every carry at every
+    round, which for a loop that scatters into the map pools is a copy of the pools per round.
+    The runs of the batch then take as many rounds as the longest needs, the others' extra rounds
+    doing nothing, so each run's values are those of its own loop."""
+    return count
+
+
+@loop_bound.def_vmap
+def _loop_bound_vmap(axis_size, in_batched, count):
+    del axis_size
+    return (jnp.max(count, axis=0) if in_batched[0] else count), False

@@ -66,7 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
 
-from jaxslam.computed_once import computed_once
+from jaxslam.computed_once import computed_once, loop_bound
 from jaxslam.grid import GridSpec, world_to_cell
 from jaxslam.laser import SensorSpec, laser_rays
 from jaxslam.occupancy import (FAR, LOGODDS_DTYPE, InsertionParams, ScanRays, clear_cells, cleared_samples,
@@ -667,7 +667,9 @@ def _copy_tile_rounds(logodds: Float[Array, "C T T"], hit_dist2: UInt8[Array, "C
     time in a ``while_loop`` of ``ceil(count / TILES_PER_COPY_ROUND)`` rounds: the gathered
     copies cost one round's memory, not the M tiles one insertion may request, and only the
     requested tiles are read. Targets are free slots and sources tiles in use, so no round reads
-    what an earlier one wrote."""
+    what an earlier one wrote. Rounds past ``count`` (a batch of runs under ``vmap`` takes the
+    most any run needs: :func:`~jaxslam.computed_once.loop_bound`) copy nothing: their targets
+    are past the pool."""
     size = TILES_PER_COPY_ROUND
     padded = -(-source.shape[0] // size) * size
     capacity = logodds.shape[0]
@@ -682,7 +684,7 @@ def _copy_tile_rounds(logodds: Float[Array, "C T T"], hit_dist2: UInt8[Array, "C
         hit_dist2 = hit_dist2.at[targets].set(_tile_values(hit_dist2, sources, FAR), mode="drop")
         return done + size, logodds, hit_dist2
 
-    _, logodds, hit_dist2 = jax.lax.while_loop(lambda carry: carry[0] < count, copy_round,
+    _, logodds, hit_dist2 = jax.lax.while_loop(lambda carry: carry[0] < loop_bound(count), copy_round,
                                                (jnp.int32(0), logodds, hit_dist2))
     return logodds, hit_dist2
 
@@ -769,7 +771,9 @@ def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses
     cleared cells :data:`SAMPLES_PER_CHUNK` samples at a time, in a ``while_loop`` over the
     scan's cleared samples only: a sample past its beam's free length clears nothing, and
     those are most of a beam traced to ``max_insert_range`` (about 70 % on Intel). The work and
-    the memory then follow the scan's free space, not N x beams x ``max_insert_range``. Returns
+    the memory then follow the scan's free space, not N x beams x ``max_insert_range``. (Under
+    ``vmap`` a batch of runs takes as many rounds as its longest scan needs,
+    :func:`~jaxslam.computed_once.loop_bound`; a run's extra chunks hold no live sample.) Returns
     the log-odds and field pools and, per particle, its samples that fell outside the virtual
     grid."""
     capacity = tiles.refcount.shape[0]
@@ -802,7 +806,7 @@ def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses
             return first + SAMPLES_PER_CHUNK, logodds, outside + chunk_outside
 
         logodds, hit_dist2 = pools
-        _, logodds, outside = jax.lax.while_loop(lambda carry: carry[0] < total, clear_chunk,
+        _, logodds, outside = jax.lax.while_loop(lambda carry: carry[0] < loop_bound(total), clear_chunk,
                                                  (jnp.int32(0), logodds, jnp.zeros(size, jnp.int32)))
         ends, splats, end_outside = computed_once(
             jax.vmap(lambda start, r, f: _marked_targets(spec, window, start, r, f, field_radius)),

@@ -414,3 +414,71 @@ def test_even_block_size_cuts_into_as_few_and_as_even_blocks_as_possible():
     assert [even_block_size(n, 128) for n in (30, 128, 129, 300, 1000, 1001)] == [30, 128, 65, 100, 125, 126]
     with pytest.raises(ValueError, match="positive count and block size"):
         even_block_size(10, 0)
+
+
+def test_a_sample_chunk_is_the_cleared_samples_in_beam_order_with_the_one_before():
+    """Against a NumPy enumeration of (beam, sample) with sample < cleared[beam]: beams that
+    clear nothing, a chunk that starts mid-beam, one that runs past the last sample."""
+    cleared = np.array([3, 0, 5, 1, 0, 4], np.int32)
+    pairs = [(b, s) for b in range(len(cleared)) for s in range(cleared[b])]
+    total = len(pairs)
+    for first, size in [(0, 4), (2, 5), (9, 6), (total - 1, 3)]:
+        chunk = P._sample_chunk(jnp.asarray(cleared), jnp.int32(first), size)
+        assert chunk.beam.shape == (size + 1,)
+        for k, flat in enumerate(range(first - 1, first + size)):
+            live = bool(chunk.live[k])
+            assert live == (flat < total), (first, flat)
+            if 0 <= flat < total:
+                assert (int(chunk.beam[k]), int(chunk.sample[k])) == pairs[flat], (first, flat)
+
+
+@pytest.mark.parametrize("chunk", [5, 64])
+def test_the_chunk_size_changes_no_bit(monkeypatch, chunk):
+    """The cleared cells written a few samples at a time (chunks that split beams, many rounds)
+    give the dense maps' cells bit for bit; so do scans that clear nothing (every beam below
+    range_min: no round) and scans of "no return" beams only."""
+    monkeypatch.setattr(P, "SAMPLES_PER_CHUNK", chunk)
+    insert = jax.jit(P.insert_scans, static_argnums=(0, 6, 7))  # traced anew: the chunk size is read when traced
+    rng = np.random.default_rng(5)
+    maps = P.empty(SPEC, N, capacity=600, block_capacity=60)
+    dense = jax.tree.map(lambda a: jnp.broadcast_to(a, (N,) + a.shape), empty_map(SPEC.grid))
+    for step in range(4):
+        poses, ranges = random_scan(rng, N)
+        if step == 1:
+            ranges = jnp.full_like(ranges, 0.5 * SENSOR.range_min)
+        if step == 2:
+            ranges = jnp.full_like(ranges, SENSOR.range_max)
+        maps, outside = insert(SPEC, maps, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+        dense, dense_outside = insert_dense(SPEC.grid, dense, poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+        np.testing.assert_array_equal(np.asarray(outside), np.asarray(dense_outside))
+        assert_same(maps, dense)
+
+
+def test_a_batch_of_runs_inserts_as_each_run_alone(monkeypatch):
+    """Under ``vmap`` over runs whose scans clear different numbers of samples (and request
+    different numbers of tiles), the loops take the batch's most rounds (``loop_bound``, one
+    number: no select of the pools at every round) and each run's maps are its own insertion's,
+    bit for bit. Small rounds, so that the runs need different numbers of them."""
+    from jaxslam.computed_once import loop_bound
+
+    monkeypatch.setattr(P, "SAMPLES_PER_CHUNK", 64)
+    monkeypatch.setattr(P, "TILES_PER_COPY_ROUND", 4)
+    insert_alone = jax.jit(P.insert_scans, static_argnums=(0, 6, 7))  # traced anew with the small rounds
+
+    assert int(jax.vmap(loop_bound, out_axes=None)(jnp.asarray([3, 7, 5]))) == 7
+    rng = np.random.default_rng(8)
+    runs = 3
+    alone = [P.empty(SPEC, N, capacity=600, block_capacity=60) for _ in range(runs)]
+    batch = jax.tree.map(lambda *a: jnp.stack(a), *alone)
+    insert_batch = jax.jit(jax.vmap(P.insert_scans, in_axes=(None, 0, 0, 0, None, None, None, None)),
+                           static_argnums=(0, 6, 7))
+    for step in range(3):
+        scans = [random_scan(rng, N) for _ in range(runs)]
+        scans[step % runs] = (scans[step % runs][0], jnp.full_like(scans[0][1], 0.2))  # one short scan
+        batch, batch_outside = insert_batch(SPEC, batch, jnp.stack([p for p, _ in scans]),
+                                            jnp.stack([r for _, r in scans]), SENSOR, INSERTION, MAX_RANGE, RADIUS)
+        for run, (poses, ranges) in enumerate(scans):
+            alone[run], outside = insert_alone(SPEC, alone[run], poses, ranges, SENSOR, INSERTION, MAX_RANGE, RADIUS)
+            np.testing.assert_array_equal(np.asarray(outside), np.asarray(batch_outside[run]))
+            for a, b, name in zip(alone[run], jax.tree.map(lambda x: x[run], batch), P.PagedMaps._fields):
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=f"{name}, run {run}, step {step}")
