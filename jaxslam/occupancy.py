@@ -253,8 +253,8 @@ def update_cells(
     log-odds (an addition, see :mod:`jaxslam.binary_bayes`), then the clamp as scatter-max /
     scatter-min on the touched cells: free cells only decrease and endpoint cells only
     increase, so each needs one bound. The paged maps apply the same three in the same order,
-    the cleared cells a chunk at a time (the clamp commutes with the chunks: each bound is
-    applied after every addition to a cell, and a cell below the lower bound stays there).
+    the cleared cells a chunk at a time: the same values, since a cell the lower bound clamps
+    after one chunk is clamped to it again after the next (a clear only lowers a cell).
     """
     logodds = mark_cells(clear_cells(logodds, free_idx, params), end_idx, params)
     return logodds, splat_field(hit_dist2, splat_idx, splat_d2)

@@ -291,8 +291,10 @@ def tile_slots(spec: PagedGridSpec, directory: Int[Array, "DY DX"], blocks: Int[
     """The tile-pool slots of (row, col) tiles of one particle's map (inside the grid), -1 where unwritten."""
     shift, mask = spec.block_shift, spec.block_size - 1
     row, col = tiles[..., 0], tiles[..., 1]
-    block = directory[row >> shift, col >> shift]
-    slot = blocks[jnp.maximum(block, 0), row & mask, col & mask]
+    block = directory.reshape(-1)[(row >> shift) * directory.shape[1] + (col >> shift)]
+    # One flat index per read: XLA's CPU gathers are cheaper on a 1-D operand than on (B, S, S).
+    slot = blocks.reshape(-1)[(jnp.maximum(block, 0) * spec.block_size + (row & mask)) * spec.block_size
+                              + (col & mask)]
     return jnp.where(block >= 0, slot, UNWRITTEN)
 
 
@@ -307,7 +309,7 @@ def cell_values(spec: PagedGridSpec, field: PagedField, cells: Int[Array, "... 2
     row, col = jnp.clip(row, 0, ty * t - 1), jnp.clip(col, 0, tx * t - 1)
     shift, mask = spec.tile_shift, t - 1
     slot = tile_slots(spec, field.directory, field.blocks, jnp.stack([row >> shift, col >> shift], -1))
-    value = field.pool[jnp.maximum(slot, 0), row & mask, col & mask]
+    value = field.pool.reshape(-1)[(jnp.maximum(slot, 0) * t + (row & mask)) * t + (col & mask)]
     return jnp.where(inside & (slot >= 0), value, jnp.asarray(fill, field.pool.dtype))
 
 
