@@ -772,8 +772,9 @@ def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses
     particles write disjoint cells, so the blocks' order changes no bit), and within a block the
     cleared cells :data:`SAMPLES_PER_CHUNK` samples at a time, in a ``while_loop`` over the
     scan's cleared samples only: a sample past its beam's free length clears nothing, and
-    those are most of a beam traced to ``max_insert_range`` (about 70 % on Intel). The work and
-    the memory then follow the scan's free space, not N x beams x ``max_insert_range``. (Under
+    those are most of a beam traced to ``max_insert_range`` (about 70 % on Intel). The work then
+    follows the scan's free space, and the memory is a chunk's, not N x beams x
+    ``max_insert_range`` samples'. (Under
     ``vmap`` a batch of runs takes as many rounds as its longest scan needs,
     :func:`~jaxslam.computed_once.loop_bound`; a run's extra chunks hold no live sample.) Returns
     the log-odds and field pools and, per particle, its samples that fell outside the virtual
@@ -857,9 +858,9 @@ def insert_scans(
     slot (a copy of the shared one, or a fresh one), handed out by a prefix sum over all
     particles' requests, at most ``max_new_tiles`` tiles and ``max_new_blocks`` blocks in all.
     Then all particles' cells are scattered into the pool (no two particles write the same slot),
-    the cleared cells a chunk of samples at a time (:func:`_write_cells`). All or nothing: an insertion whose requests do not fit writes nothing and sets
-    ``overflow``; the maps are unchanged, so the caller can grow the pools (:func:`grow`) and
-    insert again.
+    the cleared cells a chunk of samples at a time (:func:`_write_cells`). All or nothing: an
+    insertion whose requests do not fit writes nothing and sets ``overflow``; the maps are
+    unchanged, so the caller can grow the pools (:func:`grow`) and insert again.
 
     ``active`` (e.g. the particles a resampling keeps) saves the tiles of maps about to be
     dropped, and orders the insertion after whatever computed it: XLA then updates the pools in
