@@ -20,7 +20,11 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
   search, :func:`jaxslam.rbpf.slip_log_odds`; ``slip_steps`` in the summary and ``slips`` in the
   events list the steps); ``log_evidence``: the step's log p(z_t | z_1:t-1) estimate.
 * with relations: every relation's translational and rotational error at the time of its later
-  scan, and where on the best path that was.
+  scan, and where on the best path that was; and every final particle's own relation error
+  (:func:`final_particle_errors`: its history, from the record's ancestors and proposed poses),
+  and for each relation the best of the particles the filter proposed at its later scan
+  (:func:`closest_then`). A relation the run gets wrong that some particle had right then was
+  lost to the weights or to resampling; one that no particle had right, to the proposal.
 
 ``events`` lists the largest corrections and the worst relations with their step, time and
 place, ranked (no threshold): where to look in the map first. :func:`plot_diagnosis` draws it
@@ -30,10 +34,11 @@ all; ``jaxslam diagnose RUN_DIR [RELATIONS]`` writes ``diagnosis.json`` and ``di
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
-from jaxslam.geometry import between_np
+from jaxslam.geometry import between_np, compose_np
 
 STEPS_FILE = "steps.npz"
 """The per-step record ``jaxslam map`` writes into its output folder."""
@@ -100,6 +105,109 @@ def surviving_lineages(ancestors: np.ndarray) -> np.ndarray:
     return out
 
 
+class _RelationScans(NamedTuple):
+    """Where the relations' scans lie in a run (see :func:`_relation_scans`)."""
+
+    step: np.ndarray
+    """(Q,) each asked scan's processed step before it (0 for the scans before the first)."""
+    since: np.ndarray
+    """(Q, 3) the odometry's motion from that processed scan to the asked one."""
+    first: np.ndarray
+    """(R,) each relation's t1 scan, an index into the asked scans."""
+    second: np.ndarray
+    """(R,) its t2 scan."""
+
+
+def _relation_scans(record: dict[str, np.ndarray], trajectory, relations) -> _RelationScans:
+    """The scans the relations read, each as a processed step and the motion since: between
+    processed scans ``trajectory.txt`` composes the best path with the odometry, so any
+    history's pose at an asked scan is its own pose at that step composed with the same motion
+    (read from the best path and the trajectory: the log is not needed)."""
+    from jaxslam.metrics import lookup_indices
+
+    times, per_scan = np.asarray(trajectory[0], np.float64), np.asarray(trajectory[1], np.float64)
+    processed, best = np.asarray(record["scan_index"]), np.asarray(record["best_path"], np.float64)
+    if per_scan.shape != (times.size, 3) or processed[-1] >= times.size:
+        raise ValueError(f"diagnose: the trajectory ({per_scan.shape}) is not the record's run "
+                         f"(its last processed scan is {processed[-1]})")
+    asked = lookup_indices(times, np.concatenate([relations.t1, relations.t2]))
+    scans, where = np.unique(asked, return_inverse=True)
+    step = np.clip(np.searchsorted(processed, scans, side="right") - 1, 0, processed.size - 1)
+    count = np.asarray(relations.t1).size
+    return _RelationScans(step, between_np(best[step], per_scan[scans]), where[:count], where[count:])
+
+
+def final_particle_errors(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray], relations
+                          ) -> dict[str, np.ndarray]:
+    """Every final particle's own relation error (Kuemmerle et al. 2009), its history rebuilt
+    from the record (:func:`jaxslam.rbpf.particle_paths`). The reported particle's
+    (:func:`jaxslam.rbpf.final_best_particle`) is the run's.
+
+    Args:
+      record: :func:`step_record`.
+      trajectory: ``(timestamps (T,), poses (T, 3))`` the run's pose per scan (world frame).
+      relations: the relations (inside the run's time span).
+
+    Returns:
+      ``{"trans_mean": (N,) m, "rot_mean": (N,) rad}``, final particle by final particle.
+    """
+    from jaxslam.geometry import wrap_angle_np
+    from jaxslam.rbpf import particle_paths
+
+    at = _relation_scans(record, trajectory, relations)
+    best = np.asarray(record["best_path"], np.float64)
+    paths = particle_paths(np.asarray(record["proposed_poses"], np.float64), record["ancestors"], best[0])
+    motion = np.asarray(relations.motion, np.float64)
+    trans, rot = [], []
+    for path in paths:  # host-side, after the run: one particle's poses at the asked scans at a time
+        poses = compose_np(path[at.step], at.since)
+        estimated = between_np(poses[at.first], poses[at.second])
+        trans.append(np.mean(np.hypot(estimated[:, 0] - motion[:, 0], estimated[:, 1] - motion[:, 1])))
+        rot.append(np.mean(np.abs(wrap_angle_np(estimated[:, 2] - motion[:, 2]))))
+    return {"trans_mean": np.asarray(trans), "rot_mean": np.asarray(rot)}
+
+
+def closest_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray], relations
+                 ) -> np.ndarray:
+    """(R,) m: for each relation, the smallest translational error among the particles the filter
+    proposed at the relation's later scan, each judged on its own history up to then.
+
+    A relation the run gets wrong (a missed or false loop closure) with a small value here was
+    right in some particle at the time, and the weights or a later resampling dropped it; with a
+    large value no particle had it: the proposal or the particles' diversity failed before.
+    """
+    at = _relation_scans(record, trajectory, relations)
+    proposed = np.asarray(record["proposed_poses"], np.float64)
+    ancestors = np.asarray(record["ancestors"])
+    n = ancestors.shape[1]
+    initial = np.broadcast_to(np.asarray(record["best_path"], np.float64)[0], (n, 3))
+    motion = np.asarray(relations.motion, np.float64)
+    step1, step2 = at.step[at.first], at.step[at.second]
+    late, early = np.maximum(step1, step2), np.minimum(step1, step2)
+
+    def poses_at(step, index):  # (n, 3): the histories' poses at a processed step
+        return proposed[step - 1, index] if step >= 1 else initial
+
+    out = np.empty(late.size)
+    for last in np.unique(late):
+        members = np.flatnonzero(late == last)
+        index, step = np.arange(n), int(last)  # step's proposed particles, followed back
+        at_early = {}
+        for wanted in sorted(set(early[members].tolist()), reverse=True):
+            while step > wanted:
+                if step >= 2:  # the parent of step s's particle j: step s - 1's proposed ancestors[s - 2, j]
+                    index = ancestors[step - 2, index]
+                step -= 1
+            at_early[wanted] = poses_at(step, index)
+        late_poses = poses_at(int(last), np.arange(n))
+        for r in members:
+            early_poses = at_early[int(early[r])]  # the late poses' own ancestors (themselves at the same step)
+            pose1, pose2 = (late_poses, early_poses) if step1[r] == last else (early_poses, late_poses)
+            estimated = between_np(compose_np(pose1, at.since[at.first[r]]), compose_np(pose2, at.since[at.second[r]]))
+            out[r] = np.min(np.hypot(estimated[:, 0] - motion[r, 0], estimated[:, 1] - motion[r, 1]))
+    return out
+
+
 def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray] | None = None,
              relations=None) -> dict:
     """Per-step series and ranked events of a run (see the module's docstring); JSON-ready.
@@ -158,6 +266,7 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
     out = {"summary": summary, "series": {k: np.asarray(v).tolist() for k, v in series.items()}, "events": events}
     if relations is not None:
         from jaxslam.metrics import relation_error
+        from jaxslam.rbpf import final_best_particle
 
         if trajectory is None:
             raise ValueError("diagnose: relations need the run's trajectory (a pose per scan)")
@@ -176,9 +285,22 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
                             "step": (at_step + 1).tolist()}
         summary["relation_error"] = {"trans_mean": err.trans_mean, "rot_mean": err.rot_mean, "count": err.count,
                                      "relations_outside_the_run": int(np.sum(~inside))}
+        then = closest_then(record, trajectory, relations)
+        out["relations"]["closest_then"] = then.tolist()
+        summary["relation_error"]["closest_then_mean"] = float(np.mean(then))
         worst = np.argsort(-err.trans, kind="stable")[:NUM_EVENTS]
         events["worst_relations"] = [dict(place(int(at_step[i])), relation_elapsed_s=float(later[i] - start),
-                                          trans=float(err.trans[i]), rot=float(err.rot[i])) for i in worst]
+                                          trans=float(err.trans[i]), rot=float(err.rot[i]),
+                                          closest_then=float(then[i])) for i in worst]
+        own = final_particle_errors(record, trajectory, relations)
+        closest = int(np.argmin(own["trans_mean"]))
+        best_final = final_best_particle(record["ancestors"], record["best_particle"])
+        out["final_particles"] = {k: v.tolist() for k, v in own.items()}
+        summary["final_particles"] = {
+            "best_particle": best_final, "best_trans_mean": float(own["trans_mean"][best_final]),
+            "closest_particle": closest, "closest_trans_mean": float(own["trans_mean"][closest]),
+            "median_trans_mean": float(np.median(own["trans_mean"])),
+            "distinct_histories": int(lineages[-1]) if steps else n}
     return out
 
 
@@ -210,8 +332,12 @@ def plot_diagnosis(diagnosis: dict, record: dict[str, np.ndarray], title: str = 
         ax.legend(loc="upper left", fontsize=8)
     relations = diagnosis.get("relations")
     if relations:
-        axes[4].plot(np.asarray(relations["time"]) - (s["time"][0] if s["time"].size else 0.0),
-                     relations["trans"], ".", ms=2)
+        relation_times = np.asarray(relations["time"]) - (s["time"][0] if s["time"].size else 0.0)
+        axes[4].plot(relation_times, relations["trans"], ".", ms=2, label="the run's")
+        if "closest_then" in relations:
+            axes[4].plot(relation_times, relations["closest_then"], ".", ms=2, alpha=0.5,
+                         label="the best particle's at its later scan")
+        axes[4].legend(loc="upper left", fontsize=8)
         axes[4].set_ylabel("relation error (m)")
         axes[4].set_yscale("log")
     else:

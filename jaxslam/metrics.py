@@ -26,29 +26,23 @@ __all__ = [
 # ---------------------------------------------------------------------------
 
 
-def lookup_poses(timestamps, poses, query_times, time_tolerance: float = 1e-4) -> np.ndarray:
-    """The poses of a trajectory at given timestamps, matched exactly (within a tolerance).
+def lookup_indices(timestamps, query_times, time_tolerance: float = 1e-4) -> np.ndarray:
+    """The index of each query's trajectory timestamp, matched exactly (within a tolerance).
 
     Args:
-        timestamps: (T,) trajectory timestamps (s), any order.
-        poses: (T, 3) poses [x, y, theta] (m, m, rad) at ``timestamps``.
+        timestamps: (T,) trajectory timestamps (s), any order, finite.
         query_times: (Q,) timestamps (s) to look up.
         time_tolerance: largest |query - trajectory timestamp| (s) that counts as a match.
 
     Returns:
-        (Q, 3) float64: for each query, the pose at the nearest trajectory timestamp.
+        (Q,) int: for each query, the index into ``timestamps`` of the nearest one.
 
     Raises:
         ValueError: a query timestamp has no trajectory timestamp within the tolerance
             (the message names it): a metric never silently skips a pose.
     """
     ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    ps = np.asarray(poses, dtype=np.float64)
     query = np.asarray(query_times, dtype=np.float64).reshape(-1)
-    if ts.size == 0 or ps.shape != (ts.size, 3):
-        raise ValueError(f"need T >= 1 timestamps and (T, 3) poses, got {ts.shape} and {ps.shape}")
-    if not (np.all(np.isfinite(ts)) and np.all(np.isfinite(ps))):
-        raise ValueError("trajectory timestamps and poses must be finite")
     order = np.argsort(ts, kind="stable")
     sorted_ts = ts[order]
     right = np.clip(np.searchsorted(sorted_ts, query), 0, ts.size - 1)
@@ -63,7 +57,32 @@ def lookup_poses(timestamps, poses, query_times, time_tolerance: float = 1e-4) -
             f"timestamp is {sorted_ts[nearest[k]]:.6f} ({gap[k]:.3g} s away, tolerance {time_tolerance} s); "
             f"{missing.size} of {query.size} queries are missing"
         )
-    return ps[order[nearest]]
+    return order[nearest]
+
+
+def lookup_poses(timestamps, poses, query_times, time_tolerance: float = 1e-4) -> np.ndarray:
+    """The poses of a trajectory at given timestamps, matched exactly (within a tolerance).
+
+    Args:
+        timestamps: (T,) trajectory timestamps (s), any order.
+        poses: (T, 3) poses [x, y, theta] (m, m, rad) at ``timestamps``.
+        query_times: (Q,) timestamps (s) to look up.
+        time_tolerance: largest |query - trajectory timestamp| (s) that counts as a match.
+
+    Returns:
+        (Q, 3) float64: for each query, the pose at the nearest trajectory timestamp.
+
+    Raises:
+        ValueError: a query timestamp has no trajectory timestamp within the tolerance
+            (the message names it, :func:`lookup_indices`).
+    """
+    ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    ps = np.asarray(poses, dtype=np.float64)
+    if ts.size == 0 or ps.shape != (ts.size, 3):
+        raise ValueError(f"need T >= 1 timestamps and (T, 3) poses, got {ts.shape} and {ps.shape}")
+    if not (np.all(np.isfinite(ts)) and np.all(np.isfinite(ps))):
+        raise ValueError("trajectory timestamps and poses must be finite")
+    return ps[lookup_indices(ts, query_times, time_tolerance)]
 
 
 # ---------------------------------------------------------------------------

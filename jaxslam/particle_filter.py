@@ -14,7 +14,6 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import resampling
@@ -219,8 +218,3 @@ def fixed_lag_score(terms: ScoreTerms, lag: int) -> Float[Array, ""]:
     _, differences = jax.lax.scan(body, init, (terms.log_weights, terms.increments, terms.ancestors,
                                                jnp.arange(num_steps)))
     return differences[-1]
-
-
-def best_particle(log_weights) -> int:
-    """Index of the particle with the largest weight (host-side, from any array of log-weights)."""
-    return int(np.argmax(np.asarray(log_weights)))

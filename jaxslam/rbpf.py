@@ -580,6 +580,27 @@ def particle_paths(proposed_poses: np.ndarray, ancestors: np.ndarray, initial_po
     return paths
 
 
+def final_best_particle(ancestors, best_particles) -> int:
+    """The final particle a run reports (its map, its path): the heaviest after the last step.
+
+    Where the last step resampled, every final weight is equal and their argmax would be
+    whichever survivor came first. The heaviest particle before that resampling is then reported
+    through the final particle that descends from it (the first, where it left several).
+
+    Args:
+      ancestors: (S-1, N) ``SlamInfo.ancestors`` (or the step record's).
+      best_particles: (S-1,) ``SlamInfo.best_particle``: each step's heaviest proposed particle.
+
+    Returns:
+      The final particle's index; 0 for a run of no step, or where the last resampling dropped
+      the heaviest (the systematic and residual resamplers never do: its weight is at least
+      1 / N; a stratified or multinomial draw can), whose final weights are all equal.
+    """
+    ancestors, best_particles = np.asarray(ancestors), np.asarray(best_particles)
+    kept = np.flatnonzero(ancestors[-1] == best_particles[-1]) if ancestors.shape[0] else np.zeros(0, np.int64)
+    return int(kept[0]) if kept.size else 0
+
+
 def backtrack_path(info: SlamInfo, final_index: int) -> np.ndarray:
     """Poses (S-1, 3) along the ancestry of particle ``final_index`` of the final set."""
     zero = np.zeros(3, np.asarray(info.proposed_poses).dtype)

@@ -66,8 +66,10 @@ class SlamResult(NamedTuple):
 
     @property
     def best_particle(self) -> int:
-        """Index of the final particle with the largest weight (whose map and path are the result's)."""
-        return particle_filter.best_particle(self.state.log_weights)
+        """Index of the final particle whose map and path are the result's: the heaviest, or where
+        the last step resampled, the descendant of the heaviest before it
+        (:func:`jaxslam.rbpf.final_best_particle`)."""
+        return rbpf.final_best_particle(self.info.ancestors, self.info.best_particle)
 
     @property
     def world_grid(self) -> PagedGridSpec:
@@ -477,7 +479,7 @@ def _finish(state: SlamState, info: SlamInfo, prepared: rbpf.PreparedLog, local_
     :func:`run_batch` share): the best particle's path and the per-scan trajectory, in the world frame."""
     from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
 
-    best = particle_filter.best_particle(state.log_weights)  # SlamResult.best_particle
+    best = rbpf.final_best_particle(info.ancestors, info.best_particle)  # SlamResult.best_particle
     best_path = np.concatenate([np.asarray(prepared.initial_pose)[None], rbpf.backtrack_path(info, best)])
     trajectory = rbpf.to_world(trajectory_per_scan(local_log, selection.indices, best_path), frame_offset)
     best_path = rbpf.to_world(best_path, frame_offset)

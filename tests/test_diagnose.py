@@ -106,6 +106,14 @@ def test_diagnose_command_reads_a_map_run(tmp_path, capsys):
     assert (tmp_path / "d" / "diagnosis.png").is_file()
     np.testing.assert_allclose(diagnosis["relations"]["trans"], [0, 0, 0.1], atol=2e-6)
     assert diagnosis["summary"]["steps"] == steps
+    # The best final particle's own history is the run's trajectory: its own error is the run's.
+    final = diagnosis["summary"]["final_particles"]
+    assert len(diagnosis["final_particles"]["trans_mean"]) == 4
+    assert final["best_trans_mean"] == pytest.approx(diagnosis["summary"]["relation_error"]["trans_mean"], abs=2e-6)
+    assert final["closest_trans_mean"] <= final["best_trans_mean"]
+    # The run's path at a relation's later step is one of the particles proposed there.
+    then, run = np.asarray(diagnosis["relations"]["closest_then"]), np.asarray(diagnosis["relations"]["trans"])
+    assert then.shape == (3,) and np.all(then <= run + 2e-6)
     assert "largest corrections" in capsys.readouterr().out
     # A folder without the record: one clear line, exit 2, before any work.
     assert main(["diagnose", str(tmp_path / "d")]) == 2
@@ -121,3 +129,91 @@ def test_the_steps_that_drew_from_the_slip_component_are_listed():
     assert out["summary"]["slip_steps"] == 1
     assert [(e["step"], e["particles"]) for e in out["events"]["slips"]] == [(8, 3)]
     assert out["series"]["slipped"][7] == 3
+
+
+def per_scan_by_loops(path, processed, odometry):
+    """Slow reference: a pose for every scan, the processed scan before it (or the first) composed
+    with the odometry's motion since (what trajectory.txt holds for the best particle)."""
+    from jaxslam.geometry import compose_np
+
+    out = np.empty_like(odometry)
+    for scan in range(odometry.shape[0]):
+        k = max(int(np.sum(processed <= scan)) - 1, 0)
+        out[scan] = compose_np(path[k], between_np(odometry[processed[k]], odometry[scan]))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_each_final_particles_own_relation_error_against_loops(seed):
+    from jaxslam.diagnose import final_particle_errors
+    from jaxslam.io.relations import Relations
+    from jaxslam.rbpf import particle_paths
+
+    rng = np.random.default_rng(seed)
+    n, num_scans = 5, 40
+    processed = np.concatenate([[2], np.sort(rng.choice(np.arange(3, num_scans), 14, replace=False))])
+    steps = processed.size - 1
+    odometry = np.cumsum(np.stack([rng.uniform(0.1, 0.3, num_scans), rng.normal(0, 0.05, num_scans),
+                                   rng.normal(0, 0.1, num_scans)], 1), axis=0)
+    proposed = odometry[processed[1:], None, :] + rng.normal(0, 0.2, (steps, n, 3))
+    ancestors = np.where(rng.random((steps, 1)) < 0.3, rng.integers(0, n, (steps, n)), np.arange(n)).astype(np.int32)
+    best_final = 3
+    paths = particle_paths(proposed, ancestors, odometry[processed[0]])
+    truth_path = per_scan_by_loops(paths[0], processed, odometry)  # particle 0's history is the truth
+    times = 50.0 + 0.37 * np.arange(num_scans)
+    pairs = rng.integers(0, num_scans, (25, 2))
+    relations = Relations(times[pairs[:, 0]], times[pairs[:, 1]], between_np(truth_path[pairs[:, 0]],
+                                                                              truth_path[pairs[:, 1]]))
+    record = {"scan_index": processed, "best_path": paths[best_final], "proposed_poses": proposed.astype(np.float32),
+              "ancestors": ancestors, "best_particle": np.full(steps, best_final, np.int32)}
+    trajectory = (times, per_scan_by_loops(paths[best_final], processed, odometry))
+    own = final_particle_errors(record, trajectory, relations)
+    from jaxslam.metrics import relation_error
+
+    expected = [relation_error(times, per_scan_by_loops(p, processed, odometry), relations) for p in paths]
+    np.testing.assert_allclose(own["trans_mean"], [e.trans_mean for e in expected], atol=1e-5)
+    np.testing.assert_allclose(own["rot_mean"], [e.rot_mean for e in expected], atol=1e-5)
+    # Particle 0 is the truth (up to the record's float32 poses), and the others are not.
+    assert own["trans_mean"][0] < 1e-5 and np.all(own["trans_mean"][ancestors[-1] != ancestors[-1][0]] > 0.01)
+
+
+def test_the_closest_particle_then_against_truncated_records():
+    """Each relation's best particle at its later scan, against a slow reference: the record cut
+    after the step before (whose final particles are that step's parents), each proposed
+    particle's history as a final particle's path (:func:`jaxslam.rbpf.particle_paths`)."""
+    from jaxslam.diagnose import closest_then
+    from jaxslam.io.relations import Relations
+    from jaxslam.metrics import relation_error
+    from jaxslam.rbpf import particle_paths
+
+    rng = np.random.default_rng(5)
+    n, num_scans = 4, 36
+    processed = np.concatenate([[1], np.sort(rng.choice(np.arange(2, num_scans), 15, replace=False))])
+    steps = processed.size - 1
+    odometry = np.cumsum(np.stack([rng.uniform(0.1, 0.3, num_scans), rng.normal(0, 0.05, num_scans),
+                                   rng.normal(0, 0.1, num_scans)], 1), axis=0)
+    proposed = odometry[processed[1:], None, :] + rng.normal(0, 0.2, (steps, n, 3))
+    ancestors = rng.integers(0, n, (steps, n)).astype(np.int32)
+    start = odometry[processed[0]]
+    paths = particle_paths(proposed, ancestors, start)
+    times = 10.0 + 0.5 * np.arange(num_scans)
+    pairs = rng.integers(0, num_scans, (30, 2))
+    truth = per_scan_by_loops(paths[0], processed, odometry)
+    relations = Relations(times[pairs[:, 0]], times[pairs[:, 1]], between_np(truth[pairs[:, 0]], truth[pairs[:, 1]])
+                          + rng.normal(0, 0.05, (30, 3)))
+    record = {"scan_index": processed, "best_path": paths[0], "proposed_poses": proposed.astype(np.float32),
+              "ancestors": ancestors}
+    got = closest_then(record, (times, per_scan_by_loops(paths[0], processed, odometry)), relations)
+
+    expected = np.empty(30)
+    for r, (a, b) in enumerate(pairs):
+        step = max(int(np.sum(processed <= max(a, b))) - 1, 0)
+        if step == 0:
+            histories = start[None, None, :]
+        else:  # step's proposed particle j: its parent's path (the record cut before the step), then its own pose
+            parents = particle_paths(proposed[:step - 1], ancestors[:step - 1], start)
+            histories = np.concatenate([parents, proposed[step - 1][:, None, :]], axis=1)
+        one = Relations(times[[a]], times[[b]], np.asarray(relations.motion)[[r]])
+        expected[r] = min(relation_error(times, per_scan_by_loops(h, processed[:step + 1], odometry), one).trans_mean
+                          for h in histories)
+    np.testing.assert_allclose(got, expected, atol=1e-5)

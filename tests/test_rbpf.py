@@ -130,6 +130,31 @@ def test_backtrack_path_follows_ancestry():
     np.testing.assert_array_equal(path[0], proposed[0, 0])
 
 
+def test_the_reported_particle_is_the_heaviest_also_after_a_last_resampling():
+    heaviest = np.array([1, 2, 3])
+    # The last step kept every particle: the heaviest is reported as it is.
+    assert rbpf.final_best_particle(np.array([[0, 1, 2, 3]] * 3), heaviest) == 3
+    # The last step resampled: final particles 1 and 2 descend from the heaviest (3), 0 does not.
+    assert rbpf.final_best_particle(np.array([[0, 1, 2, 3], [0, 0, 1, 1], [1, 3, 3, 2]]), heaviest) == 1
+    # A resampling that dropped it (multinomial can): equal final weights, the first particle.
+    assert rbpf.final_best_particle(np.array([[0, 1, 2, 3], [0, 0, 1, 1], [1, 1, 2, 2]]), heaviest) == 0
+    assert rbpf.final_best_particle(np.zeros((0, 4), np.int32), np.zeros(0, np.int32)) == 0
+
+
+def test_a_run_that_resamples_at_its_last_step_reports_the_heaviest(office_log):
+    """With every step resampled, the final weights are equal: the run's path is still the history
+    of the step's heaviest particle, not of whichever survivor came first."""
+    log = office_log.subset(np.arange(40))
+    params = default_params()._replace(resample_threshold=jnp.float32(1.01))  # resample every step
+    result = slam.run(jax.random.key(4), log, small_config(num_particles=6), params, SETTINGS, progress=False)
+    info = result.info
+    assert bool(np.asarray(info.resampled)[-1])
+    np.testing.assert_array_equal(np.asarray(result.state.log_weights), np.full(6, -np.log(6.0), np.float32))
+    last = result.to_world(np.asarray(info.proposed_poses)[-1, int(np.asarray(info.best_particle)[-1])])
+    np.testing.assert_allclose(result.best_path[-1], last, atol=1e-6)
+    assert int(np.asarray(info.ancestors)[-1, result.best_particle]) == int(np.asarray(info.best_particle)[-1])
+
+
 def test_map_leaving_the_grid_is_counted_not_wrapped(office_log):
     """Beams that reach past the virtual grid are dropped and reported; odometry that leaves it
     is refused before any work, naming the setting to change."""
