@@ -143,6 +143,19 @@ def per_scan_by_loops(path, processed, odometry):
     return out
 
 
+def random_run(rng, n, num_scans, first, count, resample_share):
+    """A synthetic run: odometry at every scan, ``count`` processed scans after ``first``, the
+    proposed poses about the odometry and ancestors that resample ``resample_share`` of the steps."""
+    processed = np.concatenate([[first], np.sort(rng.choice(np.arange(first + 1, num_scans), count, replace=False))])
+    steps = processed.size - 1
+    odometry = np.cumsum(np.stack([rng.uniform(0.1, 0.3, num_scans), rng.normal(0, 0.05, num_scans),
+                                   rng.normal(0, 0.1, num_scans)], 1), axis=0)
+    proposed = odometry[processed[1:], None, :] + rng.normal(0, 0.2, (steps, n, 3))
+    resampled = rng.random((steps, 1)) < resample_share
+    ancestors = np.where(resampled, rng.integers(0, n, (steps, n)), np.arange(n)).astype(np.int32)
+    return processed, odometry, proposed, ancestors
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_each_final_particles_own_relation_error_against_loops(seed):
     from jaxslam.diagnose import final_particle_errors
@@ -151,12 +164,8 @@ def test_each_final_particles_own_relation_error_against_loops(seed):
 
     rng = np.random.default_rng(seed)
     n, num_scans = 5, 40
-    processed = np.concatenate([[2], np.sort(rng.choice(np.arange(3, num_scans), 14, replace=False))])
+    processed, odometry, proposed, ancestors = random_run(rng, n, num_scans, 2, 14, 0.3)
     steps = processed.size - 1
-    odometry = np.cumsum(np.stack([rng.uniform(0.1, 0.3, num_scans), rng.normal(0, 0.05, num_scans),
-                                   rng.normal(0, 0.1, num_scans)], 1), axis=0)
-    proposed = odometry[processed[1:], None, :] + rng.normal(0, 0.2, (steps, n, 3))
-    ancestors = np.where(rng.random((steps, 1)) < 0.3, rng.integers(0, n, (steps, n)), np.arange(n)).astype(np.int32)
     best_final = 3
     paths = particle_paths(proposed, ancestors, odometry[processed[0]])
     truth_path = per_scan_by_loops(paths[0], processed, odometry)  # particle 0's history is the truth
@@ -188,12 +197,7 @@ def test_the_closest_particle_then_against_truncated_records():
 
     rng = np.random.default_rng(5)
     n, num_scans = 4, 36
-    processed = np.concatenate([[1], np.sort(rng.choice(np.arange(2, num_scans), 15, replace=False))])
-    steps = processed.size - 1
-    odometry = np.cumsum(np.stack([rng.uniform(0.1, 0.3, num_scans), rng.normal(0, 0.05, num_scans),
-                                   rng.normal(0, 0.1, num_scans)], 1), axis=0)
-    proposed = odometry[processed[1:], None, :] + rng.normal(0, 0.2, (steps, n, 3))
-    ancestors = rng.integers(0, n, (steps, n)).astype(np.int32)
+    processed, odometry, proposed, ancestors = random_run(rng, n, num_scans, 1, 15, 1.0)  # resampling every step
     start = odometry[processed[0]]
     paths = particle_paths(proposed, ancestors, start)
     times = 10.0 + 0.5 * np.arange(num_scans)
