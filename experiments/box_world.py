@@ -53,7 +53,8 @@ DEFAULT_CONFIG = Path(__file__).resolve().parent / "box_world.json"
 WORLD_KEYS = ("success_ra", "rotation_weight", "motion_scale", "grid_margin", "grid_resolution",
               "insert_range_margin")
 """The json's numbers that every run of a folder shares (with the table's scenario)."""
-RUN_FIELDS = ("seed", "ra", "ra_position", "ra_heading", "best_particle_error", "closest_particle_error", "seconds",
+RUN_FIELDS = ("seed", "ra", "ra_position", "ra_heading", "best_particle_error", "closest_particle_error",
+              "closing_weight", "seconds",
               "num_steps", "num_fallbacks", "num_slip_steps", "num_degenerate", "num_resamplings", "min_ess")
 """A run record's fields (besides its cell's key)."""
 
@@ -195,7 +196,10 @@ def score_run(seed: int, result, scenario, world: dict, seconds: float) -> dict:
         "seed": seed, "ra": ra, "ra_position": ra_position, "ra_heading": (ra - ra_position) / lam if lam else None,
         "best_particle_error": float(errors[result.best_particle]),
         # Is any history near the truth at all (the weights' failure to pick it), or none?
-        "closest_particle_error": float(errors.min()), "seconds": seconds,
+        "closest_particle_error": float(errors.min()),
+        # How much of the final posterior those closing histories hold (RA averages by it).
+        "closing_weight": float(np.sum(np.exp(log_w - np.logaddexp.reduce(log_w))[errors < world["success_ra"]])),
+        "seconds": seconds,
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
         "num_slip_steps": int(np.count_nonzero(result.info.num_slipped)),
         "num_degenerate": int(result.info.degenerate.sum()), "num_resamplings": int(result.info.resampled.sum()),

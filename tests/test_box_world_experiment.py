@@ -312,6 +312,9 @@ def test_quick_table_end_to_end(tmp_path):
     data = json.loads((out / "results.json").read_text())
     (run,) = data["runs"]
     assert set(run) == {"cell", *bw.RUN_FIELDS} and run["ra"] >= 0 and run["num_steps"] > 0
+    # The weight on the closing histories: none where no particle closes the loop.
+    assert 0.0 <= run["closing_weight"] <= 1.0 + 1e-6
+    assert run["closest_particle_error"] < config["success_ra"] or run["closing_weight"] == 0.0
     assert data["settings"]["scenario"] == {"laps": 3, "laps_per_visit": 3}
     assert (out / "ra_distribution.png").is_file() and (out / "examples.png").is_file()
 
