@@ -44,7 +44,7 @@ from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the sha
 from jaxslam import rbpf, slam
 from jaxslam.cli import parse_assignments
 from jaxslam.config import CONFIG_FIELDS, SETTINGS_FIELDS, ConfigError, build_setup
-from jaxslam.metrics import checkpoint_passages, passage_errors, revisiting_accuracy
+from jaxslam.metrics import checkpoint_passages, normalized_weights, passage_errors, revisiting_accuracy
 from jaxslam.rbpf import particle_paths
 from jaxslam.sim import box_world_scenario
 from jaxslam.sim.scenarios import BOX_WORLD_MOTION
@@ -198,7 +198,7 @@ def score_run(seed: int, result, scenario, world: dict, seconds: float) -> dict:
         # Is any history near the truth at all (the weights' failure to pick it), or none?
         "closest_particle_error": float(errors.min()),
         # How much of the final posterior those closing histories hold (RA averages by it).
-        "closing_weight": float(np.sum(np.exp(log_w - np.logaddexp.reduce(log_w))[errors < world["success_ra"]])),
+        "closing_weight": float(np.sum(normalized_weights(log_w)[errors < world["success_ra"]])),
         "seconds": seconds,
         "num_steps": int(idx.size - 1), "num_fallbacks": int(result.info.num_fallbacks.sum()),
         "num_slip_steps": int(np.count_nonzero(result.info.num_slipped)),

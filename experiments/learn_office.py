@@ -131,6 +131,7 @@ def score_at_truth(args) -> int:
     from jaxslam.config import params_from_dict, params_to_dict
     from jaxslam.geometry import between_np, wrap_angle_np
     from jaxslam.learning import param_names
+    from jaxslam.metrics import normalized_weights
 
     names = list(TERMS) + ["likelihood.sigma"]  # the sensor's sigma at its known-path optimum too
     rows, filter_score = [], None
@@ -175,8 +176,7 @@ def score_at_truth(args) -> int:
             grads, (proposed, ancestors, log_weights) = filter_score(k, log_truth, base, prepared)
             scores.append(np.asarray(grads))
             paths = rbpf.particle_paths(proposed, ancestors, start)[:, -motions.shape[0] - 1:]
-            weights = np.exp(np.asarray(log_weights, np.float64) - np.max(log_weights))
-            along_filter.append(np.einsum("n,nsc->sc", weights / weights.sum(), residual_squares(paths)))
+            along_filter.append(np.einsum("n,nsc->sc", normalized_weights(log_weights), residual_squares(paths)))
         scores, along_filter = np.array(scores), np.mean(along_filter, axis=0)
         along_truth = residual_squares(np.asarray(setup["log"].ground_truth, np.float64))
         squares = {f"{which}_{kind}": z[mask].mean(axis=0).tolist()

@@ -151,7 +151,7 @@ def final_particle_errors(record: dict[str, np.ndarray], trajectory: tuple[np.nd
     Returns:
       ``{"trans_mean": (N,) m, "rot_mean": (N,) rad}``, final particle by final particle.
     """
-    from jaxslam.geometry import wrap_angle_np
+    from jaxslam.metrics import motion_errors
     from jaxslam.rbpf import particle_paths
 
     at = _relation_scans(record, trajectory, relations)
@@ -161,9 +161,9 @@ def final_particle_errors(record: dict[str, np.ndarray], trajectory: tuple[np.nd
     trans, rot = [], []
     for path in paths:  # host-side, after the run: one particle's poses at the asked scans at a time
         poses = compose_np(path[at.step], at.since)
-        estimated = between_np(poses[at.first], poses[at.second])
-        trans.append(np.mean(np.hypot(estimated[:, 0] - motion[:, 0], estimated[:, 1] - motion[:, 1])))
-        rot.append(np.mean(np.abs(wrap_angle_np(estimated[:, 2] - motion[:, 2]))))
+        errors = motion_errors(poses[at.first], poses[at.second], motion)
+        trans.append(np.mean(errors[0]))
+        rot.append(np.mean(errors[1]))
     return {"trans_mean": np.asarray(trans), "rot_mean": np.asarray(rot)}
 
 
@@ -176,6 +176,8 @@ def closest_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np
     right in some particle at the time, and the weights or a later resampling dropped it; with a
     large value no particle had it: the proposal or the particles' diversity failed before.
     """
+    from jaxslam.metrics import motion_errors
+
     at = _relation_scans(record, trajectory, relations)
     proposed = np.asarray(record["proposed_poses"], np.float64)
     ancestors = np.asarray(record["ancestors"])
@@ -203,8 +205,9 @@ def closest_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np
         for r in members:
             early_poses = at_early[int(early[r])]  # the late poses' own ancestors (themselves at the same step)
             pose1, pose2 = (late_poses, early_poses) if step1[r] == last else (early_poses, late_poses)
-            estimated = between_np(compose_np(pose1, at.since[at.first[r]]), compose_np(pose2, at.since[at.second[r]]))
-            out[r] = np.min(np.hypot(estimated[:, 0] - motion[r, 0], estimated[:, 1] - motion[r, 1]))
+            trans, _ = motion_errors(compose_np(pose1, at.since[at.first[r]]), compose_np(pose2, at.since[at.second[r]]),
+                                     motion[r])
+            out[r] = np.min(trans)
     return out
 
 

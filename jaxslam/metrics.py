@@ -16,8 +16,8 @@ from jaxslam.geometry import between_np, wrap_angle_np
 from jaxslam.io.relations import Relations
 
 __all__ = [
-    "RelationError", "absolute_trajectory_error", "checkpoint_passages", "lookup_poses", "passage_errors",
-    "relation_error", "revisiting_accuracy",
+    "RelationError", "absolute_trajectory_error", "checkpoint_passages", "lookup_indices", "lookup_poses",
+    "motion_errors", "normalized_weights", "passage_errors", "relation_error", "revisiting_accuracy",
 ]
 
 
@@ -134,6 +134,23 @@ class RelationError:
         return summary
 
 
+def motion_errors(first, second, motion) -> tuple[np.ndarray, np.ndarray]:
+    """The relation errors of estimated poses: ``e_trans = || between(first, second)[:2] -
+    motion[:2] ||`` (m) and ``e_rot = | wrap(between(first, second)[2] - motion[2]) |`` (rad).
+
+    Args:
+        first, second: (..., 3) the estimated poses at each relation's t1 and t2.
+        motion: (..., 3) the relations' true motions (broadcast against them).
+
+    Returns:
+        ``(trans, rot)``, each of the broadcast leading shape.
+    """
+    estimated = between_np(first, second)
+    motion = np.asarray(motion, np.float64)
+    trans = np.hypot(estimated[..., 0] - motion[..., 0], estimated[..., 1] - motion[..., 1])
+    return trans, np.abs(wrap_angle_np(estimated[..., 2] - motion[..., 2]))
+
+
 def relation_error(timestamps, poses, relations: Relations, time_tolerance: float = 1e-4) -> RelationError:
     """Kümmerle et al.'s relation-based error of a trajectory.
 
@@ -164,9 +181,7 @@ def relation_error(timestamps, poses, relations: Relations, time_tolerance: floa
         raise ValueError(f"relations have inconsistent shapes {t1.shape}, {t2.shape}, {motion.shape}")
     x1 = lookup_poses(timestamps, poses, t1, time_tolerance)
     x2 = lookup_poses(timestamps, poses, t2, time_tolerance)
-    estimated = between_np(x1, x2)
-    trans = np.hypot(estimated[:, 0] - motion[:, 0], estimated[:, 1] - motion[:, 1])
-    rot = np.abs(wrap_angle_np(estimated[:, 2] - motion[:, 2]))
+    trans, rot = motion_errors(x1, x2, motion)
     return RelationError(
         trans=trans,
         rot=rot,
@@ -252,6 +267,16 @@ def passage_errors(
     return np.hypot(diff[:, 0], diff[:, 1]) + rotation_weight * np.abs(wrap_angle_np(diff[:, 2]))
 
 
+def normalized_weights(log_weights) -> np.ndarray:
+    """(N,) float64 weights summing to one from (N,) log-weights (any normalisation; -inf allowed,
+    not all): host-side, for metrics over a filter's particles."""
+    log_w = np.asarray(log_weights, np.float64)
+    if not np.any(np.isfinite(log_w)):
+        raise ValueError("every particle has weight zero")
+    w = np.exp(log_w - np.max(log_w))
+    return w / w.sum()
+
+
 def revisiting_accuracy(
     paths: np.ndarray,
     log_weights: np.ndarray,
@@ -273,13 +298,8 @@ def revisiting_accuracy(
     Returns:
       RA in metres (lower is better; the paper's success threshold is 0.2).
     """
-    log_w = np.asarray(log_weights, np.float64)
-    if not np.any(np.isfinite(log_w)):
-        raise ValueError("revisiting_accuracy: every particle has weight zero")
-    w = np.exp(log_w - np.max(log_w))
-    w /= w.sum()
     errors = passage_errors(paths, first, last, true_first, true_last, rotation_weight)
-    return float(np.sum(w * errors))
+    return float(np.sum(normalized_weights(log_weights) * errors))
 
 
 # ---------------------------------------------------------------------------
