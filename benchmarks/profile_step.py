@@ -124,7 +124,8 @@ def main(argv=None):
         state, info = compiled(state, jax.random.split(jax.random.fold_in(key_steps, i), chunk), chunk_inputs(i),
                                valid, sensor, params)
         if bool(info.pool_overflow.any()):
-            state = state._replace(maps=paged_map.grow(config.grid, state.maps, slam._larger_pool(state.maps)))
+            pool = slam._larger_pool(state.maps, config.grid)
+            state = state._replace(maps=paged_map.grow(config.grid, state.maps, pool))
     report["tiles_in_use"] = int(paged_map.tiles_in_use(state.maps))
     report["top_buffers"] = _top_buffers(dump, "_run_chunk", args.top)
 

@@ -214,12 +214,19 @@ def first_free(refcount: Int[Array, "C"], size: int) -> Int[Array, "M"]:
     return jnp.nonzero(refcount == 0, size=size, fill_value=refcount.shape[0])[0].astype(jnp.int32)
 
 
+def max_pool_tiles(spec: PagedGridSpec) -> int:
+    """The most tile slots a pool may have: a cell of the pool is read and written by one flat
+    int32 index (slot * tile_size**2 + cell), so the pool holds fewer than 2**31 cells (524,287
+    tiles of 64 x 64 cells, 8 GiB of float32 log-odds)."""
+    return (2**31 - 1) // spec.tile_size**2
+
+
 def _check_pool(spec: PagedGridSpec, pool: PoolSize) -> None:
     """ValueError unless ``pool`` has positive sizes within their capacities and int32 indices suffice."""
     if min(pool) < 1 or pool.max_new_tiles > pool.capacity or pool.max_new_blocks > pool.block_capacity:
         raise ValueError(f"a paged map's pools need positive sizes and at most their capacity new per insertion, "
                          f"got {pool}")
-    if pool.capacity * spec.tile_size**2 >= 2**31:
+    if pool.capacity > max_pool_tiles(spec):
         raise ValueError(f"a pool of {pool.capacity} tiles of {spec.tile_size} x {spec.tile_size} cells exceeds "
                          "int32 indexing; use fewer particles or a larger resolution")
 

@@ -377,7 +377,7 @@ def run_batch(
                 break
             # A step of some run did not fit the pools: grow every run's and take the chunk again
             # for all runs from its start (a step not taken was a no-op, the keys are fixed).
-            pool = _larger_pool_for(pool, _PoolUse(*(int(u.addressable_data(0)) for u in use)))
+            pool = _larger_pool_for(pool, _PoolUse(*(int(u.addressable_data(0)) for u in use)), config.grid)
             del new_state, info  # the chunk's stalled end: no third state while the start grows
             state = _grow_batch(state, config, pool, mesh)
             growths.append({"step": start, **pool._asdict()})
@@ -507,7 +507,7 @@ def _initial_state(key, prepared: rbpf.PreparedLog, params: SlamParams, config: 
                           jnp.asarray(prepared.initial_pose), pool=pool)
         if not bool(state.maps.overflow):
             return state
-        pool = _larger_pool(state.maps)
+        pool = _larger_pool(state.maps, config.grid)
 
 
 def _check_resume(resume: RunProgress, num_steps: int, chunk_size: int, config: SlamConfig) -> None:
@@ -543,7 +543,7 @@ def _chunk_fn_growing_pools(chunk_starts, chunk_size: int, sensor, params: SlamP
             # it, grow the pool from what s asked for, and take the chunk's rest again from s.
             s = int(stalled[0])
             done_infos.append(jax.tree.map(lambda a: a[:s], info))
-            pool = _larger_pool(state.maps)
+            pool = _larger_pool(state.maps, config.grid)
             state = state._replace(maps=paged_map.grow(config.grid, state.maps, pool))
             offset += s
             growths.append({"step": start + offset, **pool._asdict()})
@@ -601,16 +601,24 @@ def _pool_use(maps: PagedMaps) -> _PoolUse:
                     maps.peak_block_request)
 
 
-def _larger_pool(maps: PagedMaps) -> PoolSize:
+def _larger_pool(maps: PagedMaps, spec: PagedGridSpec) -> PoolSize:
     """The pools' sizes after ``maps``' pools overflowed (:func:`_larger_pool_for`)."""
-    return _larger_pool_for(maps.pool_size, _pool_use(maps))
+    return _larger_pool_for(maps.pool_size, _pool_use(maps), spec)
 
 
-def _larger_pool_for(old: PoolSize, use: _PoolUse) -> PoolSize:
+def _larger_pool_for(old: PoolSize, use: _PoolUse, spec: PagedGridSpec) -> PoolSize:
     """The pools' sizes after pools of ``old`` sizes overflowed: each at least twice the old, and
-    room for what is in use plus two of the largest requests seen."""
+    room for what is in use plus two of the largest requests seen; the tile pool no larger than
+    int32 indexing allows (:func:`jaxslam.paged_map.max_pool_tiles`). ``RuntimeError`` when the
+    tile pool overflowed at that size."""
     tiles, peak, blocks, peak_blocks = (int(v) for v in use)
-    max_new = max(2 * old.max_new_tiles, 2 * peak)
+    most = paged_map.max_pool_tiles(spec)
+    max_new = min(max(2 * old.max_new_tiles, 2 * peak), most)
+    capacity = min(max(2 * old.capacity, tiles + 2 * max_new), most)
+    if capacity == old.capacity and tiles + peak > capacity:  # a larger allowance per step would not fit either
+        raise RuntimeError(
+            f"the maps need more than {capacity} tiles of {spec.tile_size} x {spec.tile_size} cells ({tiles} in use, "
+            f"a step asking for {peak} more), the most a pool can index with int32; use fewer particles, "
+            "a smaller max_insert_range or a coarser resolution")
     max_new_blocks = max(2 * old.max_new_blocks, 2 * peak_blocks)
-    return PoolSize(max(2 * old.capacity, tiles + 2 * max_new), max_new,
-                    max(2 * old.block_capacity, blocks + 2 * max_new_blocks), max_new_blocks)
+    return PoolSize(capacity, max_new, max(2 * old.block_capacity, blocks + 2 * max_new_blocks), max_new_blocks)

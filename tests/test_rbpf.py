@@ -236,6 +236,30 @@ def test_a_pool_too_small_grows_and_gives_the_big_pools_result(office_log):
         assert small_grid == big_grid
 
 
+def test_the_tile_pool_stops_at_int32_indexing_and_says_so_when_it_cannot_grow():
+    """The pool's cells are indexed by one int32 (slot * tile cells + cell): at 10,000 particles
+    the default pool (3 requests, 720,619 tiles of 64 x 64 cells) was refused before the run
+    started. It now starts at the most int32 allows, grows up to it, and a pool at that size
+    that overflowed is a clear error naming the limit, not a wrapped index."""
+    from jaxslam.paged_map import PoolSize, _check_pool, max_pool_tiles
+
+    config = SlamConfig(num_particles=10_000)
+    most = max_pool_tiles(config.grid)
+    assert most == 524_287 and most * 64 * 64 < 2**31 <= (most + 1) * 64 * 64
+    pool = rbpf.pool_size(config)
+    assert pool.capacity == most and pool.max_new_tiles <= most
+    _check_pool(config.grid, pool)  # accepted
+    assert rbpf.pool_size(SlamConfig(num_particles=1000)).capacity == 3 * (1000 * 24 + 121) + 256  # below: as before
+    near = PoolSize(400_000, 100_000, 1000, 100)
+    grown = slam._larger_pool_for(near, slam._PoolUse(350_000, 60_000, 10, 5), config.grid)
+    assert grown.capacity == most and grown.max_new_tiles == 200_000 and grown.block_capacity == 2000
+    full = PoolSize(most, 120_000, 1000, 100)
+    with pytest.raises(RuntimeError, match="int32"):
+        slam._larger_pool_for(full, slam._PoolUse(450_000, 100_000, 10, 5), config.grid)
+    # a pool at the limit that overflowed on blocks alone still grows its blocks
+    assert slam._larger_pool_for(full, slam._PoolUse(100_000, 50_000, 1000, 100), config.grid).block_capacity == 2000
+
+
 def test_a_second_log_compiles_nothing_new(office_log, caplog):
     """The maps' virtual grid is fixed (centred on each log's own start), so another log with the
     same laser and config runs on the compiled chunk of the first: JAX logs no compilation."""
