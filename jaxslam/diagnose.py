@@ -23,8 +23,10 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
   scan, and where on the best path that was; and every final particle's own relation error
   (:func:`final_particle_errors`: its history, from the record's ancestors and proposed poses),
   and for each relation the best of the particles the filter proposed at its later scan
-  (:func:`closest_then`). A relation the run gets wrong that some particle had right then was
-  lost to the weights or to resampling; one that no particle had right, to the proposal.
+  (:func:`closest_then`), and their mean by that step's weights (:func:`weighted_then`). A
+  relation the run gets wrong that some particle had right then was lost to the weights (the
+  weighted mean far above the best) or to a later resampling (near it); one that no particle had
+  right, to the proposal.
 
 ``events`` lists the largest corrections and the worst relations with their step, time and
 place, ranked (no threshold): where to look in the map first. :func:`plot_diagnosis` draws it
@@ -52,7 +54,7 @@ def step_record(log, result) -> dict[str, np.ndarray]:
 
     ``scan_index`` (S,) the processed scans; ``timestamp`` (S,) s; ``odometry`` (S, 3) and
     ``best_path`` (S, 3) at them; for the S - 1 steps: ``ess``, ``resampled``, ``ancestors``
-    (S-1, N), ``proposed_poses`` (S-1, N, 3) float32, ``log_evidence``, ``num_fallbacks``,
+    (S-1, N), ``proposed_poses`` (S-1, N, 3) and ``log_weights`` (S-1, N) float32, ``log_evidence``, ``num_fallbacks``,
     ``num_slipped``, ``best_particle``; ``num_particles`` ().
     """
     info = result.info
@@ -66,6 +68,7 @@ def step_record(log, result) -> dict[str, np.ndarray]:
         "resampled": np.asarray(info.resampled, bool),
         "ancestors": np.asarray(info.ancestors, np.int32),
         "proposed_poses": result.to_world(info.proposed_poses).astype(np.float32),
+        "log_weights": np.asarray(info.log_weights, np.float32),
         "log_evidence": np.asarray(info.log_evidence, np.float32),
         "num_fallbacks": np.asarray(info.num_fallbacks, np.int32),
         "num_slipped": np.asarray(info.num_slipped, np.int32),
@@ -167,15 +170,11 @@ def final_particle_errors(record: dict[str, np.ndarray], trajectory: tuple[np.nd
     return {"trans_mean": np.asarray(trans), "rot_mean": np.asarray(rot)}
 
 
-def closest_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray], relations
-                 ) -> np.ndarray:
-    """(R,) m: for each relation, the smallest translational error among the particles the filter
-    proposed at the relation's later scan, each judged on its own history up to then.
-
-    A relation the run gets wrong (a missed or false loop closure) with a small value here was
-    right in some particle at the time, and the weights or a later resampling dropped it; with a
-    large value no particle had it: the proposal or the particles' diversity failed before.
-    """
+def errors_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray], relations
+                ) -> np.ndarray:
+    """(R, N) m: for each relation, the translational error of every particle the filter proposed
+    at the relation's later scan, each judged on its own history up to then (the scan's pose
+    itself, and its ancestor's at the earlier scan)."""
     from jaxslam.metrics import motion_errors
 
     at = _relation_scans(record, trajectory, relations)
@@ -190,7 +189,7 @@ def closest_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np
     def poses_at(step, index):  # (n, 3): the histories' poses at a processed step
         return proposed[step - 1, index] if step >= 1 else initial
 
-    out = np.empty(late.size)
+    out = np.empty((late.size, n))
     for last in np.unique(late):
         members = np.flatnonzero(late == last)
         index, step = np.arange(n), int(last)  # step's proposed particles, followed back
@@ -205,10 +204,45 @@ def closest_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np
         for r in members:
             early_poses = at_early[int(early[r])]  # the late poses' own ancestors (themselves at the same step)
             pose1, pose2 = (late_poses, early_poses) if step1[r] == last else (early_poses, late_poses)
-            trans, _ = motion_errors(compose_np(pose1, at.since[at.first[r]]), compose_np(pose2, at.since[at.second[r]]),
-                                     motion[r])
-            out[r] = np.min(trans)
+            out[r], _ = motion_errors(compose_np(pose1, at.since[at.first[r]]),
+                                      compose_np(pose2, at.since[at.second[r]]), motion[r])
     return out
+
+
+def closest_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray], relations
+                 ) -> np.ndarray:
+    """(R,) m: for each relation, the smallest translational error among the particles the filter
+    proposed at the relation's later scan, each judged on its own history up to then
+    (:func:`errors_then`).
+
+    A relation the run gets wrong (a missed or false loop closure) with a small value here was
+    right in some particle at the time, and the weights or a later resampling dropped it; with a
+    large value no particle had it: the proposal or the particles' diversity failed before.
+    """
+    return errors_then(record, trajectory, relations).min(axis=1)
+
+
+def weighted_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray], relations,
+                  errors: np.ndarray | None = None) -> np.ndarray | None:
+    """(R,) m: for each relation, the particles' errors at its later scan (:func:`errors_then`, or
+    ``errors`` when given) averaged by that step's weights (``log_weights`` of the record, after
+    the update and before resampling); None for a record written before it held them.
+
+    Beside :func:`closest_then`: near it, the weights favoured the particles that had the relation
+    right at the time (a later resampling or step lost it); far above it, they did not.
+    """
+    from jaxslam.metrics import normalized_weights
+
+    if "log_weights" not in record:
+        return None
+    errors = errors_then(record, trajectory, relations) if errors is None else errors
+    at = _relation_scans(record, trajectory, relations)
+    late = np.maximum(at.step[at.first], at.step[at.second])
+    log_w = np.asarray(record["log_weights"], np.float64)
+    uniform = np.full(errors.shape[1], 1.0 / errors.shape[1])  # the initial scan's: all particles alike
+    weights = np.stack([normalized_weights(log_w[s - 1]) if s >= 1 else uniform for s in late]) if late.size \
+        else np.zeros_like(errors)
+    return np.sum(weights * errors, axis=1)
 
 
 def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.ndarray] | None = None,
@@ -288,13 +322,19 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
                             "step": (at_step + 1).tolist()}
         summary["relation_error"] = {"trans_mean": err.trans_mean, "rot_mean": err.rot_mean, "count": err.count,
                                      "relations_outside_the_run": int(np.sum(~inside))}
-        then = closest_then(record, trajectory, relations)
+        errors = errors_then(record, trajectory, relations)
+        then, weighted = errors.min(axis=1), weighted_then(record, trajectory, relations, errors)
         out["relations"]["closest_then"] = then.tolist()
         summary["relation_error"]["closest_then_mean"] = float(np.mean(then))
+        if weighted is not None:
+            out["relations"]["weighted_then"] = weighted.tolist()
+            summary["relation_error"]["weighted_then_mean"] = float(np.mean(weighted))
         worst = np.argsort(-err.trans, kind="stable")[:NUM_EVENTS]
         events["worst_relations"] = [dict(place(int(at_step[i])), relation_elapsed_s=float(later[i] - start),
                                           trans=float(err.trans[i]), rot=float(err.rot[i]),
-                                          closest_then=float(then[i])) for i in worst]
+                                          closest_then=float(then[i]),
+                                          **({} if weighted is None else {"weighted_then": float(weighted[i])}))
+                                     for i in worst]
         own = final_particle_errors(record, trajectory, relations)
         closest = int(np.argmin(own["trans_mean"]))
         best_final = final_best_particle(record["ancestors"], record["best_particle"])
@@ -337,6 +377,9 @@ def plot_diagnosis(diagnosis: dict, record: dict[str, np.ndarray], title: str = 
     if relations:
         relation_times = np.asarray(relations["time"]) - (s["time"][0] if s["time"].size else 0.0)
         axes[4].plot(relation_times, relations["trans"], ".", ms=2, label="the run's")
+        if "weighted_then" in relations:
+            axes[4].plot(relation_times, relations["weighted_then"], ".", ms=2, alpha=0.5,
+                         label="the particles' weighted mean at its later scan")
         if "closest_then" in relations:
             axes[4].plot(relation_times, relations["closest_then"], ".", ms=2, alpha=0.5,
                          label="the best particle's at its later scan")

@@ -71,6 +71,9 @@ class SlamInfo(NamedTuple):
     """Every particle got weight zero (-inf); the weights were reset to uniform."""
     proposed_poses: Float[Array, "N 3"]
     """Every particle's new pose, before resampling."""
+    log_weights: Float[Array, "N"]
+    """The proposed particles' log-weights after this step's update, before resampling,
+    normalised (logsumexp 0): which histories the filter favoured at this step."""
     ancestors: Int[Array, "N"]
     """After the step, particle i descends from proposed particle ``ancestors[i]``."""
     num_fallbacks: Int[Array, ""]
@@ -260,6 +263,7 @@ def step_with_score_terms(
             lik_ranges, lik_sensor, params.likelihood, config.resolution), 0.0),
         degenerate=update.degenerate,
         proposed_poses=out.pose,
+        log_weights=jnp.where(taken, update.log_weights, state.log_weights),
         ancestors=ancestors,
         num_fallbacks=jnp.sum(out.fallback).astype(jnp.int32),
         num_slipped=num_slipped,

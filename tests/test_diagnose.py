@@ -114,6 +114,8 @@ def test_diagnose_command_reads_a_map_run(tmp_path, capsys):
     # The run's path at a relation's later step is one of the particles proposed there.
     then, run = np.asarray(diagnosis["relations"]["closest_then"]), np.asarray(diagnosis["relations"]["trans"])
     assert then.shape == (3,) and np.all(then <= run + 2e-6)
+    weighted = np.asarray(diagnosis["relations"]["weighted_then"])  # the run records each step's weights
+    assert weighted.shape == (3,) and np.all(weighted >= then - 2e-6)
     assert "largest corrections" in capsys.readouterr().out
     # A folder without the record: one clear line, exit 2, before any work.
     assert main(["diagnose", str(tmp_path / "d")]) == 2
@@ -187,10 +189,11 @@ def test_each_final_particles_own_relation_error_against_loops(seed):
 
 
 def test_the_closest_particle_then_against_truncated_records():
-    """Each relation's best particle at its later scan, against a slow reference: the record cut
-    after the step before (whose final particles are that step's parents), each proposed
-    particle's history as a final particle's path (:func:`jaxslam.rbpf.particle_paths`)."""
-    from jaxslam.diagnose import closest_then
+    """Each relation's best particle at its later scan, and the particles' mean by that step's
+    weights, against a slow reference: the record cut after the step before (whose final
+    particles are that step's parents), each proposed particle's history as a final particle's
+    path (:func:`jaxslam.rbpf.particle_paths`)."""
+    from jaxslam.diagnose import closest_then, weighted_then
     from jaxslam.io.relations import Relations
     from jaxslam.metrics import relation_error
     from jaxslam.rbpf import particle_paths
@@ -207,9 +210,14 @@ def test_the_closest_particle_then_against_truncated_records():
                           + rng.normal(0, 0.05, (30, 3)))
     record = {"scan_index": processed, "best_path": paths[0], "proposed_poses": proposed.astype(np.float32),
               "ancestors": ancestors}
-    got = closest_then(record, (times, per_scan_by_loops(paths[0], processed, odometry)), relations)
+    trajectory = (times, per_scan_by_loops(paths[0], processed, odometry))
+    got = closest_then(record, trajectory, relations)
+    assert weighted_then(record, trajectory, relations) is None  # a record written before it held the weights
+    log_w = rng.normal(0.0, 2.0, ancestors.shape)
+    record["log_weights"] = (log_w - np.log(np.exp(log_w).sum(axis=1, keepdims=True))).astype(np.float32)
+    got_weighted = weighted_then(record, trajectory, relations)
 
-    expected = np.empty(30)
+    expected, expected_weighted = np.empty(30), np.empty(30)
     for r, (a, b) in enumerate(pairs):
         step = max(int(np.sum(processed <= max(a, b))) - 1, 0)
         if step == 0:
@@ -218,6 +226,11 @@ def test_the_closest_particle_then_against_truncated_records():
             parents = particle_paths(proposed[:step - 1], ancestors[:step - 1], start)
             histories = np.concatenate([parents, proposed[step - 1][:, None, :]], axis=1)
         one = Relations(times[[a]], times[[b]], np.asarray(relations.motion)[[r]])
-        expected[r] = min(relation_error(times, per_scan_by_loops(h, processed[:step + 1], odometry), one).trans_mean
-                          for h in histories)
+        errors = np.array([relation_error(times, per_scan_by_loops(h, processed[:step + 1], odometry), one).trans_mean
+                           for h in histories])
+        expected[r] = errors.min()
+        weights = np.exp(np.float64(record["log_weights"][step - 1])) if step else np.full(n, 1.0 / n)
+        expected_weighted[r] = np.sum(weights / weights.sum() * np.broadcast_to(errors, (n,)))
     np.testing.assert_allclose(got, expected, atol=1e-5)
+    np.testing.assert_allclose(got_weighted, expected_weighted, atol=1e-5)
+    assert np.all(got_weighted >= got - 1e-9) and np.any(got_weighted > got + 1e-3)

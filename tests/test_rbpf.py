@@ -236,6 +236,33 @@ def test_a_pool_too_small_grows_and_gives_the_big_pools_result(office_log):
         assert small_grid == big_grid
 
 
+def test_each_steps_weights_are_recorded_before_resampling(office_log):
+    """``SlamInfo.log_weights`` are the weights a step's resampling saw: normalised, the step's
+    ESS, and, where it did not resample, the weights the particles carried on (the state at a
+    chunk's end). Recording the weights after resampling (uniform where it resampled) fails."""
+    config = small_config(num_particles=16, proposal="op")
+    params = default_params(resample_threshold=0.3)  # some steps resample, most do not
+    ends = {}
+
+    def on_chunk(progress):
+        ends[progress.steps_done] = np.array(progress.state.log_weights)
+
+    result = slam.run(jax.random.key(5), office_log, config, params, SETTINGS, chunk_size=4, progress=False,
+                      on_chunk=on_chunk)
+    info = result.info
+    log_w = np.asarray(info.log_weights, np.float64)
+    resampled = np.asarray(info.resampled)
+    assert log_w.shape == (len(resampled), 16) and 0 < resampled.sum() < len(resampled)
+    np.testing.assert_allclose(np.log(np.exp(log_w).sum(axis=1)), 0.0, atol=1e-5)
+    np.testing.assert_allclose(1.0 / np.exp(2 * log_w).sum(axis=1), np.asarray(info.ess), rtol=1e-4)
+    checked = 0
+    for done, weights in ends.items():
+        if done <= len(resampled) and not resampled[done - 1]:
+            np.testing.assert_allclose(weights, log_w[done - 1], atol=1e-5)
+            checked += 1
+    assert checked >= 3
+
+
 def test_the_tile_pool_stops_at_int32_indexing_and_says_so_when_it_cannot_grow():
     """The pool's cells are indexed by one int32 (slot * tile cells + cell): at 10,000 particles
     the default pool (3 requests, 720,619 tiles of 64 x 64 cells) was refused before the run

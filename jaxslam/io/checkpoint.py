@@ -13,7 +13,8 @@ from jaxslam.paged_map import PagedMaps
 from jaxslam.rbpf import SlamInfo, SlamState
 from jaxslam.slam import RunProgress
 
-CHECKPOINT_VERSION = 4  # 2: paged maps; 3: two-level page tables; 4: SlamInfo.num_slipped (the slip search)
+CHECKPOINT_VERSION = 5  # 2: paged maps; 3: two-level page tables; 4: SlamInfo.num_slipped (the slip search);
+# 5: SlamInfo.log_weights (each step's weights before resampling)
 
 
 def save_checkpoint(path, progress: RunProgress, identity: dict) -> None:

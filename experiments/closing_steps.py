@@ -1,0 +1,153 @@
+"""Step by step through a box-world run's last lap: when do the weights pick a closing history?
+
+A failed box-world run ends with most of its weight on histories that miss the loop
+(``closing_weight`` in ``box_world.py``'s records). This script asks when that happens. For each
+seed it runs one cell of a ``box_world.json`` table (default: the defaults table's library LP),
+then, at each of the last ``--steps`` steps, over the particles proposed there (each on its own
+history, rebuilt from ``SlamInfo.proposed_poses`` and ``ancestors``):
+
+* ``error``: each particle's revisiting error so far, the relative pose between the first passage
+  over X and the step (:func:`jaxslam.metrics.passage_errors`, the table's lambda); from the last
+  passage on, between the two passages, so that at the end it is the particle's own RA;
+* ``weight``: the step's weight on particles whose error is below the table's success threshold
+  (``SlamInfo.log_weights``, after the update and before resampling), and ``share``: the fraction
+  of the particles that are (what the weights would give if they said nothing);
+* the weighted and unweighted mean error.
+
+A weight above the share means the weights favour the closing histories at that step. The
+records go to ``--out``/closing_steps.json, the figure to closing_steps.png.
+
+    python experiments/closing_steps.py --out OUT --first-seed 18 --runs 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import box_world  # noqa: E402  (experiments/box_world.py: the table's cells and scoring)
+
+from jaxslam.cli import parse_assignments  # noqa: E402
+from jaxslam.metrics import checkpoint_passages, normalized_weights, passage_errors  # noqa: E402
+from jaxslam.rbpf import particle_paths  # noqa: E402
+
+
+def proposed_histories(proposed: np.ndarray, ancestors: np.ndarray, step: int, start) -> np.ndarray:
+    """(N, step + 2, 3): the history of each particle proposed at ``step`` (its pose there last)."""
+    anc = ancestors[: step + 1].copy()
+    anc[step] = np.arange(anc.shape[1])  # the proposed particles themselves, before that step's resampling
+    return particle_paths(proposed[: step + 1], anc, start)
+
+
+def trace(record: dict, seed: int, world: dict, steps: int) -> dict:
+    """One run of the cell and its per-step closing figures (the module's doc)."""
+    t0 = time.perf_counter()
+    run, result, scenario = box_world.run_once(record, seed, world)
+    truth, lam, success = scenario.true_poses, world["rotation_weight"], world["success_ra"]
+    passages = scenario.metadata.get("x_passages")
+    if passages is None or len(passages) < 2:
+        passages = checkpoint_passages(truth, scenario.metadata["checkpoint_x"], 0.3)
+    idx = np.asarray(result.selection.indices)
+    first, last = (int(np.argmin(np.abs(idx - p))) for p in (passages[0], passages[-1]))
+    start = np.asarray(scenario.log.odometry[0], np.float64) - np.r_[result.frame_offset, 0.0]
+    proposed = np.asarray(result.info.proposed_poses)
+    ancestors = np.asarray(result.info.ancestors)
+    log_weights = np.asarray(result.info.log_weights)
+    num_steps = ancestors.shape[0]
+    rows = []
+    for step in range(max(num_steps - steps, 0), num_steps):
+        paths = result.to_world(proposed_histories(proposed, ancestors, step, start))
+        until = min(step + 1, last)
+        errors = passage_errors(paths, first, until, truth[idx[first]], truth[idx[until]], lam)
+        w = normalized_weights(log_weights[step])
+        closing = errors < success
+        rows.append({"step": step, "steps_to_end": num_steps - 1 - step, "past_last_passage": step + 1 >= last,
+                     "weight": float(w[closing].sum()), "share": float(closing.mean()),
+                     "weighted_error": float(np.sum(w * errors)), "mean_error": float(errors.mean()),
+                     "min_error": float(errors.min()), "ess": float(np.asarray(result.info.ess)[step]),
+                     "resampled": bool(np.asarray(result.info.resampled)[step])})
+    return {"seed": seed, "ra": run["ra"], "closing_weight": run["closing_weight"], "success": run["ra"] < success,
+            "first_passage_step": first - 1, "last_passage_step": last - 1, "num_steps": num_steps,
+            "seconds": time.perf_counter() - t0, "steps": rows}
+
+
+def figure(path: Path, runs: list[dict], success_ra: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    for run in runs:
+        x = [-r["steps_to_end"] for r in run["steps"]]
+        colour = "tab:blue" if run["success"] else "tab:red"
+        axes[0].plot(x, [r["weight"] for r in run["steps"]], color=colour, lw=1)
+        axes[0].plot(x, [r["share"] for r in run["steps"]], color=colour, lw=0.8, ls=":")
+        axes[1].plot(x, [r["weighted_error"] for r in run["steps"]], color=colour, lw=1)
+        axes[1].plot(x, [r["min_error"] for r in run["steps"]], color=colour, lw=0.8, ls=":")
+        axes[0].axvline(run["last_passage_step"] - (run["num_steps"] - 1), color=colour, lw=0.4, alpha=0.5)
+    axes[0].set(xlabel="steps before the end", ylabel="closing histories: weight (solid), share (dotted)",
+                ylim=(-0.02, 1.02))
+    axes[1].axhline(success_ra, color="k", lw=0.6)
+    axes[1].set(xlabel="steps before the end", ylabel="revisiting error so far [m]: weighted (solid), min (dotted)",
+                ylim=(0, None))
+    fig.suptitle("box world, last lap: successes blue, failures red; thin vertical lines: last passage over X")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--config", default=str(box_world.DEFAULT_CONFIG))
+    ap.add_argument("--table", default="defaults")
+    ap.add_argument("--method", default="LP-SM", help="a method of the file (default the library's LP)")
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--runs", type=int, default=10)
+    ap.add_argument("--steps", type=int, default=150, help="the last steps to trace")
+    ap.add_argument("--particles", type=int, help="N (default the table's first)")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a build_setup name for the cell (a diagnostic, not the table's cell)")
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    exp = box_world.load_experiment(args.config)
+    if args.table not in exp["tables"] or args.method not in exp["methods"]:
+        print(f"closing_steps.py: no table {args.table!r} or method {args.method!r} in {args.config}", file=sys.stderr)
+        return 2
+    table = exp["tables"][args.table]
+    particles = [args.particles] if args.particles else table["particles"][:1]
+    first_cell = {**table, "particles": particles, "odometry_scales": table["odometry_scales"][:1]}
+    overrides = {**table.get("set", {}), **parse_assignments(args.set)}
+    cell = box_world.table_cells(exp, first_cell, [args.method], overrides)[0]
+    world = box_world.world_settings(exp, table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    target = args.out / "closing_steps.json"
+    stored = json.loads(target.read_text()) if target.exists() else {"cell": cell, "runs": []}
+    if box_world.cell_key(stored["cell"]) != box_world.cell_key(cell):
+        print(f"closing_steps.py: {target} holds another cell's runs; give another --out", file=sys.stderr)
+        return 2
+    done = {r["seed"] for r in stored["runs"]}
+    from tqdm.auto import tqdm
+
+    for seed in tqdm(range(args.first_seed, args.first_seed + args.runs), desc="runs", unit="run"):
+        if seed in done:
+            continue
+        stored["runs"].append(trace(cell, seed, world, args.steps))
+        target.write_text(json.dumps(stored, indent=1) + "\n")  # each run kept as it ends (resumable)
+    runs = sorted(stored["runs"], key=lambda r: r["seed"])
+    figure(args.out / "closing_steps.png", runs, world["success_ra"])
+    for run in runs:
+        end = run["steps"][-1]
+        print(f"seed {run['seed']}: RA {run['ra']:.3f} ({'success' if run['success'] else 'failure'}), final "
+              f"closing weight {end['weight']:.2f} against a share of {end['share']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
