@@ -12,7 +12,10 @@ history, rebuilt from ``SlamInfo.proposed_poses`` and ``ancestors``):
 * ``weight``: the step's weight on particles whose error is below the table's success threshold
   (``SlamInfo.log_weights``, after the update and before resampling), and ``share``: the fraction
   of the particles that are (what the weights would give if they said nothing);
-* the weighted and unweighted mean error.
+* the weighted and unweighted mean error;
+
+and, for each final particle, its own RA and its history's error so far 5, 10 and 20 steps
+before the end (which errors the closure's proposals pulled back under the threshold).
 
 A weight above the share means the weights favour the closing histories at that step. The
 records go to ``--out``/closing_steps.json, the figure to closing_steps.png.
@@ -36,6 +39,10 @@ import box_world  # noqa: E402  (experiments/box_world.py: the table's cells and
 from jaxslam.cli import parse_assignments  # noqa: E402
 from jaxslam.metrics import checkpoint_passages, normalized_weights, passage_errors  # noqa: E402
 from jaxslam.rbpf import particle_paths  # noqa: E402
+
+
+BEFORE = (5, 10, 20)
+"""Steps before the end at which each final particle's history's error so far is kept."""
 
 
 def proposed_histories(proposed: np.ndarray, ancestors: np.ndarray, step: int, start) -> np.ndarray:
@@ -72,7 +79,17 @@ def trace(record: dict, seed: int, world: dict, steps: int) -> dict:
                      "weighted_error": float(np.sum(w * errors)), "mean_error": float(errors.mean()),
                      "min_error": float(errors.min()), "ess": float(np.asarray(result.info.ess)[step]),
                      "resampled": bool(np.asarray(result.info.resampled)[step])})
+    # Each final particle's own RA, and its history's error so far at the steps before the end
+    # listed in BEFORE (its ancestor's then): which errors the last steps' proposals pulled back.
+    finals = result.to_world(particle_paths(proposed, ancestors, start))
+    final_errors = {"end": passage_errors(finals, first, last, truth[idx[first]], truth[idx[last]], lam).tolist()}
+    for k in BEFORE:
+        at = max(min(num_steps - k, last), 1)  # path index k steps before the end (at most the last passage)
+        final_errors[f"{k}_before"] = passage_errors(finals, first, at, truth[idx[first]], truth[idx[at]],
+                                                     lam).tolist()
+        final_errors[f"{k}_before_distinct"] = int(np.unique(finals[:, at], axis=0).shape[0])  # their ancestors then
     return {"seed": seed, "ra": run["ra"], "closing_weight": run["closing_weight"], "success": run["ra"] < success,
+            "final_particle_errors": final_errors,
             "first_passage_step": first - 1, "last_passage_step": last - 1, "num_steps": num_steps,
             "seconds": time.perf_counter() - t0, "steps": rows}
 

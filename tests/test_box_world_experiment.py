@@ -464,3 +464,29 @@ def test_datasets_over_two_processes(tmp_path):
         monkey.undo()
     np.testing.assert_array_equal(np.loadtxt(out / "sim" / "op-seed2" / "trajectory.txt"),
                                   np.loadtxt(tmp_path / "alone" / "trajectory.txt"))
+
+
+def test_closing_steps_histories_and_refusals(tmp_path, capsys):
+    """experiments/closing_steps.py: a particle proposed at a step has its parent's history (the
+    filter's particles after the step before, ``particle_paths`` of the record cut there) and its
+    own pose last; a folder holding another cell's runs is refused before any run."""
+    import numpy as np
+
+    import closing_steps as cs
+
+    from jaxslam.rbpf import particle_paths
+
+    rng = np.random.default_rng(0)
+    steps, n = 7, 5
+    proposed = rng.normal(size=(steps, n, 3))
+    ancestors = rng.integers(0, n, (steps, n))
+    start = np.array([1.0, 2.0, 0.3])
+    for step in range(steps):
+        got = cs.proposed_histories(proposed, ancestors, step, start)
+        np.testing.assert_array_equal(got[:, :-1], particle_paths(proposed[:step], ancestors[:step], start))
+        np.testing.assert_array_equal(got[:, -1], proposed[step])
+    (tmp_path / "closing_steps.json").write_text(json.dumps({"cell": {"settings": {}, "N": 7, "odometry_scale": 1.0},
+                                                             "runs": []}))
+    assert cs.main(["--out", str(tmp_path), "--runs", "1"]) == 2
+    assert "another cell" in capsys.readouterr().err
+    assert cs.main(["--out", str(tmp_path), "--method", "nope"]) == 2
