@@ -213,11 +213,19 @@ def floored_to_cells(spec: GridSpec, xy: Float[Array, "... 2"]) -> Int[Array, ".
     return jnp.clip(xy[..., ::-1], -big, big).astype(jnp.int32)
 
 
+def _flat_index(index):
+    """An index of cell storage, flattened: one array of flat indices, or (for a pool of tiles
+    too large for one int32 index, ``paged_map.FLAT_INDEX_CELLS``) a tuple of per-axis arrays."""
+    return tuple(i.reshape(-1) for i in index) if isinstance(index, tuple) else index.reshape(-1)
+
+
 def clear_cells(logodds: Float[Array, "M"], free_idx: Int[Array, "..."], params: InsertionParams
                 ) -> Float[Array, "M"]:
     """``logodds_free`` added to flat cells ``free_idx`` (once per entry), clamped below at
-    ``logodds_min``; an index equal to the storage size (M) changes nothing."""
-    free_idx, dtype = free_idx.reshape(-1), logodds.dtype
+    ``logodds_min``; an index equal to the storage size (M) changes nothing. (Here and in
+    :func:`mark_cells` and :func:`splat_field` an index may also be a tuple of per-axis arrays
+    into storage of more axes.)"""
+    free_idx, dtype = _flat_index(free_idx), logodds.dtype
     logodds = logodds.at[free_idx].add(params.logodds_free.astype(dtype), mode="drop")
     return logodds.at[free_idx].max(params.logodds_min.astype(dtype), mode="drop")
 
@@ -225,7 +233,7 @@ def clear_cells(logodds: Float[Array, "M"], free_idx: Int[Array, "..."], params:
 def mark_cells(logodds: Float[Array, "M"], end_idx: Int[Array, "..."], params: InsertionParams
                ) -> Float[Array, "M"]:
     """``logodds_occupied`` added to flat cells ``end_idx``, clamped above at ``logodds_max``."""
-    end_idx, dtype = end_idx.reshape(-1), logodds.dtype
+    end_idx, dtype = _flat_index(end_idx), logodds.dtype
     logodds = logodds.at[end_idx].add(params.logodds_occupied.astype(dtype), mode="drop")
     return logodds.at[end_idx].min(params.logodds_max.astype(dtype), mode="drop")
 
@@ -233,8 +241,9 @@ def mark_cells(logodds: Float[Array, "M"], end_idx: Int[Array, "..."], params: I
 def splat_field(hit_dist2: UInt8[Array, "M"], splat_idx: Int[Array, "... K"], splat_d2: UInt8[Array, "K"]
                 ) -> UInt8[Array, "M"]:
     """Flat cells ``splat_idx[..., k]`` take the min of their field and ``splat_d2[k]``."""
-    splat_d2 = jnp.broadcast_to(jnp.asarray(splat_d2), splat_idx.shape)
-    return hit_dist2.at[splat_idx.reshape(-1)].min(splat_d2.reshape(-1), mode="drop")
+    shape = (splat_idx[0] if isinstance(splat_idx, tuple) else splat_idx).shape
+    splat_d2 = jnp.broadcast_to(jnp.asarray(splat_d2), shape)
+    return hit_dist2.at[_flat_index(splat_idx)].min(splat_d2.reshape(-1), mode="drop")
 
 
 def update_cells(

@@ -214,21 +214,33 @@ def first_free(refcount: Int[Array, "C"], size: int) -> Int[Array, "M"]:
     return jnp.nonzero(refcount == 0, size=size, fill_value=refcount.shape[0])[0].astype(jnp.int32)
 
 
+FLAT_INDEX_CELLS = 2**31
+"""A pool of fewer cells is read and written through one flat int32 index a cell (slot *
+tile_size**2 + cell: XLA's CPU gathers and scatters cost less so); a larger one (524,288 tiles of
+64 x 64 cells and more: Intel's pools from about N = 7,300, FR-clinic's from N = 1,000) through
+(slot, cell in the tile) pairs, each within int32."""
+
+
+def flat_pool(spec: PagedGridSpec, capacity: int) -> bool:
+    """Whether a pool of ``capacity`` tile slots is indexed by one flat int32 (:data:`FLAT_INDEX_CELLS`)."""
+    return capacity * spec.tile_size**2 < FLAT_INDEX_CELLS
+
+
 def max_pool_tiles(spec: PagedGridSpec) -> int:
-    """The most tile slots a pool may have: a cell of the pool is read and written by one flat
-    int32 index (slot * tile_size**2 + cell), so the pool holds fewer than 2**31 cells (524,287
-    tiles of 64 x 64 cells, 8 GiB of float32 log-odds)."""
-    return (2**31 - 1) // spec.tile_size**2
+    """The most tile slots a pool may have: slots are int32 (the blocks hold them). Beyond
+    :data:`FLAT_INDEX_CELLS` cells a pool is indexed by (slot, cell) pairs, so its size is bounded
+    by the device's memory (about 20 KB a 64 x 64 tile) long before this."""
+    return 2**31 - 1
 
 
 def _check_pool(spec: PagedGridSpec, pool: PoolSize) -> None:
-    """ValueError unless ``pool`` has positive sizes within their capacities and int32 indices suffice."""
+    """ValueError unless ``pool`` has positive sizes within their capacities and int32 slots suffice."""
     if min(pool) < 1 or pool.max_new_tiles > pool.capacity or pool.max_new_blocks > pool.block_capacity:
         raise ValueError(f"a paged map's pools need positive sizes and at most their capacity new per insertion, "
                          f"got {pool}")
     if pool.capacity > max_pool_tiles(spec):
-        raise ValueError(f"a pool of {pool.capacity} tiles of {spec.tile_size} x {spec.tile_size} cells exceeds "
-                         "int32 indexing; use fewer particles or a larger resolution")
+        raise ValueError(f"a pool of {pool.capacity} tiles exceeds int32 slot indices; use fewer particles or a "
+                         "larger resolution")
 
 
 def empty(spec: PagedGridSpec, num_particles: int, capacity: int, max_new_tiles: int | None = None,
@@ -316,7 +328,10 @@ def cell_values(spec: PagedGridSpec, field: PagedField, cells: Int[Array, "... 2
     row, col = jnp.clip(row, 0, ty * t - 1), jnp.clip(col, 0, tx * t - 1)
     shift, mask = spec.tile_shift, t - 1
     slot = tile_slots(spec, field.directory, field.blocks, jnp.stack([row >> shift, col >> shift], -1))
-    value = field.pool.reshape(-1)[(jnp.maximum(slot, 0) * t + (row & mask)) * t + (col & mask)]
+    if flat_pool(spec, field.pool.shape[0]):
+        value = field.pool.reshape(-1)[(jnp.maximum(slot, 0) * t + (row & mask)) * t + (col & mask)]
+    else:
+        value = field.pool[jnp.maximum(slot, 0), row & mask, col & mask]
     return jnp.where(inside & (slot >= 0), value, jnp.asarray(fill, field.pool.dtype))
 
 
@@ -757,11 +772,14 @@ def _marked_targets(spec: PagedGridSpec, window: _Window, start: Int[Array, "2"]
 
 
 def _pool_index(spec: PagedGridSpec, writable_slot: Int[Array, "N*(KK+1)"], cells: _CellTargets,
-                capacity: int) -> Int[Array, "..."]:
-    """Each cell's index in the flattened tile pool; one past its end (dropped) where its tile
-    has no writable slot."""
+                capacity: int):
+    """Each cell's index in the tile pool, one past its end (dropped) where its tile has no
+    writable slot: a flat index into the flattened pool, or, for a pool beyond
+    :data:`FLAT_INDEX_CELLS`, a (slot, cell in the tile) pair of arrays into its (C, T * T) view."""
     t = spec.tile_size
     slot = writable_slot[cells.window_tile]
+    if not flat_pool(spec, capacity):
+        return jnp.minimum(slot, capacity), cells.place
     return jnp.where(slot < capacity, slot * (t * t) + cells.place, capacity * t * t)
 
 
@@ -825,7 +843,8 @@ def _write_cells(spec: PagedGridSpec, window: _Window, tiles: _TileCopies, poses
         hit_dist2 = splat_field(hit_dist2, _pool_index(spec, writable, splats, capacity), d2)
         return (logodds, hit_dist2), outside + end_outside
 
-    pools = (tiles.logodds.reshape(-1), tiles.hit_dist2.reshape(-1))
+    view = (-1,) if flat_pool(spec, capacity) else (capacity, spec.tile_size**2)  # as _pool_index indexes
+    pools = (tiles.logodds.reshape(view), tiles.hit_dist2.reshape(view))
     size = n if particle_block is None else even_block_size(n, particle_block)
     if size >= n:
         (logodds, hit_dist2), outside = write_block(pools, (poses, window_start, writable_slot))

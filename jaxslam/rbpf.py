@@ -100,8 +100,8 @@ def pool_size(config: SlamConfig) -> PoolSize:
     resampling, fewer when the particles own their tiles) and up to 4 blocks. The tile pool
     starts with room for three such requests: what the particles hold (on Intel's first 3,000
     scans 1.9 to 2.1 requests' worth at the end, at N = 30 to 1,000) and the next request (there
-    at most 0.74 of one), or as many as int32 indexing allows (:func:`~jaxslam.paged_map.max_pool_tiles`,
-    reached near N = 7,300 on 64-cell tiles). It
+    at most 0.74 of one), at most :func:`~jaxslam.paged_map.max_pool_tiles` (a pool beyond 2**31
+    cells, from about N = 7,300 on 64-cell tiles, is indexed by (slot, cell) pairs). It
     is the largest allocation per particle (0.9 MB at 64-cell tiles), so it starts no larger:
     :func:`jaxslam.slam.run` grows the pools when a step needs more (one recompile each time,
     reported; while it grows both the old and the new pools are held, so starting smaller and
@@ -111,7 +111,7 @@ def pool_size(config: SlamConfig) -> PoolSize:
     k = spec.window_tiles(config.max_insert_range, config.field_radius)
     kb = spec.window_blocks(k)
     n = config.num_particles
-    most = paged_map.max_pool_tiles(spec)  # above about 21,800 particles one request could fill it
+    most = paged_map.max_pool_tiles(spec)  # int32 slots: memory runs out long before
     max_new_tiles = min(n * min(k * k, 24) + k * k, most)
     max_new_blocks = n * kb * kb + kb * kb
     return PoolSize(min(3 * max_new_tiles + 256, most), max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)

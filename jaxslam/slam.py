@@ -609,7 +609,7 @@ def _larger_pool(maps: PagedMaps, spec: PagedGridSpec) -> PoolSize:
 def _larger_pool_for(old: PoolSize, use: _PoolUse, spec: PagedGridSpec) -> PoolSize:
     """The pools' sizes after pools of ``old`` sizes overflowed: each at least twice the old, and
     room for what is in use plus two of the largest requests seen; the tile pool no larger than
-    int32 indexing allows (:func:`jaxslam.paged_map.max_pool_tiles`). ``RuntimeError`` when the
+    int32 slot indices allow (:func:`jaxslam.paged_map.max_pool_tiles`). ``RuntimeError`` when the
     tile pool overflowed at that size."""
     tiles, peak, blocks, peak_blocks = (int(v) for v in use)
     most = paged_map.max_pool_tiles(spec)

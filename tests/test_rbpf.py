@@ -263,28 +263,54 @@ def test_each_steps_weights_are_recorded_before_resampling(office_log):
     assert checked >= 3
 
 
-def test_the_tile_pool_stops_at_int32_indexing_and_says_so_when_it_cannot_grow():
-    """The pool's cells are indexed by one int32 (slot * tile cells + cell): at 10,000 particles
-    the default pool (3 requests, 720,619 tiles of 64 x 64 cells) was refused before the run
-    started. It now starts at the most int32 allows, grows up to it, and a pool at that size
-    that overflowed is a clear error naming the limit, not a wrapped index."""
-    from jaxslam.paged_map import PoolSize, _check_pool, max_pool_tiles
+def test_a_pool_beyond_one_int32_index_is_indexed_by_pairs_and_sized_as_before():
+    """A pool's cells were indexed by one int32 (slot * tile cells + cell): at 10,000 particles the
+    default pool (3 requests, 720,619 tiles of 64 x 64 cells) was refused before the run started.
+    Beyond 2**31 cells a pool is now indexed by (slot, cell) pairs, so the default stands; only
+    the slots' own int32 bounds it, and a pool at that bound that overflows is a clear error."""
+    from jaxslam.paged_map import PoolSize, _check_pool, flat_pool, max_pool_tiles
 
     config = SlamConfig(num_particles=10_000)
-    most = max_pool_tiles(config.grid)
-    assert most == 524_287 and most * 64 * 64 < 2**31 <= (most + 1) * 64 * 64
     pool = rbpf.pool_size(config)
-    assert pool.capacity == most and pool.max_new_tiles <= most
+    assert pool.capacity == 3 * (10_000 * 24 + 121) + 256 and not flat_pool(config.grid, pool.capacity)
     _check_pool(config.grid, pool)  # accepted
-    assert rbpf.pool_size(SlamConfig(num_particles=1000)).capacity == 3 * (1000 * 24 + 121) + 256  # below: as before
-    near = PoolSize(400_000, 100_000, 1000, 100)
-    grown = slam._larger_pool_for(near, slam._PoolUse(350_000, 60_000, 10, 5), config.grid)
+    assert flat_pool(config.grid, rbpf.pool_size(SlamConfig(num_particles=1000)).capacity)
+    assert flat_pool(config.grid, 524_287) and not flat_pool(config.grid, 524_288)  # 2**31 cells of 64 x 64
+    most = max_pool_tiles(config.grid)
+    near = PoolSize(most - 1000, 100_000, 1000, 100)
+    grown = slam._larger_pool_for(near, slam._PoolUse(most - 300_000, 60_000, 10, 5), config.grid)
     assert grown.capacity == most and grown.max_new_tiles == 200_000 and grown.block_capacity == 2000
     full = PoolSize(most, 120_000, 1000, 100)
     with pytest.raises(RuntimeError, match="int32"):
-        slam._larger_pool_for(full, slam._PoolUse(450_000, 100_000, 10, 5), config.grid)
-    # a pool at the limit that overflowed on blocks alone still grows its blocks
+        slam._larger_pool_for(full, slam._PoolUse(most - 50_000, 100_000, 10, 5), config.grid)
+    # a pool at the bound that overflowed on blocks alone still grows its blocks
     assert slam._larger_pool_for(full, slam._PoolUse(100_000, 50_000, 1000, 100), config.grid).block_capacity == 2000
+
+
+def test_a_pool_indexed_by_pairs_gives_the_flat_pools_run_bit_for_bit(office_log, monkeypatch):
+    """The (slot, cell) indexing of pools beyond one int32 index (reads in ``cell_values``, the
+    insertion's scatters), forced on a small pool, maps and localises exactly as the flat index."""
+    from jaxslam import paged_map
+
+    log = office_log.subset(np.arange(50))
+    config = small_config(num_particles=4)
+    flat = slam.run(jax.random.key(4), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+    monkeypatch.setattr(paged_map, "FLAT_INDEX_CELLS", 0)  # every pool through (slot, cell) pairs
+    jax.clear_caches()  # the compiled chunk of the flat run must not be reused
+    try:
+        assert not paged_map.flat_pool(config.grid, flat.map_pool["capacity"])
+        pairs = slam.run(jax.random.key(4), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
+        maps = [pairs.dense_map(particle) for particle in range(config.num_particles)]
+    finally:
+        monkeypatch.undo()
+        jax.clear_caches()
+    np.testing.assert_array_equal(np.asarray(pairs.state.poses), np.asarray(flat.state.poses))
+    np.testing.assert_array_equal(pairs.best_path, flat.best_path)
+    for particle, (lo, field, grid) in enumerate(maps):
+        flat_lo, flat_field, flat_grid = flat.dense_map(particle)
+        np.testing.assert_array_equal(lo, flat_lo)
+        np.testing.assert_array_equal(field, flat_field)
+        assert grid == flat_grid
 
 
 def test_a_second_log_compiles_nothing_new(office_log, caplog):
