@@ -229,7 +229,7 @@ def flat_pool(spec: PagedGridSpec, capacity: int) -> bool:
 def max_pool_tiles(spec: PagedGridSpec) -> int:
     """The most tile slots a pool may have: slots are int32 (the blocks hold them). Beyond
     :data:`FLAT_INDEX_CELLS` cells a pool is indexed by (slot, cell) pairs, so its size is bounded
-    by the device's memory (about 20 KB a 64 x 64 tile) long before this."""
+    by the device's memory (12 KB a 64 x 64 tile) long before this."""
     return 2**31 - 1
 
 
