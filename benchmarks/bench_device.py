@@ -117,9 +117,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-scans", type=int, help="use the log's first scans only")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    budgets = args.budget_s if len(args.budget_s) == len(args.runs) else [args.budget_s[0]] * len(args.runs)
     if len(args.budget_s) not in (1, len(args.runs)):
         ap.error(f"--budget-s: give one value or one per run ({len(args.runs)}), got {len(args.budget_s)}")
+    budgets = args.budget_s if len(args.budget_s) == len(args.runs) else args.budget_s * len(args.runs)
     for path in (args.log, args.relations):
         if path is not None and not path.exists():
             ap.error(f"no such file: {path}")

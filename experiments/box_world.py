@@ -175,17 +175,24 @@ def run_batch(record: dict, seeds: list[int], world: dict, devices=None, progres
             for seed, result, scenario in zip(seeds, results, scenarios)]
 
 
+def passage_steps(result, scenario) -> tuple[int, int, np.ndarray]:
+    """``(first, last, start)``: the processed scans (path indices) nearest to the run's first and
+    last passage over X, between which RA compares the relative pose with the true one, and the
+    paths' shared initial pose in the filter's local frame (``particle_paths``' ``initial_pose``)."""
+    passages = scenario.metadata.get("x_passages")
+    if passages is None or len(passages) < 2:
+        passages = checkpoint_passages(scenario.true_poses, scenario.metadata["checkpoint_x"], 0.3)
+    idx = result.selection.indices
+    first, last = (int(np.argmin(np.abs(idx - p))) for p in (passages[0], passages[-1]))
+    start = np.asarray(scenario.log.odometry[0], np.float64) - np.r_[result.frame_offset, 0.0]
+    return first, last, start
+
+
 def score_run(seed: int, result, scenario, world: dict, seconds: float) -> dict:
     """A run's record (fields :data:`RUN_FIELDS`): RA between the first and last passage over X."""
     truth, lam = scenario.true_poses, world["rotation_weight"]
-    passages = scenario.metadata.get("x_passages")
-    if passages is None or len(passages) < 2:
-        passages = checkpoint_passages(truth, scenario.metadata["checkpoint_x"], 0.3)
     idx = result.selection.indices
-    # The processed scans nearest to the first and last passage; RA compares the relative
-    # pose between them with the true one at the same scans.
-    first, last = (int(np.argmin(np.abs(idx - p))) for p in (passages[0], passages[-1]))
-    start = np.asarray(scenario.log.odometry[0], np.float64) - np.r_[result.frame_offset, 0.0]  # the local frame's
+    first, last, start = passage_steps(result, scenario)
     paths = result.to_world(particle_paths(result.info.proposed_poses, result.info.ancestors, start))
     log_w = np.asarray(result.state.log_weights)
     ends = (first, last, truth[idx[first]], truth[idx[last]])

@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import box_world  # noqa: E402  (experiments/box_world.py: the table's cells and scoring)
 
 from jaxslam.cli import parse_assignments  # noqa: E402
-from jaxslam.metrics import checkpoint_passages, normalized_weights, passage_errors  # noqa: E402
+from jaxslam.metrics import normalized_weights, passage_errors  # noqa: E402
 from jaxslam.rbpf import particle_paths  # noqa: E402
 
 
@@ -57,12 +57,8 @@ def trace(record: dict, seed: int, world: dict, steps: int) -> dict:
     t0 = time.perf_counter()
     run, result, scenario = box_world.run_once(record, seed, world)
     truth, lam, success = scenario.true_poses, world["rotation_weight"], world["success_ra"]
-    passages = scenario.metadata.get("x_passages")
-    if passages is None or len(passages) < 2:
-        passages = checkpoint_passages(truth, scenario.metadata["checkpoint_x"], 0.3)
     idx = np.asarray(result.selection.indices)
-    first, last = (int(np.argmin(np.abs(idx - p))) for p in (passages[0], passages[-1]))
-    start = np.asarray(scenario.log.odometry[0], np.float64) - np.r_[result.frame_offset, 0.0]
+    first, last, start = box_world.passage_steps(result, scenario)
     proposed = np.asarray(result.info.proposed_poses)
     ancestors = np.asarray(result.info.ancestors)
     log_weights = np.asarray(result.info.log_weights)
