@@ -17,6 +17,12 @@ history, rebuilt from ``SlamInfo.proposed_poses`` and ``ancestors``):
 and, for each final particle, its own RA and its history's error so far 5, 10 and 20 steps
 before the end (which errors the closure's proposals pulled back under the threshold).
 
+Over the whole run, ``one_step`` compares each proposed particle's one-step motion (its parent's
+pose to its own) with the true one, in the parent's frame (along the track, across it, heading):
+``slope``, the least-squares slope of the particles' mean error per step on the odometry's error
+(1: the proposals keep the odometry's error, 0: they remove it), and ``spread``, the particles'
+standard deviation per step, averaged.
+
 A weight above the share means the weights favour the closing histories at that step. The
 records go to ``--out``/closing_steps.json, the figure to closing_steps.png.
 
@@ -37,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import box_world  # noqa: E402  (experiments/box_world.py: the table's cells and scoring)
 
 from jaxslam.cli import parse_assignments  # noqa: E402
+from jaxslam.geometry import between_np, wrap_angle_np  # noqa: E402
 from jaxslam.metrics import normalized_weights, passage_errors  # noqa: E402
 from jaxslam.rbpf import particle_paths  # noqa: E402
 
@@ -50,6 +57,26 @@ def proposed_histories(proposed: np.ndarray, ancestors: np.ndarray, step: int, s
     anc = ancestors[: step + 1].copy()
     anc[step] = np.arange(anc.shape[1])  # the proposed particles themselves, before that step's resampling
     return particle_paths(proposed[: step + 1], anc, start)
+
+
+def one_step_drift(proposed: np.ndarray, ancestors: np.ndarray, start, truth: np.ndarray, odometry: np.ndarray
+                   ) -> dict:
+    """``slope`` and ``spread`` (per axis: along, across, heading) of the proposals' one-step errors
+    (the module's doc). ``proposed`` (S-1, N, 3) and ``start`` in one frame with ``truth`` and
+    ``odometry`` (S, 3), the processed scans' poses."""
+    parents = np.empty_like(proposed)
+    parents[0] = start
+    for t in range(1, proposed.shape[0]):
+        parents[t] = proposed[t - 1, ancestors[t - 1]]
+    true_motion = between_np(truth[:-1], truth[1:])
+    errors = between_np(parents, proposed) - true_motion[:, None, :]
+    errors[..., 2] = wrap_angle_np(errors[..., 2])
+    odometry_errors = between_np(odometry[:-1], odometry[1:]) - true_motion
+    odometry_errors[:, 2] = wrap_angle_np(odometry_errors[:, 2])
+    common = errors.mean(axis=1)
+    return {"slope": [float(np.polyfit(odometry_errors[:, k], common[:, k], 1)[0]) for k in range(3)],
+            "spread": errors.std(axis=1).mean(axis=0).tolist(),
+            "odometry_error_rms": np.sqrt((odometry_errors**2).mean(axis=0)).tolist()}
 
 
 def trace(record: dict, seed: int, world: dict, steps: int) -> dict:
@@ -84,8 +111,11 @@ def trace(record: dict, seed: int, world: dict, steps: int) -> dict:
         final_errors[f"{k}_before"] = passage_errors(finals, first, at, truth[idx[first]], truth[idx[at]],
                                                      lam).tolist()
         final_errors[f"{k}_before_distinct"] = int(np.unique(finals[:, at], axis=0).shape[0])  # their ancestors then
+    world_proposed = result.to_world(proposed)
+    drift = one_step_drift(world_proposed, ancestors, result.to_world(np.asarray(start)[None])[0], truth[idx],
+                           np.asarray(scenario.log.odometry, np.float64)[idx])
     return {"seed": seed, "ra": run["ra"], "closing_weight": run["closing_weight"], "success": run["ra"] < success,
-            "final_particle_errors": final_errors,
+            "final_particle_errors": final_errors, "one_step": drift,
             "first_passage_step": first - 1, "last_passage_step": last - 1, "num_steps": num_steps,
             "seconds": time.perf_counter() - t0, "steps": rows}
 
@@ -157,8 +187,11 @@ def main(argv=None) -> int:
     figure(args.out / "closing_steps.png", runs, world["success_ra"])
     for run in runs:
         end = run["steps"][-1]
+        drift = run.get("one_step")
         print(f"seed {run['seed']}: RA {run['ra']:.3f} ({'success' if run['success'] else 'failure'}), final "
-              f"closing weight {end['weight']:.2f} against a share of {end['share']:.2f}")
+              f"closing weight {end['weight']:.2f} against a share of {end['share']:.2f}"
+              + (f"; one-step slope on the odometry's error {np.round(drift['slope'], 2)}, spread "
+                 f"{np.round(drift['spread'], 4)} (along, across, heading)" if drift else ""))
     return 0
 
 

@@ -276,7 +276,8 @@ class ScanMatchParams(NamedTuple):
     min_score: Float[Array, ""]
     """Mean per-beam match quality (0..1) under which the match counts as failed (fall back to OP)."""
     min_std_fraction: Float[Array, ""]
-    """Floor of the SMP Gaussian's std, as a fraction of the stencil spacing (sets particle diversity)."""
+    """Floor of the std of the likelihood's Gaussian fitted on the stencil, as a fraction of its
+    spacing, before the product with the motion prior (sets particle diversity where the scan is sharp)."""
     window_sigmas: Float[Array, ""]
     """Half-side of the window posterior's window in each axis, in the step's motion-noise stds."""
     window_min_xy: Float[Array, ""]

@@ -113,6 +113,18 @@ def log_density(new_pose: Float[Array, "... 3"], pose: Float[Array, "... 3"], mo
     return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * LOG_2PI, axis=-1)
 
 
+def world_gaussian(pose: Float[Array, "3"], motion: Float[Array, "3"], params: MotionParams
+                   ) -> tuple[Float[Array, "3"], Float[Array, "3 3"]]:
+    """p(x_t | x_{t-1} = pose, u = motion) as a Gaussian in world coordinates: mean
+    ``pose (+) motion`` and covariance R diag(std^2) R^T (R the rotation by the pose's heading on
+    x, y; the heading's variance alone on theta). Exact: x_t is linear in the noise."""
+    std = noise_std(motion, params)
+    c, s = jnp.cos(pose[2]), jnp.sin(pose[2])
+    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
+    rotation = jnp.stack([jnp.stack([c, -s, zero]), jnp.stack([s, c, zero]), jnp.stack([zero, zero, one])])
+    return compose(pose, motion), (rotation * std**2) @ rotation.T
+
+
 def path_log_density(path: Float[Array, "T 3"], motions: Float[Array, "T-1 3"],
                      params: MotionParams) -> Float[Array, ""]:
     """log p(x_1..x_{T-1} | x_0, u): the motion model's log-density of a known path given the

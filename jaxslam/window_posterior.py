@@ -30,11 +30,16 @@ is the box |delta_k| <= max(``scan_match.window_sigmas`` std_k, floor_k).
    default: continuous in the pose, so the peak settles between the field's cells); the best
    of the nine is the mode's peak.
 4. **Fit.** Round each mode's best pose a 3 x 3 x 3 stencil (spacing
-   ``scan_match.linear_step``, ``angular_step``): the mode's Gaussian is fitted with the
-   likelihood at ``fit_gain`` (the SMP: 1, the scan's own sharpness, as GMapping), and the
-   mode's mass is the stencil's Riemann sum of pi (at the filter's gain, with the prior). A
-   mode whose stencil overlaps a heavier mode's (its best pose within two stencil spacings on
-   every axis) is the same hypothesis found twice, and is dropped.
+   ``scan_match.linear_step``, ``angular_step``): the likelihood at ``fit_gain`` (the SMP: 1,
+   the scan's own sharpness, as GMapping) on it gives a Gaussian (its weights' moments), and the
+   mode's Gaussian is that times the motion prior, which is exactly Gaussian in world
+   coordinates (:func:`jaxslam.motion.world_gaussian`): a product in closed form. Inside the
+   stencil's weights a prior narrower than the spacing (the box world's: 0.013 m along the
+   track against 5 cm) would leave the centre alone and collapse the fit to its floor, a
+   proposal narrower than the prior where the scan says nothing. The mode's mass is the
+   stencil's Riemann sum of pi (at the filter's gain, with the prior). A mode whose stencil
+   overlaps a heavier mode's (its best pose within two stencil spacings on every axis) is the
+   same hypothesis found twice, and is dropped.
 
 The proposal is the mixture of the modes' Gaussians with weights proportional to their masses
 (:func:`sample`, :func:`log_density`); its weight increment is the log of the summed masses,
@@ -218,8 +223,10 @@ def stencil_poses(center: Float[Array, "3"], scan_match_params) -> tuple[Float[A
 
 
 def _fit_mode(peak, pose, view, model: SensorModel, motion_step, ranges, sensor, params, config, fit_gain):
-    """One mode's Gaussian (at ``fit_gain``) and log-mass (at the filter's gain) from the stencil
-    round its peak, both with the motion prior."""
+    """One mode's Gaussian and log-mass from the stencil round its peak: the Gaussian is the
+    likelihood's (at ``fit_gain``: its stencil weights' moments plus the floor) times the motion
+    prior's (in closed form, the Kalman update of the one by the other); the log-mass the
+    stencil's Riemann sum of the likelihood at the filter's gain times the prior."""
     sm = params.scan_match
     candidates, offsets, spacing = stencil_poses(peak, sm)
     untempered = params.likelihood._replace(gain=jnp.float32(1.0))
@@ -227,11 +234,20 @@ def _fit_mode(peak, pose, view, model: SensorModel, motion_step, ranges, sensor,
     log_prior = motion.log_density(candidates, pose, motion_step, params.motion)
     log_mass = (jax.scipy.special.logsumexp(params.likelihood.gain * raw_log_lik + log_prior)
                 + jnp.sum(jnp.log(spacing)))
-    weights = jax.nn.softmax(fit_gain * raw_log_lik + log_prior)
+    # The likelihood's Gaussian from the stencil, then its product with the prior's in closed
+    # form: a prior narrower than the spacing, inside the weights, would collapse the fit.
+    weights = jax.nn.softmax(fit_gain * raw_log_lik)
     mean_offset = weights @ offsets
     centred = offsets - mean_offset
-    cov = (centred * weights[:, None]).T @ centred + jnp.diag((sm.min_std_fraction * spacing) ** 2)
-    mean = peak + mean_offset
+    cov_lik = (centred * weights[:, None]).T @ centred + jnp.diag((sm.min_std_fraction * spacing) ** 2)
+    lik_mean = peak + mean_offset
+    prior_mean, cov_prior = motion.world_gaussian(pose, motion_step, params.motion)
+    residual = prior_mean - lik_mean
+    residual = residual.at[2].set(wrap_angle(residual[2]))
+    gain_matrix = jnp.linalg.solve(cov_lik + cov_prior, cov_lik).T  # cov_lik (cov_lik + cov_prior)^-1
+    mean = lik_mean + gain_matrix @ residual
+    cov = cov_lik - gain_matrix @ cov_lik
+    cov = 0.5 * (cov + cov.T)
     mean = mean.at[2].set(wrap_angle(mean[2]))
     log_mass = jnp.where(jnp.isnan(log_mass), -jnp.inf, log_mass)
     return mean, jnp.linalg.cholesky(cov), log_mass

@@ -490,3 +490,72 @@ def test_closing_steps_histories_and_refusals(tmp_path, capsys):
     assert cs.main(["--out", str(tmp_path), "--runs", "1"]) == 2
     assert "another cell" in capsys.readouterr().err
     assert cs.main(["--out", str(tmp_path), "--method", "nope"]) == 2
+
+
+def test_closing_steps_one_step_drift_against_paths_built_from_known_motions():
+    """``one_step_drift``: particles that move by the odometry's motion from their parents keep its
+    error (slope 1 on every axis), particles that move by the true motion remove it (slope 0),
+    and a particle's spread is that of the noise added to its motion (within Monte Carlo error).
+    Built through resamplings (random ancestors), so a parent taken from the wrong row fails."""
+    import numpy as np
+
+    import closing_steps as cs
+
+    from jaxslam.geometry import between_np, compose_np
+
+    rng = np.random.default_rng(1)
+    steps, n = 60, 400
+    true_motion = np.column_stack([np.full(steps, 0.5), rng.normal(0, 0.05, steps), rng.normal(0, 0.2, steps)])
+    odometry_motion = true_motion + rng.normal(0, [0.02, 0.01, 0.03], (steps, 3))
+    truth, odometry = np.zeros((steps + 1, 3)), np.zeros((steps + 1, 3))
+    for t in range(steps):
+        truth[t + 1] = compose_np(truth[t], true_motion[t])
+        odometry[t + 1] = compose_np(odometry[t], odometry_motion[t])
+    ancestors = rng.integers(0, n, (steps, n))
+    for motions, slope in ((odometry_motion, 1.0), (true_motion, 0.0)):
+        proposed = np.zeros((steps, n, 3))
+        noise = rng.normal(0, 0.004, (steps, n, 3))
+        for t in range(steps):
+            parents = truth[0][None] if t == 0 else proposed[t - 1, ancestors[t - 1]]
+            proposed[t] = compose_np(parents, motions[t] + noise[t])
+        drift = cs.one_step_drift(proposed, ancestors, truth[0], truth, odometry)
+        np.testing.assert_allclose(drift["slope"], slope, atol=0.05)
+        np.testing.assert_allclose(drift["spread"], 0.004, rtol=0.05)
+        np.testing.assert_allclose(drift["odometry_error_rms"], np.sqrt(((between_np(odometry[:-1], odometry[1:])
+                                                                          - true_motion) ** 2).mean(0)), rtol=1e-6)
+
+
+def test_proposal_calibration_exact_posterior_and_distances():
+    """experiments/proposal_calibration.py's exact posterior: distances to segments against a
+    brute-force sampling of them; with no return (every range at range_max) the posterior is the
+    motion prior, its mean error the prediction's and its std the prior's (the 13-point lattice
+    over +-3 stds: within 3 %); a beam that hits a wall moves the across-track mean toward the truth."""
+    import numpy as np
+
+    import proposal_calibration as pc
+
+    from jaxslam.config import default_params
+    from jaxslam.laser import make_sensor, uniform_beams
+    from jaxslam import motion
+
+    segments = np.array([[0.0, 0.0, 2.0, 0.0], [2.0, 0.0, 2.0, 1.0]])
+    points = np.random.default_rng(0).uniform(-1, 3, (50, 2))
+    along = np.linspace(0, 1, 4001)[:, None]
+    samples = np.concatenate([s[:2] + along * (s[2:] - s[:2]) for s in segments])
+    brute = np.linalg.norm(points[:, None] - samples[None], axis=-1).min(1)
+    np.testing.assert_allclose(pc.segment_distances(points, segments), brute, atol=3e-4)
+
+    params = default_params()
+    sensor = make_sensor(uniform_beams(9, np.pi), range_min=0.05, range_max=4.0)
+    previous, u = np.array([0.5, 1.0, 0.0]), np.array([0.5, 0.0, 0.0])
+    true_motion = np.array([0.49, 0.01, 0.0])
+    mean, sd = pc.exact_posterior(previous, u, np.full(9, 4.0), sensor, segments, params, 1, true_motion)
+    std = np.asarray(motion.noise_std(u.astype(np.float32), params.motion), np.float64)
+    np.testing.assert_allclose(mean, u - true_motion, atol=1e-6)
+    np.testing.assert_allclose(sd, std, rtol=0.03)
+    # The four beams from -90 to -22.5 degrees hit the wall y = 0 from the true pose (0.99, 1.01, 0).
+    ranges = np.full(9, 4.0)
+    angles = np.asarray(sensor.beam_angles, np.float64)
+    ranges[:4] = 1.01 / np.sin(-angles[:4])
+    mean_hit, sd_hit = pc.exact_posterior(previous, u, ranges, sensor, segments, params, 1, true_motion)
+    assert abs(mean_hit[1]) < 0.5 * abs(mean[1]) and sd_hit[1] < sd[1]

@@ -82,7 +82,8 @@ def test_search_finds_the_best_pose_of_a_brute_force_window(room_field, error):
 def test_masses_are_the_stencil_riemann_sums_and_log_eta_their_sum(room_field):
     """Each kept mode's log-mass is log sum_j p(z | x_j)^gain p(x_j | x_{t-1}, u) + log(cell volume)
     over the 27 stencil poses round its peak, recomputed in float64; log_eta is the log of their
-    sum; the Gaussians are the untempered softmax moments plus the floor."""
+    sum; each Gaussian is the untempered likelihood's softmax moments plus the floor, times the
+    motion prior's world-frame Gaussian (the product in float64)."""
     pose, motion_step, ranges, _ = _step((0.1, -0.05, 0.08))
     post = posterior_fn(pose, room_field, motion_step, ranges, SENSOR, PARAMS, config=CONFIG, fit_gain=1.0)
     sm = PARAMS.scan_match
@@ -101,14 +102,52 @@ def test_masses_are_the_stencil_riemann_sums_and_log_eta_their_sum(room_field):
         terms = gain * raw + log_prior
         want = terms.max() + math.log(np.exp(terms - terms.max()).sum()) + np.log(spacing).sum()
         assert masses[m] == pytest.approx(want, rel=1e-4)
-        w = np.exp(raw + log_prior - (raw + log_prior).max())
-        w /= w.sum()
-        centred = offsets - w @ offsets
-        cov = (centred * w[:, None]).T @ centred + np.diag((float(sm.min_std_fraction) * spacing) ** 2)
+        mean, cov = _product_reference(np.asarray(post.peaks[m], np.float64), offsets, raw, spacing, pose, motion_step)
         chol = np.asarray(post.chols[m], np.float64)
         np.testing.assert_allclose(chol @ chol.T, cov, rtol=1e-3, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(post.means[m], np.float64), mean, rtol=0, atol=1e-5)
     top = masses[kept].max()
     assert float(post.log_eta) == pytest.approx(top + math.log(np.exp(masses[kept] - top).sum()), rel=1e-5)
+
+
+def _product_reference(peak, offsets, raw, spacing, pose, motion_step):
+    """A mode's Gaussian in float64: the likelihood's stencil moments (gain 1) plus the floor,
+    multiplied by the prior N(x_{t-1} (+) u, R diag(std^2) R^T) through the precisions."""
+    w = np.exp(raw - raw.max())
+    w /= w.sum()
+    centred = offsets - w @ offsets
+    cov_lik = (centred * w[:, None]).T @ centred + np.diag((float(PARAMS.scan_match.min_std_fraction) * spacing) ** 2)
+    lik_mean = peak + w @ offsets
+    std = np.asarray(motion.noise_std(motion_step, PARAMS.motion), np.float64)
+    heading = float(pose[2])
+    rot = np.array([[math.cos(heading), -math.sin(heading), 0.0], [math.sin(heading), math.cos(heading), 0.0],
+                    [0.0, 0.0, 1.0]])
+    cov_prior = rot @ np.diag(std**2) @ rot.T
+    prior_mean = np.asarray(compose(pose, motion_step), np.float64)
+    residual = prior_mean - lik_mean
+    residual[2] = (residual[2] + math.pi) % (2 * math.pi) - math.pi
+    cov = np.linalg.inv(np.linalg.inv(cov_lik) + np.linalg.inv(cov_prior))
+    mean = lik_mean + cov @ np.linalg.inv(cov_prior) @ residual
+    return mean, cov
+
+
+def test_where_the_scan_says_nothing_the_modes_gaussian_is_the_motion_priors():
+    """No beam returns (every range at range_max): the likelihood is flat, and with a motion noise
+    as small as the box world's (stds about 0.01 m, 0.01 rad, a fifth of the stencil's 5 cm) the
+    mode's Gaussian is the prior's (within 15 % in every std; the flat stencil's own moments
+    pull it in by 5-10 %), centred on the prediction. With the prior inside the stencil's
+    weights, as before, the fit kept the centre alone: stds at the floor, 0.005 m."""
+    pose, motion_step, _, _ = _step()
+    ranges = jnp.full_like(scan_at(room_path(6)[2]), SENSOR.range_max)
+    params = PARAMS._replace(motion=motion.motion_params(0.01, 0.01, 0.01, 0.01, 0.005, 0.005))
+    field = paged_field(build_room_map(3), CONFIG)
+    post = posterior_fn(pose, field, motion_step, ranges, SENSOR, params, config=CONFIG, fit_gain=1.0)
+    heaviest = int(np.argmax(np.asarray(post.log_masses)))
+    chol = np.asarray(post.chols[heaviest], np.float64)
+    prior_mean, prior_cov = (np.asarray(v, np.float64) for v in motion.world_gaussian(pose, motion_step, params.motion))
+    np.testing.assert_allclose(np.sqrt(np.diag(chol @ chol.T)), np.sqrt(np.diag(prior_cov)), rtol=0.15)
+    gap = np.asarray(post.means[heaviest], np.float64) - prior_mean
+    assert np.hypot(gap[0], gap[1]) < 0.005 and abs(gap[2]) < 0.005, gap
 
 
 def _twin_field(shift):
