@@ -43,8 +43,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import box_world  # noqa: E402  (experiments/box_world.py: the table's cells and scoring)
 
 from jaxslam.cli import parse_assignments  # noqa: E402
-from jaxslam.geometry import between_np, wrap_angle_np  # noqa: E402
-from jaxslam.metrics import normalized_weights, passage_errors  # noqa: E402
+from jaxslam.geometry import between_np  # noqa: E402
+from jaxslam.metrics import motion_error_components, normalized_weights, passage_errors  # noqa: E402
 from jaxslam.rbpf import particle_paths  # noqa: E402
 
 
@@ -64,15 +64,11 @@ def one_step_drift(proposed: np.ndarray, ancestors: np.ndarray, start, truth: np
     """``slope`` and ``spread`` (per axis: along, across, heading) of the proposals' one-step errors
     (the module's doc). ``proposed`` (S-1, N, 3) and ``start`` in one frame with ``truth`` and
     ``odometry`` (S, 3), the processed scans' poses."""
-    parents = np.empty_like(proposed)
-    parents[0] = start
-    for t in range(1, proposed.shape[0]):
-        parents[t] = proposed[t - 1, ancestors[t - 1]]
+    parents = np.concatenate([np.broadcast_to(start, (1,) + proposed.shape[1:]),
+                              np.take_along_axis(proposed[:-1], ancestors[:-1, :, None], axis=1)])
     true_motion = between_np(truth[:-1], truth[1:])
-    errors = between_np(parents, proposed) - true_motion[:, None, :]
-    errors[..., 2] = wrap_angle_np(errors[..., 2])
-    odometry_errors = between_np(odometry[:-1], odometry[1:]) - true_motion
-    odometry_errors[:, 2] = wrap_angle_np(odometry_errors[:, 2])
+    errors = motion_error_components(parents, proposed, true_motion[:, None, :])
+    odometry_errors = motion_error_components(odometry[:-1], odometry[1:], true_motion)
     common = errors.mean(axis=1)
     return {"slope": [float(np.polyfit(odometry_errors[:, k], common[:, k], 1)[0]) for k in range(3)],
             "spread": errors.std(axis=1).mean(axis=0).tolist(),

@@ -35,9 +35,10 @@ import box_world  # noqa: E402
 
 from jaxslam import motion, rbpf, window_posterior  # noqa: E402
 from jaxslam.cli import parse_assignments  # noqa: E402
-from jaxslam.geometry import between_np, compose, wrap_angle_np  # noqa: E402
+from jaxslam.geometry import between_np, compose  # noqa: E402
 from jaxslam.grid import GridSpec  # noqa: E402
-from jaxslam.laser import subsample_beams  # noqa: E402
+from jaxslam.laser import beam_endpoints, subsample_beams  # noqa: E402
+from jaxslam.metrics import motion_error_components  # noqa: E402
 from jaxslam.occupancy import empty_map, insert_scan  # noqa: E402
 from jaxslam.sim.world import point_segment_distance  # noqa: E402
 
@@ -60,14 +61,6 @@ def segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
     return point_segment_distance(points.reshape(-1, 2), segments).min(axis=1).reshape(points.shape[:-1])
 
 
-def one_step_errors(previous: np.ndarray, poses: np.ndarray, true_motion: np.ndarray) -> np.ndarray:
-    """(..., 3) error of the motion from ``previous`` to ``poses`` against ``true_motion``, in the
-    frame of ``previous`` (along, across, heading)."""
-    error = between_np(previous, poses) - true_motion
-    error[..., 2] = wrap_angle_np(error[..., 2])
-    return error
-
-
 def exact_posterior(previous, motion_step, ranges, sensor, segments, params, beam_stride, true_motion, lattice=13):
     """Mean and std (3,) of the one-step error under the exact posterior of the true walls."""
     std = np.asarray(motion.noise_std(jnp.asarray(motion_step, jnp.float32), params.motion), np.float64)
@@ -75,21 +68,16 @@ def exact_posterior(previous, motion_step, ranges, sensor, segments, params, bea
     offsets = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) * std
     poses = np.asarray(compose(jnp.asarray(previous, jnp.float32), jnp.asarray(motion_step + offsets, jnp.float32)),
                        np.float64)
-    r = ranges[::beam_stride].astype(np.float64)
-    angles = np.asarray(sensor.beam_angles, np.float64)[::beam_stride]
-    returned = (r < float(sensor.range_max)) & (r > float(sensor.range_min))
-    lx, ly, lth = (np.asarray(sensor.laser_pose, np.float64)[k] for k in range(3))
-    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
-    origin_x, origin_y = poses[:, 0:1] + c * lx - s * ly, poses[:, 1:2] + s * lx + c * ly
-    heading = poses[:, 2:3] + lth + angles[None, returned]
-    ends = np.stack([origin_x + r[None, returned] * np.cos(heading), origin_y + r[None, returned] * np.sin(heading)], -1)
+    lik_sensor, lik_ranges = subsample_beams(sensor, jnp.asarray(ranges), beam_stride)
+    ends, valid = beam_endpoints(jnp.asarray(poses, jnp.float32), lik_ranges, lik_sensor)
+    ends = np.asarray(ends, np.float64)[:, np.asarray(valid)]
     lik = params.likelihood
     log_lik = np.log(float(lik.z_hit) * np.exp(-0.5 * (segment_distances(ends, segments) / float(lik.sigma)) ** 2)
                      + float(lik.z_rand)).sum(-1)
     log_post = log_lik - 0.5 * ((offsets / std) ** 2).sum(-1)
     weights = np.exp(log_post - log_post.max())
     weights /= weights.sum()
-    errors = one_step_errors(previous, poses, true_motion)
+    errors = motion_error_components(previous, poses, true_motion)
     mean = weights @ errors
     return mean, np.sqrt(weights @ (errors - mean) ** 2)
 
@@ -132,9 +120,8 @@ def calibrate(seed: int, overrides: dict, draws: int = 200, exact_every: int = 3
             true_motion = between_np(truth[t - 1], truth[t])
             poses = np.asarray(propose(jax.random.fold_in(jax.random.key(seed), t), jnp.asarray(truth[t - 1], jnp.float32),
                                        jnp.asarray(u, jnp.float32), jnp.asarray(scans[t]), grid_map.hit_dist2), np.float64)
-            errors = one_step_errors(truth[t - 1], poses, true_motion)
-            prediction_error = u - true_motion
-            prediction_error[2] = wrap_angle_np(prediction_error[2])
+            errors = motion_error_components(truth[t - 1], poses, true_motion)
+            prediction_error = motion_error_components(odometry[t - 1], odometry[t], true_motion)
             predicted.append(prediction_error)
             drawn_mean.append(errors.mean(0))
             drawn_sd.append(errors.std(0))

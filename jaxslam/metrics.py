@@ -17,7 +17,7 @@ from jaxslam.io.relations import Relations
 
 __all__ = [
     "RelationError", "absolute_trajectory_error", "checkpoint_passages", "lookup_indices", "lookup_poses",
-    "motion_errors", "normalized_weights", "passage_errors", "relation_error", "revisiting_accuracy",
+    "motion_error_components", "motion_errors", "normalized_weights", "passage_errors", "relation_error", "revisiting_accuracy",
 ]
 
 
@@ -134,6 +134,23 @@ class RelationError:
         return summary
 
 
+def motion_error_components(first, second, motion) -> np.ndarray:
+    """The signed error of estimated motions against true ones, in ``first``'s frame:
+    ``between(first, second) - motion`` with the heading wrapped (m, m, rad; along, across, heading
+    for a robot's own frame).
+
+    Args:
+        first, second: (..., 3) the estimated poses at each motion's start and end.
+        motion: (..., 3) the true motions (broadcast against them).
+
+    Returns:
+        (..., 3) float64, of the broadcast leading shape.
+    """
+    error = between_np(first, second) - np.asarray(motion, np.float64)
+    error[..., 2] = wrap_angle_np(error[..., 2])
+    return error
+
+
 def motion_errors(first, second, motion) -> tuple[np.ndarray, np.ndarray]:
     """The relation errors of estimated poses: ``e_trans = || between(first, second)[:2] -
     motion[:2] ||`` (m) and ``e_rot = | wrap(between(first, second)[2] - motion[2]) |`` (rad).
@@ -145,10 +162,8 @@ def motion_errors(first, second, motion) -> tuple[np.ndarray, np.ndarray]:
     Returns:
         ``(trans, rot)``, each of the broadcast leading shape.
     """
-    estimated = between_np(first, second)
-    motion = np.asarray(motion, np.float64)
-    trans = np.hypot(estimated[..., 0] - motion[..., 0], estimated[..., 1] - motion[..., 1])
-    return trans, np.abs(wrap_angle_np(estimated[..., 2] - motion[..., 2]))
+    error = motion_error_components(first, second, motion)
+    return np.hypot(error[..., 0], error[..., 1]), np.abs(error[..., 2])
 
 
 def relation_error(timestamps, poses, relations: Relations, time_tolerance: float = 1e-4) -> RelationError:

@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from jaxslam.geometry import between_np, compose
+from jaxslam.geometry import between_np, compose, compose_np
 from jaxslam.io import read_log, read_relations
 from jaxslam.io.relations import Relations
 from jaxslam.laserlog import LogError
@@ -209,3 +209,18 @@ def test_absolute_trajectory_error_is_invariant_to_a_rigid_motion():
     # Alignment can only lower the RMSE, and here it should be close to the noise level (0.1 * sqrt 2).
     assert absolute_trajectory_error(noisy, truth)["rmse"] <= absolute_trajectory_error(noisy, truth, align=False)["rmse"] + 1e-12
     assert 0.08 < absolute_trajectory_error(noisy, truth)["rmse"] < 0.2
+
+
+def test_motion_error_components_are_signed_in_the_first_poses_frame_and_wrapped():
+    """A pose 0.1 m ahead and 0.05 m to the left of where the true motion ends, seen from a start
+    facing +y, turned 6.2 rad where the truth turned 3.1: the heading error is 3.1 rad, not the
+    unwrapped -3.18 (6.2 - 2 pi - 3.1); the norms are ``motion_errors``'."""
+    from jaxslam.metrics import motion_error_components, motion_errors
+
+    first = np.array([1.0, 2.0, math.pi / 2])
+    motion = np.array([1.0, 0.0, 3.1])
+    second = compose_np(first, np.array([1.1, 0.05, 6.2]))
+    error = motion_error_components(first, second, motion)
+    np.testing.assert_allclose(error, [0.1, 0.05, 3.1], atol=1e-12)
+    trans, rot = motion_errors(first, second, motion)
+    assert trans == pytest.approx(math.hypot(0.1, 0.05)) and rot == pytest.approx(3.1)
