@@ -12,6 +12,11 @@ Sections (each merges its figures into ``--out``, a JSON file):
   processed scan (compile excluded), the bytes each extra particle costs (a least-squares
   slope of peak memory against N) and the log-log slope of the time against N. With
   ``--previous DIR [DIR ...]`` the same runs in those checkouts too, N by N, alternating.
+* ``first-pool``: FR-clinic's first ``--updates`` updates at each N of ``--particles`` (the
+  library's update rule and defaults, SMP, in this process): the run as it starts (pools sized
+  from the first scan's footprint) against the same run started in pools sized from N alone
+  (Intel's footprint; ``rbpf.pool_size(config)``): wall time, the growths (each a recompile),
+  the pools' final sizes, and whether the paths are the same bit for bit.
 * ``vmap``: the simulated office of ``jaxslam demo``, 8 seeds: one ``vmap`` of the whole filter
   over the seeds against a loop of the same 8 runs (both compiled first, then timed).
 
@@ -23,6 +28,7 @@ one invocation only (the machine is shared).
     python benchmarks/bench_maps.py sweep --particles 30 100 300 1000 --max-scans 3000 --previous OTHER_CHECKOUT
     python benchmarks/bench_maps.py killian
     python benchmarks/bench_maps.py vmap --seeds 8
+    python benchmarks/bench_maps.py first-pool --particles 100 --updates 64
 """
 
 from __future__ import annotations
@@ -172,7 +178,34 @@ def section_vmap(args) -> dict:
             "vmap_s": vmap_s, "speedup": loop_s / vmap_s}
 
 
-SECTIONS = {"intel": section_intel, "killian": section_killian, "sweep": section_sweep, "vmap": section_vmap}
+def section_first_pool(args) -> dict:
+    import jax
+
+    from jaxslam import io, rbpf, slam
+    from jaxslam.config import build_setup, default_values
+
+    full = io.read_log(args.data / "fr-clinic.bag")
+    out = {"log": "fr-clinic.bag", "updates": args.updates}
+    for n in args.particles:
+        config, settings, params = build_setup({**default_values(), "num_particles": n})
+        _, selection, _ = rbpf.prepare(full, config, settings)
+        log = full.subset(np.arange(int(selection.indices[min(args.updates, selection.indices.size - 1)]) + 1))
+        rows, paths = {}, {}
+        for name, pool in (("first_scan_footprint", None), ("particles_only", rbpf.pool_size(config))):
+            t0 = time.perf_counter()
+            result = slam.run(jax.random.key(0), log, config, params, settings, progress=False, initial_pool=pool)
+            pools = result.map_pool
+            rows[name] = {"wall_s": time.perf_counter() - t0, "growth_steps": [g["step"] for g in pools["growths"]],
+                          **{k: pools[k] for k in ("capacity", "max_new_tiles", "peak_request", "bytes")}}
+            paths[name] = result.best_path
+            print(f"N = {n}, {name}: {rows[name]}", flush=True)
+        out[str(n)] = {**rows, "same_path": bool(np.array_equal(*paths.values())),
+                       "wall_ratio": rows["first_scan_footprint"]["wall_s"] / rows["particles_only"]["wall_s"]}
+    return out
+
+
+SECTIONS = {"intel": section_intel, "killian": section_killian, "sweep": section_sweep, "vmap": section_vmap,
+            "first-pool": section_first_pool}
 
 
 def main(argv=None):
@@ -183,6 +216,7 @@ def main(argv=None):
     ap.add_argument("--particles", type=int, nargs="+", default=[30, 100, 300, 1000])
     ap.add_argument("--max-scans", type=int, default=3000, help="sweep: scans of Intel to use")
     ap.add_argument("--seeds", type=int, default=8)
+    ap.add_argument("--updates", type=int, default=64, help="first-pool: FR-clinic's first updates")
     ap.add_argument("--out", type=Path, default=Path("results/bench_maps.json"))
     args = ap.parse_args(argv)
     results = json.loads(args.out.read_text()) if args.out.exists() else {}

@@ -254,17 +254,17 @@ def empty(spec: PagedGridSpec, num_particles: int, capacity: int, max_new_tiles:
                     block_capacity if max_new_blocks is None else min(int(max_new_blocks), block_capacity))
     _check_pool(spec, pool)
     t, s = spec.tile_size, spec.block_size
-    refcount = jnp.zeros((pool.capacity,), jnp.int32)
-    block_refcount = jnp.zeros((pool.block_capacity,), jnp.int32)
+    # Every slot is free, so the free lists are the first slots. Searched for with first_free, the
+    # refcounts are constants and XLA folds the search at compile time: 10 s at N = 10,000.
     return PagedMaps(
         directory=jnp.full((num_particles,) + spec.num_blocks, UNWRITTEN, jnp.int32),
         blocks=jnp.full((pool.block_capacity, s, s), UNWRITTEN, jnp.int32),
-        block_refcount=block_refcount,
+        block_refcount=jnp.zeros((pool.block_capacity,), jnp.int32),
         logodds=jnp.zeros((pool.capacity, t, t), LOGODDS_DTYPE),
         hit_dist2=jnp.full((pool.capacity, t, t), FAR, jnp.uint8),
-        refcount=refcount,
-        free_slots=first_free(refcount, pool.max_new_tiles),
-        free_blocks=first_free(block_refcount, pool.max_new_blocks),
+        refcount=jnp.zeros((pool.capacity,), jnp.int32),
+        free_slots=jnp.arange(pool.max_new_tiles, dtype=jnp.int32),
+        free_blocks=jnp.arange(pool.max_new_blocks, dtype=jnp.int32),
         overflow=jnp.bool_(False),
         peak_request=jnp.int32(0),
         peak_block_request=jnp.int32(0),

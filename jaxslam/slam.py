@@ -146,7 +146,8 @@ def run(
     frame (``result.to_world`` converts). The maps' virtual grid (``config.grid``) is centred on
     the local origin, so every log compiles the same step.
 
-    The maps' pool starts at :func:`jaxslam.rbpf.pool_size`; a chunk in which a step needed more tiles than
+    The maps' pool starts at :func:`jaxslam.rbpf.pool_size`, sized from the first scan's footprint
+    (before the step compiles); a chunk in which a step needed more tiles than
     the pool had is repeated from its start with a grown pool (one recompile; reported on
     stderr and in ``result.map_pool``). A log whose odometry leaves the virtual grid is refused
     first (:func:`jaxslam.rbpf.check_config_for_log`).
@@ -168,7 +169,8 @@ def run(
         bit for bit the uninterrupted run's (the per-step keys are derived from ``key`` as before
         and the steps done are skipped; the chunks fall on the same steps).
       initial_pool: ``(capacity, max_new_tiles)`` of the maps' pool at the start (default
-        :func:`jaxslam.rbpf.pool_size`); the pool grows as needed, and its size never changes the result.
+        :func:`jaxslam.rbpf.pool_size` of the first scan's footprint); the pool grows as needed, and
+        its size never changes the result.
     """
     _check_chunk_size(chunk_size)
     t_start = time.perf_counter()
@@ -277,7 +279,7 @@ def run_batch(
       chunk_size: steps per compiled call, as :func:`run`'s.
       progress: a tqdm bar over the longest run's steps (and growth lines on stderr).
       initial_pool: the maps' pool sizes at the start (a :class:`~jaxslam.paged_map.PoolSize`;
-        default :func:`jaxslam.rbpf.pool_size`).
+        default :func:`jaxslam.rbpf.pool_size` of the largest first-scan footprint).
       vectorize: vmap the runs a device holds rather than take them one after the other
         (``lax.map``). Faster where a device has room to spare for several runs at once (a GPU
         holding R / D > 1 runs); but XLA sums the vmapped weights and window posteriors in
@@ -499,15 +501,21 @@ def _check_chunk_size(chunk_size) -> None:
 
 def _initial_state(key, prepared: rbpf.PreparedLog, params: SlamParams, config: SlamConfig,
                    initial_pool) -> SlamState:
-    """:func:`jaxslam.rbpf.init` in pools of ``initial_pool`` (default :func:`jaxslam.rbpf.pool_size`),
-    grown until the first scan alone fits."""
+    """:func:`jaxslam.rbpf.init` in pools of ``initial_pool``, grown until the first scan alone
+    fits; by default in pools of :func:`jaxslam.rbpf.pool_size` sized from the first scan's
+    footprint (before anything compiles the step, so a wide scan costs no recompile)."""
     pool = rbpf.pool_size(config) if initial_pool is None else PoolSize(*(int(v) for v in initial_pool))
     while True:
         state = rbpf.init(key, jnp.asarray(prepared.first_ranges), prepared.sensor, params, config,
                           jnp.asarray(prepared.initial_pose), pool=pool)
         if not bool(state.maps.overflow):
-            return state
+            break
         pool = _larger_pool(state.maps, config.grid)
+    if initial_pool is None:
+        sized = PoolSize(*np.maximum(pool, rbpf.pool_size(config, int(state.maps.peak_request))).tolist())
+        if sized != pool:
+            state = state._replace(maps=paged_map.grow(config.grid, state.maps, sized))
+    return state
 
 
 def _check_resume(resume: RunProgress, num_steps: int, chunk_size: int, config: SlamConfig) -> None:

@@ -236,6 +236,19 @@ def test_a_pool_too_small_grows_and_gives_the_big_pools_result(office_log):
         assert small_grid == big_grid
 
 
+def test_the_first_pool_is_sized_from_the_first_scans_footprint(office_log):
+    """A scan that touches more tiles than Intel's (here 8-cell tiles: about 200 a scan) gets
+    pools sized from its footprint before the step compiles: the first steps, in which every
+    particle copies the shared tiles its scan touches, fit without a growth (a recompile), where
+    the allowance from Intel's footprint alone would not have held them."""
+    log = office_log.subset(np.arange(10))
+    config = small_config(proposal="op", num_particles=64, tile_size=8)
+    result = slam.run(jax.random.key(2), log, config, default_params(), SETTINGS, chunk_size=4, progress=False)
+    assert result.map_pool["growths"] == []
+    assert result.map_pool["peak_request"] > rbpf.pool_size(config).max_new_tiles
+    assert result.map_pool["max_new_tiles"] >= result.map_pool["peak_request"]
+
+
 def test_each_steps_weights_are_recorded_before_resampling(office_log):
     """``SlamInfo.log_weights`` are the weights a step's resampling saw: normalised, the step's
     ESS, and, where it did not resample, the weights the particles carried on (the state at a
