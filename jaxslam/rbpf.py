@@ -100,25 +100,28 @@ def pool_size(config: SlamConfig, first_scan_tiles: int | None = None) -> PoolSi
     after a resampling, fewer when the particles own their tiles) and up to 4 blocks. The first
     step asks for the most: every tile the first scan touched is shared, so every particle copies
     all of them. ``first_scan_tiles`` (the tiles the first scan touched, ``maps.peak_request``
-    after :func:`init`; None: unknown) raises the allowance per particle to that footprint where
-    it is larger: a 360-degree scan in open space touches about twice Intel's (first scans:
-    FR-clinic 43 tiles, ACES 26, MIT CSAIL 16, Intel 11; the first 400 scans' largest request per
-    particle at N = 8: 42.6, 18.3, 16.3 and 13.6), and sizing from Intel's alone made FR-clinic's
-    first step outgrow the pool and recompile. The tile pool starts with room for three such requests: what the
-    particles hold (on Intel's first 3,000 scans 1.9 to 2.1 requests' worth at the end, at N = 30
-    to 1,000) and the next request (there at most 0.74 of one), at most
-    :func:`~jaxslam.paged_map.max_pool_tiles` (a pool beyond 2**31 cells, from about N = 7,300 on
-    64-cell tiles, is indexed by (slot, cell) pairs). It is the largest allocation per particle
-    (0.9 MB at 64-cell tiles), so it starts no larger: :func:`jaxslam.slam.run` grows the pools
-    when a step needs more (one recompile each time, reported; while it grows both the old and
-    the new pools are held, so starting smaller and growing costs more peak memory than starting
-    large enough: docs/notes/2026-11-26-memory-per-particle.md)."""
+    after :func:`init`; None: unknown) raises the allowance per particle to that footprint
+    (rounded up to a multiple of 8 tiles) where it is larger: a 360-degree scan in open space
+    touches about twice Intel's (first scans: FR-clinic 43 tiles, ACES 26, MIT CSAIL 16, Intel 11;
+    the first 400 scans' largest request per particle at N = 8: 42.6, 18.3, 16.3 and 13.6), and
+    sizing from Intel's alone made FR-clinic's first step outgrow the pool and recompile. The
+    tile pool starts with room for three such requests: what the particles hold (on Intel's first
+    3,000 scans 1.9 to 2.1 requests' worth at the end, at N = 30 to 1,000) and the next request
+    (there at most 0.74 of one), at most :func:`~jaxslam.paged_map.max_pool_tiles` (a pool beyond
+    2**31 cells, from about N = 7,300 on 64-cell tiles, is indexed by (slot, cell) pairs). It is
+    the largest allocation per particle (0.9 MB at 64-cell tiles), so it starts no larger:
+    :func:`jaxslam.slam.run` grows the pools when a step needs more (one recompile each time,
+    reported; while it grows both the old and the new pools are held, so starting smaller and
+    growing costs more peak memory than starting large enough:
+    docs/notes/2026-11-26-memory-per-particle.md)."""
     spec = config.grid
     k = spec.window_tiles(config.max_insert_range, config.field_radius)
     kb = spec.window_blocks(k)
     n = config.num_particles
     most = paged_map.max_pool_tiles(spec)  # int32 slots: memory runs out long before
-    per_particle = 24 if first_scan_tiles is None else max(24, int(first_scan_tiles))
+    # Rounded up to a multiple of 8: logs of one laser share a compiled step unless their first
+    # footprints differ by more (a pool's size is a static shape).
+    per_particle = 24 if first_scan_tiles is None else max(24, -(-int(first_scan_tiles) // 8) * 8)
     max_new_tiles = min(n * min(k * k, per_particle) + k * k, most)
     max_new_blocks = n * kb * kb + kb * kb
     return PoolSize(min(3 * max_new_tiles + 256, most), max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)
