@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import box_world  # noqa: E402  (experiments/box_world.py: the table's cells and scoring)
 
 from jaxslam.cli import parse_assignments  # noqa: E402
+from jaxslam.diagnose import pair_coalescence, weight_persistence  # noqa: E402
 from jaxslam.geometry import between_np  # noqa: E402
 from jaxslam.metrics import motion_error_components, normalized_weights, passage_errors  # noqa: E402
 from jaxslam.rbpf import particle_paths  # noqa: E402
@@ -110,7 +111,15 @@ def trace(record: dict, seed: int, world: dict, steps: int) -> dict:
     world_proposed = result.to_world(proposed)
     drift = one_step_drift(world_proposed, ancestors, result.to_world(np.asarray(start)[None])[0], truth[idx],
                            np.asarray(scenario.log.odometry, np.float64)[idx])
+    # Whether the weights the resamplings acted on lasted (diagnose.weight_persistence).
+    persistence = weight_persistence(log_weights, ancestors, np.asarray(result.info.resampled))
+    weights = {"resamplings": int(np.sum(np.asarray(result.info.resampled))),
+               "median_correlation": persistence["median_correlation"],
+               "median_increment_spread": persistence["median_increment_spread"],
+               "stretches": len(persistence["stretches"]),
+               "pair_coalescence_per_step": float(np.mean(pair_coalescence(ancestors)))}
     return {"seed": seed, "ra": run["ra"], "closing_weight": run["closing_weight"], "success": run["ra"] < success,
+            "weights": weights,
             "final_particle_errors": final_errors, "one_step": drift,
             "first_passage_step": first - 1, "last_passage_step": last - 1, "num_steps": num_steps,
             "seconds": time.perf_counter() - t0, "steps": rows}

@@ -10,7 +10,10 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
 * ``surviving_lineages``: how many of the step's particles have descendants among the final
   particles. It falls to 1 at the final set's common ancestor: the filter cannot revise its
   path before that step (``coalescence_step``). A closure that needed a hypothesis dropped
-  before it has no way back.
+  before it has no way back. The summary's ``pair_coalescence_per_step``
+  (:func:`pair_coalescence`) is the rate at which lineages merge, and ``neutral_lag_quantile``
+  where the recorded lag falls among those of the same resamplings with the lucky particles
+  drawn afresh (:func:`neutral_coalescence_lags`): near 0, the same lineages kept winning.
 * ``correction_trans`` (m), ``correction_rot`` (rad): how far the best path's motion between
   two processed scans differs from the odometry's (in the earlier pose's frame): the filter's
   corrections; a wrong closure shows as a large one.
@@ -19,6 +22,10 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
   (LP); ``slipped``: particles that drew from the odometry's slip component (the filter's slip
   search, :func:`jaxslam.rbpf.slip_log_odds`; ``slip_steps`` in the summary and ``slips`` in the
   events list the steps); ``log_evidence``: the step's log p(z_t | z_1:t-1) estimate.
+* ``increment_spread`` (nats): the spread over the particles of the step's log-weight
+  increments; the summary's ``weight_persistence`` says whether what accumulates between two
+  resamplings lasts or is noise (:func:`weight_persistence`): a filter that resamples on noise
+  loses its histories at random, however good they were.
 * with relations: every relation's translational and rotational error at the time of its later
   scan, and where on the best path that was; and every final particle's own relation error
   (:func:`final_particle_errors`: its history, from the record's ancestors and proposed poses),
@@ -35,6 +42,7 @@ all; ``jaxslam diagnose RUN_DIR [RELATIONS]`` writes ``diagnosis.json`` and ``di
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -47,6 +55,12 @@ STEPS_FILE = "steps.npz"
 
 NUM_EVENTS = 5
 """How many of the largest corrections and worst relations ``events`` lists."""
+
+NEUTRAL_DRAWS = 200
+"""How many relabelled copies of a run's resamplings :func:`neutral_coalescence_lags` draws."""
+
+MIN_STRETCH = 6
+"""The fewest steps between two resamplings that :func:`weight_persistence` splits in halves."""
 
 
 def step_record(log, result) -> dict[str, np.ndarray]:
@@ -106,6 +120,108 @@ def surviving_lineages(ancestors: np.ndarray) -> np.ndarray:
         out[t] = int(kept.sum())
         alive = kept
     return out
+
+
+def coalescence_lag(ancestors: np.ndarray) -> int:
+    """Steps from the end back to the final particles' common ancestor (the number of steps when
+    they have none within the record)."""
+    steps = np.asarray(ancestors).shape[0]
+    single = np.flatnonzero(surviving_lineages(ancestors) == 1)
+    return int(steps - (single[-1] + 1)) if single.size else int(steps)
+
+
+def neutral_coalescence_lags(ancestors: np.ndarray, draws: int = NEUTRAL_DRAWS, seed: int = 0) -> np.ndarray:
+    """(draws,) int: :func:`coalescence_lag` of the same resamplings with their parents relabelled
+    at random at every step: every step keeps its offspring counts (how many copies of which
+    rank), but which particle had the luck is drawn afresh, so a lineage's luck at one step says
+    nothing about the next (neutral drift, the coalescent's null). A recorded lag far below these
+    is lineages that kept winning: lasting differences in the weights (selection), not chance."""
+    ancestors = np.asarray(ancestors)
+    steps, n = ancestors.shape
+    rng = np.random.default_rng(seed)
+    labels = np.broadcast_to(np.arange(n), (steps, n))
+    lags = np.empty(draws, np.int64)
+    for d in range(draws):
+        relabel = rng.permuted(labels, axis=1)  # a random permutation of the parents per step
+        lags[d] = coalescence_lag(np.take_along_axis(relabel, ancestors, axis=1))
+    return lags
+
+
+def weight_increments(log_weights: np.ndarray, ancestors: np.ndarray, resampled: np.ndarray) -> np.ndarray:
+    """(S-1, N) nats: each step's log-weight increment of every particle it proposed, centred on
+    the particles' mean (the step's normaliser cancels). ``log_weights`` (S-1, N) are the record's
+    normalised weights after each step's update; the particle a step proposes as number i carries
+    the weight of the step before's particle i after its resampling (uniform where it resampled).
+    A particle of weight zero (-inf) gets NaN, and the centring skips it."""
+    log_weights = np.asarray(log_weights, np.float64)
+    steps, n = log_weights.shape
+    uniform = np.full(n, -np.log(n))
+    carried = np.empty_like(log_weights)
+    carried[0] = uniform
+    for t in range(1, steps):
+        carried[t] = uniform if resampled[t - 1] else log_weights[t - 1][ancestors[t - 1]]
+    with np.errstate(invalid="ignore"):
+        raw = log_weights - carried
+    raw = np.where(np.isfinite(raw), raw, np.nan)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a step of NaN only: its mean is NaN, as it should be
+        return raw - np.nanmean(raw, axis=1, keepdims=True)
+
+
+def weight_persistence(log_weights: np.ndarray, ancestors: np.ndarray, resampled: np.ndarray,
+                       min_stretch: int = MIN_STRETCH) -> dict:
+    """Whether the weights that make the filter resample persist, or are noise that a few scans
+    later would have reversed.
+
+    Between two resamplings the particles keep their histories, and each one's weight is the sum
+    of its increments (:func:`weight_increments`). For every such stretch of at least
+    ``min_stretch`` steps, the correlation over the particles of the summed increments of its
+    first half with those of its second half: near 1 where a particle's advantage lasts (a better
+    map, a pose the later scans confirm), near 0 where each step's differences are independent
+    draws, so that the resampling at the stretch's end picks histories by the accumulated noise
+    (genetic drift). Returns ``{"increment_spread": (S-1,) each step's standard deviation of the
+    increments over the particles (nats), "stretches": [{"first_step", "steps", "correlation"}],
+    "median_correlation", "median_increment_spread"}`` (steps 1-based, as :func:`diagnose`'s; the
+    medians None where nothing qualifies).
+    """
+    increments = weight_increments(log_weights, ancestors, resampled)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN step's spread is NaN
+        spread = np.nanstd(increments, axis=1)
+    ends = np.flatnonzero(np.asarray(resampled, bool))
+    stretches = []
+    for first, last in zip(np.r_[0, ends[:-1] + 1], ends):  # steps first..last, resampled at last
+        length = int(last - first + 1)
+        if length < min_stretch:
+            continue
+        half = length // 2
+        early = increments[first:first + half].sum(axis=0)
+        late = increments[first + half:last + 1].sum(axis=0)
+        keep = np.isfinite(early) & np.isfinite(late)
+        if keep.sum() < 3 or np.std(early[keep]) == 0 or np.std(late[keep]) == 0:
+            continue
+        stretches.append({"first_step": int(first + 1), "steps": length,
+                          "correlation": float(np.corrcoef(early[keep], late[keep])[0, 1])})
+    finite = spread[np.isfinite(spread)]
+    return {"increment_spread": spread, "stretches": stretches,
+            "median_correlation": float(np.median([s["correlation"] for s in stretches])) if stretches else None,
+            "median_increment_spread": float(np.median(finite)) if finite.size else None}
+
+
+def pair_coalescence(ancestors: np.ndarray) -> np.ndarray:
+    """(S-1,) at each step, the probability that two of its particles drawn at random (without
+    replacement) took their past from the same proposed particle: sum_j c_j (c_j - 1) / (N (N - 1))
+    with c_j particle j's offspring count (0 where the step kept every particle). Summed over
+    steps it is how fast lineages merge. Under pure drift (weights that do not last, spread sigma
+    over the particles) and systematic resampling at ESS < N/2 it is about 1.44 sigma^2 / (N - 1)
+    a step, and no lower at a threshold of 0.25 or 0.75 (``experiments/lineage_loss.py``)."""
+    ancestors = np.asarray(ancestors)
+    steps, n = ancestors.shape
+    if n < 2:
+        return np.zeros(steps)
+    counts = np.zeros((steps, n), np.int64)
+    np.add.at(counts, (np.repeat(np.arange(steps), n), ancestors.ravel()), 1)
+    return np.sum(counts * (counts - 1), axis=1) / (n * (n - 1))
 
 
 class _RelationScans(NamedTuple):
@@ -268,6 +384,11 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
     lineages = surviving_lineages(ancestors)
     distinct = (np.count_nonzero(np.diff(np.sort(ancestors, axis=1), axis=1), axis=1) + 1).astype(np.int64)
     single = np.flatnonzero(lineages == 1)
+    neutral = neutral_coalescence_lags(ancestors) if steps else None
+    # Records written before the weights were kept have none to judge.
+    persistence = (weight_persistence(record["log_weights"], ancestors, record["resampled"]) if "log_weights" in record
+                   else {"increment_spread": np.full(steps, np.nan), "stretches": [], "median_correlation": None,
+                         "median_increment_spread": None})
     series = {
         "step": np.arange(1, steps + 1), "time": step_times,
         "ess_fraction": np.asarray(record["ess"], np.float64) / n,
@@ -277,6 +398,7 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         "fallbacks": np.asarray(record["num_fallbacks"]), "log_evidence": np.asarray(record["log_evidence"]),
         # Records written before the slip search have no slips.
         "slipped": np.asarray(record["num_slipped"]) if "num_slipped" in record else np.zeros(steps, np.int64),
+        "increment_spread": persistence["increment_spread"],
     }
 
     start = float(np.asarray(record["timestamp"])[0])
@@ -299,6 +421,13 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         "coalescence_step": int(single[-1] + 1) if single.size else None,
         "fallbacks": int(np.sum(series["fallbacks"])),
         "slip_steps": int(np.count_nonzero(series["slipped"])),
+        "pair_coalescence_per_step": float(np.mean(pair_coalescence(ancestors))) if steps else None,
+        "coalescence_lag_steps": coalescence_lag(ancestors) if steps else None,
+        **({"neutral_lag_steps_median": float(np.median(neutral)),
+            "neutral_lag_quantile": float(np.mean(neutral <= coalescence_lag(ancestors)))} if steps else {}),
+        "weight_persistence": {"median_correlation": persistence["median_correlation"],
+                               "median_increment_spread": persistence["median_increment_spread"],
+                               "stretches": len(persistence["stretches"])},
     }
     out = {"summary": summary, "series": {k: np.asarray(v).tolist() for k, v in series.items()}, "events": events}
     if relations is not None:

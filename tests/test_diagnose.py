@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from jaxslam.cli import main
-from jaxslam.diagnose import diagnose, read_step_record, surviving_lineages
+from jaxslam.diagnose import (coalescence_lag, diagnose, neutral_coalescence_lags, pair_coalescence, read_step_record,
+                              surviving_lineages, weight_increments, weight_persistence)
 from jaxslam.geometry import between_np
 
 
@@ -64,6 +65,8 @@ def test_the_injected_jump_is_the_largest_correction_and_lineages_coalesce():
     assert max(series["correction_trans"][:17] + series["correction_trans"][18:]) < 1e-9
     assert series["distinct_ancestors"][10] == 1 and series["distinct_ancestors"][11] == 5
     assert out["summary"]["coalescence_step"] == 11  # the step whose resampling kept one particle
+    # That resampling made every pair of particles share a parent; no other step merged any.
+    assert out["summary"]["pair_coalescence_per_step"] == pytest.approx(1 / 30)
     assert series["ess_fraction"][0] == pytest.approx(0.5)
 
 
@@ -234,3 +237,93 @@ def test_the_closest_particle_then_against_truncated_records():
     np.testing.assert_allclose(got, expected, atol=1e-5)
     np.testing.assert_allclose(got_weighted, expected_weighted, atol=1e-5)
     assert np.all(got_weighted >= got - 1e-9) and np.any(got_weighted > got + 1e-3)
+
+
+def weights_from_increments(increments: np.ndarray, every: int, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A record's (log_weights, ancestors, resampled) for given per-step increments (S, N),
+    resampling (systematic draws by the weights) every ``every`` steps: what the filter writes."""
+    steps, n = increments.shape
+    log_weights, ancestors = np.empty((steps, n)), np.empty((steps, n), np.int64)
+    resampled = (np.arange(steps) % every) == every - 1
+    current = np.full(n, -np.log(n))
+    for t in range(steps):
+        updated = current + increments[t]
+        updated -= np.logaddexp.reduce(updated)
+        log_weights[t] = updated
+        if resampled[t]:
+            cumulative = np.cumsum(np.exp(updated))
+            ancestors[t] = np.minimum(np.searchsorted(cumulative, (rng.random() + np.arange(n)) / n), n - 1)
+            current = np.full(n, -np.log(n))
+        else:
+            ancestors[t] = np.arange(n)
+            current = updated
+    return log_weights, ancestors, resampled
+
+
+def test_pair_coalescence_against_drawing_pairs():
+    rng = np.random.default_rng(3)
+    ancestors = rng.integers(0, 4, (50, 6))
+    # Slow reference: every unordered pair of distinct particles, counted.
+    pairs = [(i, j) for i in range(6) for j in range(i + 1, 6)]
+    expected = [np.mean([row[i] == row[j] for i, j in pairs]) for row in ancestors]
+    np.testing.assert_allclose(pair_coalescence(ancestors), expected, atol=1e-12)
+    assert np.all(pair_coalescence(np.tile(np.arange(6), (3, 1))) == 0)
+
+
+def test_a_lineage_that_always_wins_coalesces_before_neutral_drift():
+    # Every step particle 0 doubles and the last dies: the final four share the ancestor proposed
+    # 2 steps before the last, the fewest possible (a step merges one pair). Relabelled, the luck
+    # moves around: going back, the last step leaves 3 lineages; the one before merges two of them
+    # where both copies are among the 3 (probability 1/2); the one before that the last two where
+    # they are the copies (1/C(4, 2) = 1/6).
+    ancestors = np.tile([0, 0, 1, 2], (40, 1))
+    assert coalescence_lag(ancestors) == 2
+    neutral = neutral_coalescence_lags(ancestors, draws=400)
+    assert neutral.min() >= 2 and np.median(neutral) >= 4
+    assert np.mean(neutral == 2) == pytest.approx(1 / 12, abs=3 * np.sqrt((1 / 12) * (11 / 12) / 400))
+
+
+def test_a_neutral_record_sits_inside_its_neutral_lags():
+    rng = np.random.default_rng(4)
+    quantiles = []
+    for _ in range(40):
+        # Resample at a random third of the steps with random parents: the record is itself neutral drift.
+        ancestors = np.where(rng.random((60, 1)) < 0.33, rng.integers(0, 6, (60, 6)), np.arange(6))
+        neutral = neutral_coalescence_lags(ancestors, draws=100, seed=int(rng.integers(1 << 30)))
+        lag = coalescence_lag(ancestors)
+        quantiles.append(0.5 * (np.mean(neutral < lag) + np.mean(neutral <= lag)))  # mid-rank: ties split
+    # Uniform on [0, 1] under the null: the mean of 40 has a standard deviation of 0.29 / sqrt(40) = 0.046.
+    assert np.mean(quantiles) == pytest.approx(0.5, abs=0.14)
+
+
+def test_weight_increments_are_recovered_from_the_record():
+    rng = np.random.default_rng(0)
+    increments = rng.normal(0.0, 0.3, (40, 6))
+    log_weights, ancestors, resampled = weights_from_increments(increments, 7, rng)
+    got = weight_increments(log_weights, ancestors, resampled)
+    np.testing.assert_allclose(got, increments - increments.mean(axis=1, keepdims=True), atol=1e-9)
+    # A particle of weight zero drops out of its step's centring instead of spreading NaN over it.
+    log_weights[5, 2] = -np.inf
+    got = weight_increments(log_weights, ancestors, resampled)
+    assert np.isnan(got[5, 2]) and np.all(np.isfinite(np.delete(got[5], 2)))
+    np.testing.assert_allclose(np.nanmean(got[5]), 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("persistent, expected", [(True, 1.0), (False, 0.0)])
+def test_weight_persistence_tells_lasting_weights_from_noise(persistent, expected):
+    rng = np.random.default_rng(1)
+    steps, n, every = 400, 30, 16
+    noise = rng.normal(0.0, 0.2, (steps, n))
+    if persistent:  # each stretch's particles differ by a lasting 0.2 nats a step, plus a little noise
+        quality = rng.normal(0.0, 0.2, (steps // every + 1, n))
+        noise = quality[np.arange(steps) // every] + 0.02 * noise
+    log_weights, ancestors, resampled = weights_from_increments(noise, every, rng)
+    out = weight_persistence(log_weights, ancestors, resampled)
+    assert len(out["stretches"]) == steps // every
+    assert all(s["steps"] == every for s in out["stretches"])
+    # Noise: each stretch's correlation of n = 30 pairs has a standard deviation of about
+    # 1 / sqrt(29) = 0.19, their median over 25 stretches about 1.25 * 0.19 / 5 = 0.05: 0.15 is three of it.
+    assert out["median_correlation"] == pytest.approx(expected, abs=0.15 if not persistent else 0.01)
+    assert out["median_increment_spread"] == pytest.approx(0.2, rel=0.1)
+    assert diagnose({**synthetic_record(), "log_weights": np.zeros((30, 5))})["summary"]["weight_persistence"][
+        "stretches"] == 0
