@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam.diagnose import (coalescence_lag, neutral_coalescence_lags, pair_coalescence, read_step_record,
-                              weight_increments, weight_persistence)
+                              weight_persistence)
 from jaxslam.resampling import resample_if_needed
 
 REPLAYS = 20
@@ -79,8 +79,8 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
     record = read_step_record(run_dir)
     ancestors, resampled = np.asarray(record["ancestors"]), np.asarray(record["resampled"])
     n = ancestors.shape[1]
-    increments = weight_increments(record["log_weights"], ancestors, resampled)
     persistence = weight_persistence(record["log_weights"], ancestors, resampled)
+    increments = persistence["increments"]
     replayed = replay_merging(increments, seed, False)
     shuffled = replay_merging(increments, seed + 1, True)
     neutral = neutral_coalescence_lags(ancestors, seed=seed)

@@ -155,11 +155,9 @@ def weight_increments(log_weights: np.ndarray, ancestors: np.ndarray, resampled:
     A particle of weight zero (-inf) gets NaN, and the centring skips it."""
     log_weights = np.asarray(log_weights, np.float64)
     steps, n = log_weights.shape
-    uniform = np.full(n, -np.log(n))
-    carried = np.empty_like(log_weights)
-    carried[0] = uniform
-    for t in range(1, steps):
-        carried[t] = uniform if resampled[t - 1] else log_weights[t - 1][ancestors[t - 1]]
+    kept = np.take_along_axis(log_weights[:-1], np.asarray(ancestors)[:-1], axis=1)  # the identity where none resampled
+    carried = np.concatenate([np.full((min(steps, 1), n), -np.log(n)),
+                              np.where(np.asarray(resampled, bool)[:-1, None], -np.log(n), kept)])
     with np.errstate(invalid="ignore"):
         raw = log_weights - carried
     raw = np.where(np.isfinite(raw), raw, np.nan)
@@ -179,8 +177,9 @@ def weight_persistence(log_weights: np.ndarray, ancestors: np.ndarray, resampled
     first half with those of its second half: near 1 where a particle's advantage lasts (a better
     map, a pose the later scans confirm), near 0 where each step's differences are independent
     draws, so that the resampling at the stretch's end picks histories by the accumulated noise
-    (genetic drift). Returns ``{"increment_spread": (S-1,) each step's standard deviation of the
-    increments over the particles (nats), "stretches": [{"first_step", "steps", "correlation"}],
+    (genetic drift). Returns ``{"increments": (S-1, N) :func:`weight_increments`,
+    "increment_spread": (S-1,) each step's standard deviation of the increments over the
+    particles (nats), "stretches": [{"first_step", "steps", "correlation"}],
     "median_correlation", "median_increment_spread"}`` (steps 1-based, as :func:`diagnose`'s; the
     medians None where nothing qualifies).
     """
@@ -203,7 +202,7 @@ def weight_persistence(log_weights: np.ndarray, ancestors: np.ndarray, resampled
         stretches.append({"first_step": int(first + 1), "steps": length,
                           "correlation": float(np.corrcoef(early[keep], late[keep])[0, 1])})
     finite = spread[np.isfinite(spread)]
-    return {"increment_spread": spread, "stretches": stretches,
+    return {"increments": increments, "increment_spread": spread, "stretches": stretches,
             "median_correlation": float(np.median([s["correlation"] for s in stretches])) if stretches else None,
             "median_increment_spread": float(np.median(finite)) if finite.size else None}
 
@@ -385,6 +384,7 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
     distinct = (np.count_nonzero(np.diff(np.sort(ancestors, axis=1), axis=1), axis=1) + 1).astype(np.int64)
     single = np.flatnonzero(lineages == 1)
     neutral = neutral_coalescence_lags(ancestors) if steps else None
+    lag = coalescence_lag(ancestors) if steps else None
     # Records written before the weights were kept have none to judge.
     persistence = (weight_persistence(record["log_weights"], ancestors, record["resampled"]) if "log_weights" in record
                    else {"increment_spread": np.full(steps, np.nan), "stretches": [], "median_correlation": None,
@@ -422,9 +422,9 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         "fallbacks": int(np.sum(series["fallbacks"])),
         "slip_steps": int(np.count_nonzero(series["slipped"])),
         "pair_coalescence_per_step": float(np.mean(pair_coalescence(ancestors))) if steps else None,
-        "coalescence_lag_steps": coalescence_lag(ancestors) if steps else None,
+        "coalescence_lag_steps": lag,
         **({"neutral_lag_steps_median": float(np.median(neutral)),
-            "neutral_lag_quantile": float(np.mean(neutral <= coalescence_lag(ancestors)))} if steps else {}),
+            "neutral_lag_quantile": float(np.mean(neutral <= lag))} if steps else {}),
         "weight_persistence": {"median_correlation": persistence["median_correlation"],
                                "median_increment_spread": persistence["median_increment_spread"],
                                "stretches": len(persistence["stretches"])},

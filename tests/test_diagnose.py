@@ -12,6 +12,7 @@ from jaxslam.cli import main
 from jaxslam.diagnose import (coalescence_lag, diagnose, neutral_coalescence_lags, pair_coalescence, read_step_record,
                               surviving_lineages, weight_increments, weight_persistence)
 from jaxslam.geometry import between_np
+from weight_records import record_of
 
 
 def lineages_by_backtracking(ancestors: np.ndarray) -> np.ndarray:
@@ -239,27 +240,6 @@ def test_the_closest_particle_then_against_truncated_records():
     assert np.all(got_weighted >= got - 1e-9) and np.any(got_weighted > got + 1e-3)
 
 
-def weights_from_increments(increments: np.ndarray, every: int, rng) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A record's (log_weights, ancestors, resampled) for given per-step increments (S, N),
-    resampling (systematic draws by the weights) every ``every`` steps: what the filter writes."""
-    steps, n = increments.shape
-    log_weights, ancestors = np.empty((steps, n)), np.empty((steps, n), np.int64)
-    resampled = (np.arange(steps) % every) == every - 1
-    current = np.full(n, -np.log(n))
-    for t in range(steps):
-        updated = current + increments[t]
-        updated -= np.logaddexp.reduce(updated)
-        log_weights[t] = updated
-        if resampled[t]:
-            cumulative = np.cumsum(np.exp(updated))
-            ancestors[t] = np.minimum(np.searchsorted(cumulative, (rng.random() + np.arange(n)) / n), n - 1)
-            current = np.full(n, -np.log(n))
-        else:
-            ancestors[t] = np.arange(n)
-            current = updated
-    return log_weights, ancestors, resampled
-
-
 def test_pair_coalescence_against_drawing_pairs():
     rng = np.random.default_rng(3)
     ancestors = rng.integers(0, 4, (50, 6))
@@ -299,7 +279,8 @@ def test_a_neutral_record_sits_inside_its_neutral_lags():
 def test_weight_increments_are_recovered_from_the_record():
     rng = np.random.default_rng(0)
     increments = rng.normal(0.0, 0.3, (40, 6))
-    log_weights, ancestors, resampled = weights_from_increments(increments, 7, rng)
+    record = record_of(increments, rng, every=7)
+    log_weights, ancestors, resampled = record["log_weights"], record["ancestors"], record["resampled"]
     got = weight_increments(log_weights, ancestors, resampled)
     np.testing.assert_allclose(got, increments - increments.mean(axis=1, keepdims=True), atol=1e-9)
     # A particle of weight zero drops out of its step's centring instead of spreading NaN over it.
@@ -317,7 +298,8 @@ def test_weight_persistence_tells_lasting_weights_from_noise(persistent, expecte
     if persistent:  # each stretch's particles differ by a lasting 0.2 nats a step, plus a little noise
         quality = rng.normal(0.0, 0.2, (steps // every + 1, n))
         noise = quality[np.arange(steps) // every] + 0.02 * noise
-    log_weights, ancestors, resampled = weights_from_increments(noise, every, rng)
+    record = record_of(noise, rng, every=every)
+    log_weights, ancestors, resampled = record["log_weights"], record["ancestors"], record["resampled"]
     out = weight_persistence(log_weights, ancestors, resampled)
     assert len(out["stretches"]) == steps // every
     assert all(s["steps"] == every for s in out["stretches"])

@@ -16,32 +16,7 @@ sys.path.insert(0, str(EXPERIMENTS))
 import lineage_loss  # noqa: E402
 
 from jaxslam.diagnose import write_step_record  # noqa: E402
-
-
-def record_of(increments: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
-    """A ``steps.npz`` record of a filter whose particles get ``increments`` (S, N), resampling
-    systematically at ESS < N/2 (the fields lineage_loss reads, and the rest diagnose needs)."""
-    steps, n = increments.shape
-    rng = np.random.default_rng(seed)
-    log_weights, ancestors = np.empty((steps, n)), np.empty((steps, n), np.int32)
-    resampled, ess = np.zeros(steps, bool), np.empty(steps)
-    current = np.full(n, -np.log(n))
-    for t in range(steps):
-        updated = current + increments[t]
-        updated -= np.logaddexp.reduce(updated)
-        log_weights[t], ess[t] = updated, 1.0 / np.sum(np.exp(2 * updated))
-        if ess[t] < n / 2:
-            cumulative = np.cumsum(np.exp(updated))
-            ancestors[t] = np.minimum(np.searchsorted(cumulative, (rng.random() + np.arange(n)) / n), n - 1)
-            resampled[t], current = True, np.full(n, -np.log(n))
-        else:
-            ancestors[t], current = np.arange(n), updated
-    return {"scan_index": np.arange(steps + 1), "timestamp": np.arange(steps + 1, dtype=float),
-            "odometry": np.zeros((steps + 1, 3)), "best_path": np.zeros((steps + 1, 3)),
-            "ess": ess.astype(np.float32), "resampled": resampled, "ancestors": ancestors,
-            "proposed_poses": np.zeros((steps, n, 3), np.float32), "log_weights": log_weights.astype(np.float32),
-            "log_evidence": np.zeros(steps, np.float32), "num_fallbacks": np.zeros(steps, np.int32),
-            "best_particle": np.zeros(steps, np.int32), "num_particles": np.int64(n)}
+from weight_records import record_of  # noqa: E402
 
 
 def test_chance_and_lasting_weights_are_told_apart(tmp_path):
@@ -52,7 +27,7 @@ def test_chance_and_lasting_weights_are_told_apart(tmp_path):
             "lasting": rng.normal(0.0, spread, (1, n)) + rng.normal(0.0, 0.02, (steps, n))}
     for name, increments in runs.items():
         (tmp_path / name).mkdir()
-        write_step_record(tmp_path / name / "steps.npz", record_of(increments))
+        write_step_record(tmp_path / name / "steps.npz", record_of(increments, np.random.default_rng(0)))
     out = tmp_path / "figures" / "lineage_loss.json"
     assert lineage_loss.main([str(tmp_path / "chance"), str(tmp_path / "lasting"), "--out", str(out),
                               "--thresholds", "0.5", "--spreads", "0.2"]) == 0
