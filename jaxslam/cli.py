@@ -239,15 +239,24 @@ def _format_gb(nbytes: float) -> str:
     return f"{gb:.0f}" if gb >= 10 else f"{gb:.1f}"
 
 
-def _check_memory(log, config, settings) -> None:
+def _check_memory(log, config, settings, params) -> None:
     """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.resources.estimate_run_bytes`)
-    exceeds the machine's available memory; skipped where that cannot be read."""
+    exceeds the machine's available memory; skipped where that cannot be read. The first pools
+    grow with the first scan's footprint (:func:`jaxslam.rbpf.pool_size`): where even the widest
+    footprint (the insertion's whole window) fits, that is enough; otherwise this log's first scan
+    is measured (one particle's insertion), so that a wide first scan at large N is refused here
+    rather than running out of memory in the run."""
+    from jaxslam.rbpf import first_scan_tiles, prepare
     from jaxslam.resources import available_memory_bytes, estimate_run_bytes
 
     available = available_memory_bytes()
     if available is None:
         return
-    need, how = estimate_run_bytes(config, log.num_beams)
+    widest = config.grid.window_tiles(config.max_insert_range, config.field_radius) ** 2
+    need, how = estimate_run_bytes(config, log.num_beams, widest)
+    if need > available:
+        prepared, _, _ = prepare(log, config, settings)
+        need, how = estimate_run_bytes(config, log.num_beams, first_scan_tiles(prepared, params, config))
     if need > available:
         lp = ", --localizers" if config.lookahead_steps else ""
         raise ConfigError(f"the run needs about {_format_gb(need)} GB ({how}) but {_format_gb(available)} GB are "
@@ -354,7 +363,7 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     config, settings, params = setup
 
     check_config_for_log(log, config)
-    _check_memory(log, config, settings)
+    _check_memory(log, config, settings, params)
     _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
     ckpt = checkpoint_path(args.out)
     identity = _run_identity(args, log, setup, source)

@@ -162,6 +162,19 @@ def init(
     )
 
 
+def first_scan_tiles(prepared: PreparedLog, params: SlamParams, config: SlamConfig) -> int:
+    """The tiles a log's first scan touches (``first_scan_tiles`` of :func:`pool_size`: every
+    particle copies them at the first step), measured before a run: :func:`init`'s insertion of
+    the first scan into one particle's map, whose ``peak_request`` it is. It compiles that
+    insertion for one particle (a few seconds), so callers ask for it only where the pools'
+    size decides something (:func:`jaxslam.resources.estimate_run_bytes` near the machine's
+    memory)."""
+    one = dataclasses.replace(config, num_particles=1)
+    state = init(jax.random.key(0), jnp.asarray(prepared.first_ranges), prepared.sensor, params, one,
+                 jnp.asarray(prepared.initial_pose))
+    return int(state.maps.peak_request)
+
+
 def step(
     key: PRNGKeyArray,
     state: SlamState,

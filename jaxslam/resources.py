@@ -15,12 +15,13 @@ from jaxslam.proposals import PROPOSALS
 from jaxslam.rbpf import pool_size
 
 
-def state_bytes(config: SlamConfig) -> int:
+def state_bytes(config: SlamConfig, first_scan_tiles: int | None = None) -> int:
     """Bytes of a run's particle set at the start (checkpointed with it): the directories
     (N x DY x DX int32), the block pool (B x S x S int32) and the tile pool (capacity x T x T
-    cells of 3 bytes), as :func:`jaxslam.rbpf.pool_size` sizes them."""
+    cells of 3 bytes), as :func:`jaxslam.rbpf.pool_size` sizes them for a first scan of
+    ``first_scan_tiles`` tiles (None: Intel's allowance)."""
     dy, dx = config.grid.num_blocks
-    pools = pool_size(config)
+    pools = pool_size(config, first_scan_tiles)
     return (4 * (config.num_particles * dy * dx + pools.block_capacity * config.grid.block_size**2)
             + 3 * pools.capacity * config.tile_size**2)
 
@@ -32,12 +33,14 @@ def map_cells(odometry, config: SlamConfig) -> int:
     return int(math.ceil(span[0] / config.resolution) * math.ceil(span[1] / config.resolution))
 
 
-def estimate_run_bytes(config: SlamConfig, num_beams: int) -> tuple[int, str]:
+def estimate_run_bytes(config: SlamConfig, num_beams: int, first_scan_tiles: int | None = None) -> tuple[int, str]:
     """A rough estimate of the memory (bytes) a ``run`` with ``config`` needs at its start, and how
     it was reckoned (for a refusal message).
 
     The tile pool (capacity x T x T x 3 bytes, twice: a chunk's input is kept to repeat it when
-    the pool overflows) and the block pool (B x S x S int32, twice) as :func:`pool_size` sizes them,
+    the pool overflows) and the block pool (B x S x S int32, twice) as :func:`pool_size` sizes them
+    for a first scan of ``first_scan_tiles`` tiles (None: Intel's allowance; the run sizes them
+    from its log's, :func:`jaxslam.rbpf.first_scan_tiles`),
     the directories (N x DY x DX int32, twice), and scan insertion, which traces every beam with one
     sample per cell up to ``max_insert_range``: N x B x S samples of about 40 bytes. The look-ahead
     proposal adds its N x L x B float32 beam terms (B the beams used in likelihoods, ``num_beams /
@@ -47,8 +50,8 @@ def estimate_run_bytes(config: SlamConfig, num_beams: int) -> tuple[int, str]:
     n = config.num_particles
     dy, dx = config.grid.num_blocks
     t, s = config.tile_size, config.grid.block_size
-    pool_sizes = pool_size(config)
-    state = state_bytes(config) * 2
+    pool_sizes = pool_size(config, first_scan_tiles)
+    state = state_bytes(config, first_scan_tiles) * 2
     samples = int(math.ceil(config.max_insert_range / config.resolution)) + 1
     insertion = n * num_beams * samples * 40
     how = (f"({n} particles x {dy} x {dx} blocks + {pool_sizes.block_capacity} blocks x {s} x {s} tiles) x 4 bytes "

@@ -494,6 +494,33 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
                         "but 8.0 GB are available"], capsys)
 
 
+def test_a_wide_first_scan_is_counted_by_the_memory_check(tmp_path, small_log, capsys, monkeypatch):
+    """On 8-cell tiles the office's first scan touches more tiles than Intel's allowance (the pools'
+    size without a footprint). With the machine's memory between the estimate at that allowance
+    and the estimate at the scan's footprint, the run is refused, and the message's figures are
+    the footprint's: a check at Intel's allowance would have let it run out of memory."""
+    import jaxslam.resources
+    from jaxslam.cli import MAP_DEFAULTS
+    from jaxslam.io import read_log
+    from jaxslam.rbpf import first_scan_tiles, prepare
+
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    _trap_filter(monkeypatch)
+    config, settings, params = build_setup({**MAP_DEFAULTS, "num_particles": 2000, "tile_size": 8})
+    log = read_log(tmp_path / "office.clf")
+    tiles = first_scan_tiles(prepare(log, config, settings)[0], params, config)
+    assert tiles > 24
+    allowance, _ = jaxslam.resources.estimate_run_bytes(config, log.num_beams)
+    need, how = jaxslam.resources.estimate_run_bytes(config, log.num_beams, tiles)
+    assert need > allowance
+    monkeypatch.setattr(jaxslam.resources, "available_memory_bytes", lambda: (need + allowance) // 2)
+    argv = ["map", str(tmp_path / "office.clf"), "--particles", "2000", "--set", "tile_size=8",
+            "--no-progress", "--out", str(tmp_path / "out")]
+    expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
+    _run_refused(argv, [f"needs about {expected} GB ({how}"], capsys)
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(tmp_path, small_log, monkeypatch):
     import jaxslam.resources
 

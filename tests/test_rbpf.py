@@ -249,6 +249,21 @@ def test_the_first_pool_is_sized_from_the_first_scans_footprint(office_log):
     assert result.map_pool["max_new_tiles"] >= result.map_pool["peak_request"]
 
 
+def test_the_first_scans_footprint_is_measured_before_a_run(office_log):
+    """``rbpf.first_scan_tiles`` (one particle's insertion) is the footprint the run's own start
+    measures with all its particles (``init``'s ``peak_request``), and on 8-cell tiles it is wider
+    than Intel's allowance, so ``pool_size`` grows from it."""
+    log = office_log.subset(np.arange(10))
+    config = small_config(proposal="op", num_particles=64, tile_size=8)
+    params = default_params()
+    prepared, _, _ = rbpf.prepare(log, config, SETTINGS)
+    tiles = rbpf.first_scan_tiles(prepared, params, config)
+    state = rbpf.init(jax.random.key(0), jnp.asarray(prepared.first_ranges), prepared.sensor, params, config,
+                      jnp.asarray(prepared.initial_pose))
+    assert tiles == int(state.maps.peak_request) > 24
+    assert rbpf.pool_size(config, tiles).max_new_tiles > rbpf.pool_size(config).max_new_tiles
+
+
 def test_each_steps_weights_are_recorded_before_resampling(office_log):
     """``SlamInfo.log_weights`` are the weights a step's resampling saw: normalised, the step's
     ESS, and, where it did not resample, the weights the particles carried on (the state at a
