@@ -94,6 +94,11 @@ class SlamInfo(NamedTuple):
     ``marginal_loglik = -inf``."""
 
 
+TILES_PER_PARTICLE = 24
+"""The least per-particle allowance of :func:`pool_size`: an insertion's request on Intel (64-cell
+tiles, 15 m beams), and all of it where a log's first scan is not known."""
+
+
 def pool_size(config: SlamConfig, first_scan_tiles: int | None = None) -> PoolSize:
     """The maps' pools a run starts with (see :class:`~jaxslam.paged_map.PagedMaps`). An insertion
     copies or creates up to about 20 tiles per particle on Intel (64-cell tiles, 15 m beams; more
@@ -121,7 +126,8 @@ def pool_size(config: SlamConfig, first_scan_tiles: int | None = None) -> PoolSi
     most = paged_map.max_pool_tiles(spec)  # int32 slots: memory runs out long before
     # Rounded up to a multiple of 8: logs of one laser share a compiled step unless their first
     # footprints differ by more (a pool's size is a static shape).
-    per_particle = 24 if first_scan_tiles is None else max(24, -(-int(first_scan_tiles) // 8) * 8)
+    per_particle = (TILES_PER_PARTICLE if first_scan_tiles is None
+                    else max(TILES_PER_PARTICLE, -(-int(first_scan_tiles) // 8) * 8))
     max_new_tiles = min(n * min(k * k, per_particle) + k * k, most)
     max_new_blocks = n * kb * kb + kb * kb
     return PoolSize(min(3 * max_new_tiles + 256, most), max_new_tiles, 4 * max_new_blocks + 64, max_new_blocks)

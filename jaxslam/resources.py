@@ -19,7 +19,7 @@ def state_bytes(config: SlamConfig, first_scan_tiles: int | None = None) -> int:
     """Bytes of a run's particle set at the start (checkpointed with it): the directories
     (N x DY x DX int32), the block pool (B x S x S int32) and the tile pool (capacity x T x T
     cells of 3 bytes), as :func:`jaxslam.rbpf.pool_size` sizes them for a first scan of
-    ``first_scan_tiles`` tiles (None: Intel's allowance)."""
+    ``first_scan_tiles`` tiles (None: Intel's allowance, ``rbpf.TILES_PER_PARTICLE`` a particle)."""
     dy, dx = config.grid.num_blocks
     pools = pool_size(config, first_scan_tiles)
     return (4 * (config.num_particles * dy * dx + pools.block_capacity * config.grid.block_size**2)

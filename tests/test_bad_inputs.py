@@ -502,14 +502,14 @@ def test_a_wide_first_scan_is_counted_by_the_memory_check(tmp_path, small_log, c
     import jaxslam.resources
     from jaxslam.cli import MAP_DEFAULTS
     from jaxslam.io import read_log
-    from jaxslam.rbpf import first_scan_tiles, prepare
+    from jaxslam.rbpf import TILES_PER_PARTICLE, first_scan_tiles, prepare
 
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
     config, settings, params = build_setup({**MAP_DEFAULTS, "num_particles": 2000, "tile_size": 8})
     log = read_log(tmp_path / "office.clf")
     tiles = first_scan_tiles(prepare(log, config, settings)[0], params, config)
-    assert tiles > 24
+    assert tiles > TILES_PER_PARTICLE
     allowance, _ = jaxslam.resources.estimate_run_bytes(config, log.num_beams)
     need, how = jaxslam.resources.estimate_run_bytes(config, log.num_beams, tiles)
     assert need > allowance

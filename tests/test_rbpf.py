@@ -260,7 +260,7 @@ def test_the_first_scans_footprint_is_measured_before_a_run(office_log):
     tiles = rbpf.first_scan_tiles(prepared, params, config)
     state = rbpf.init(jax.random.key(0), jnp.asarray(prepared.first_ranges), prepared.sensor, params, config,
                       jnp.asarray(prepared.initial_pose))
-    assert tiles == int(state.maps.peak_request) > 24
+    assert tiles == int(state.maps.peak_request) > rbpf.TILES_PER_PARTICLE
     assert rbpf.pool_size(config, tiles).max_new_tiles > rbpf.pool_size(config).max_new_tiles
 
 
