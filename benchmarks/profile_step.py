@@ -14,6 +14,11 @@ sweep``) for ``--warm-chunks`` chunks of 32 steps, then, from that state:
 
     python benchmarks/profile_step.py --particles 1000 --out profile_1000.json
 
+With ``--reads``, where the proposals' time goes (``read_costs``): the same proposals with the
+map reads changed, each a bound, not a variant (their poses differ): the page table's two
+dependent gathers skipped (each read's tile slot from its tile index, spread over the pool);
+no map read at all; and, at the same reads, fewer of them (every 4th beam, one level less).
+
 The figures go to ``--out`` (JSON) and stdout; run one process per N. The parts are called
 without donating the maps, so the insertion's and the whole step's times include a copy of the
 pools (their memory analysis counts it as an output); the chunk's figures are the run's.
@@ -70,6 +75,67 @@ def _best_time(fn, args, repeats: int) -> float:
     return min(times)
 
 
+def _proposals_fn(config, step_inputs, sensor, params):
+    """The step's proposals for every particle, jitted, as :func:`jaxslam.rbpf.step` runs them
+    (``config.particle_block`` particles at a time, the likelihood's beams subsampled)."""
+    import jax
+
+    from jaxslam import paged_map, particle_filter
+    from jaxslam.laser import subsample_beams
+    from jaxslam.proposals import PROPOSALS
+
+    lik_sensor, lik_ranges = subsample_beams(sensor, step_inputs.ranges, config.beam_stride)
+    lik_inputs = step_inputs._replace(ranges=lik_ranges,
+                                      future_ranges=subsample_beams(sensor, step_inputs.future_ranges,
+                                                                    config.beam_stride)[1])
+    propose_fn = PROPOSALS[config.proposal].propose_fn
+
+    @jax.jit
+    def proposals(key, state):
+        field = paged_map.fields(state.maps)
+        return particle_filter.map_in_blocks(
+            lambda p: propose_fn(p[0], p[1], field._replace(directory=p[2]), lik_inputs, lik_sensor, params, config),
+            (jax.random.split(key, config.num_particles), state.poses, field.directory), config.particle_block)
+
+    return proposals
+
+
+def _read_costs(config, step_inputs, sensor, params, state, repeats: int) -> dict:
+    """Seconds of the proposals (best of ``repeats``) as they are and with their map reads changed:
+    bounds on what a cheaper read could save, not variants (the poses differ)."""
+    import contextlib
+    import dataclasses
+    from unittest import mock
+
+    import jax
+
+    from jaxslam import map_view, paged_map
+
+    capacity = state.maps.hit_dist2.shape[0]
+
+    def slots_without_page_table(spec, directory, blocks, tiles):
+        # Each tile's slot from its index alone, spread over the whole pool (no dependent gathers).
+        return (tiles[..., 0] * 7919 + tiles[..., 1] * 104729) % capacity
+
+    def no_read(spec, field, cells, fill):
+        return (cells[..., 0] & 7).astype(field.pool.dtype)
+
+    cases = {
+        "as_is": (config, contextlib.nullcontext()),
+        "no_page_table": (config, mock.patch.object(paged_map, "tile_slots", slots_without_page_table)),
+        "no_map_read": (config, mock.patch.object(map_view, "cell_values", no_read)),
+        "beam_stride_4": (dataclasses.replace(config, beam_stride=4), contextlib.nullcontext()),
+        "one_level_less": (dataclasses.replace(config, window_levels=config.window_levels - 1),
+                           contextlib.nullcontext()),
+    }
+    seconds = {}
+    for name, (case_config, patch) in cases.items():
+        with patch:  # jit traces inside it, so the patch is in the compiled function
+            fn = _proposals_fn(case_config, step_inputs, sensor, params)
+            seconds[name] = _best_time(fn, (jax.random.key(2), state), repeats)
+    return {"seconds": seconds, "ratio_to_as_is": {k: v / seconds["as_is"] for k, v in seconds.items()}}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--particles", type=int, required=True)
@@ -78,6 +144,8 @@ def main(argv=None):
     ap.add_argument("--warm-chunks", type=int, default=1, help="chunks of 32 steps run before measuring")
     ap.add_argument("--repeats", type=int, default=3, help="timed calls of each part (0: memory analysis only)")
     ap.add_argument("--top", type=int, default=12, help="largest buffers listed")
+    ap.add_argument("--reads", action="store_true",
+                    help="also time the proposals with their map reads changed (read_costs: bounds, not variants)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
 
@@ -92,9 +160,7 @@ def main(argv=None):
     from jaxslam import paged_map, particle_filter, rbpf, slam
     from jaxslam.config import build_setup
     from jaxslam.io import read_log
-    from jaxslam.laser import subsample_beams
     from jaxslam.laserlog import check_log
-    from jaxslam.proposals import PROPOSALS
 
     # GMapping's update rule, as bench_maps.py's runs.
     values = {"proposal": "smp", "num_particles": args.particles, "linear_update": 1.0, "angular_update": 0.5}
@@ -132,19 +198,7 @@ def main(argv=None):
     # The step's parts alone, from that state, at the next step's inputs.
     step_inputs = jax.tree.map(lambda a: a[args.warm_chunks * chunk], inputs)
     n = config.num_particles
-    lik_sensor, lik_ranges = subsample_beams(sensor, step_inputs.ranges, config.beam_stride)
-    lik_inputs = step_inputs._replace(ranges=lik_ranges,
-                                      future_ranges=subsample_beams(sensor, step_inputs.future_ranges,
-                                                                    config.beam_stride)[1])
-    propose_fn = PROPOSALS[config.proposal].propose_fn
-
-    @jax.jit
-    def proposals(key, state):  # as rbpf.step runs them: config.particle_block at a time
-        field = paged_map.fields(state.maps)
-        return particle_filter.map_in_blocks(
-            lambda p: propose_fn(p[0], p[1], field._replace(directory=p[2]), lik_inputs, lik_sensor, params, config),
-            (jax.random.split(key, n), state.poses, field.directory), config.particle_block)
-
+    proposals = _proposals_fn(config, step_inputs, sensor, params)
     out = proposals(jax.random.key(2), state)
     update = particle_filter.reweight_and_resample(jax.random.key(3), out.pose, state.log_weights,
                                                    out.log_weight_increment, params.resample_threshold,
@@ -168,6 +222,8 @@ def main(argv=None):
     for name, (fn, fn_args) in parts.items():
         report["parts"][name] = {"memory": _memory(fn.lower(*fn_args).compile()),
                                  "seconds": _best_time(fn, fn_args, args.repeats) if args.repeats else None}
+    if args.reads and args.repeats:
+        report["read_costs"] = _read_costs(config, step_inputs, sensor, params, state, args.repeats)
     # The run's own program in steady state: the next chunk of 32 steps, the maps donated as in
     # slam.run (the parts above copy the pools; this does not).
     state = jax.tree.map(jnp.copy, state)
