@@ -14,6 +14,11 @@ For each run folder (``jaxslam map`` or ``experiments/datasets.py`` output):
 * ``lag_steps``: the final particles' common ancestor, in steps before the end; ``neutral``: the
   same resamplings with the lucky particles drawn afresh at every step
   (:func:`jaxslam.diagnose.neutral_coalescence_lags`), median and the recorded lag's quantile.
+* ``lineages_back``: how many distinct histories the particles still held 25, 50, 100 and 200
+  steps back, the median over the run's steps (:func:`jaxslam.diagnose.lineages_at_lag`): the
+  alternatives carried at every step, where ``lag_steps`` is the end's alone;
+  ``neutral_lineages_back``: the same of the relabelled resamplings (the median over
+  ``NEUTRAL_LINEAGE_DRAWS``): fewer recorded than neutral is selection.
 
 And, independent of any run, the pure-drift rate of merging against the resampling threshold
 (``--thresholds``): i.i.d. increments of a given spread, systematic resampling at ESS < r N.
@@ -33,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam.diagnose import (coalescence_lag, neutral_coalescence_lags, pair_coalescence, read_step_record,
-                              weight_persistence)
+from jaxslam.diagnose import (LINEAGE_LAGS, coalescence_lag, lineages_at_lag, neutral_coalescence_lags,
+                              pair_coalescence, read_step_record, relabelled_parents, weight_persistence)
 from jaxslam.resampling import resample_if_needed
 
 REPLAYS = 20
@@ -74,6 +79,18 @@ def replay_merging(increments: np.ndarray, seed: int, shuffle: bool, threshold: 
     return float(jnp.mean(_replays(keys, increments, jnp.float32(threshold), shuffle)))
 
 
+NEUTRAL_LINEAGE_DRAWS = 20
+"""Relabelled copies of a run's resamplings behind ``neutral_lineages_back`` (each gives a median
+over hundreds of steps, so a few draws settle it)."""
+
+
+def lineages_back(ancestors: np.ndarray) -> dict:
+    """The median over the steps of :func:`jaxslam.diagnose.lineages_at_lag` at each of
+    ``LINEAGE_LAGS`` (None where the record is shorter)."""
+    return {str(k): float(np.median(lineages_at_lag(ancestors, k))) if k <= len(ancestors) else None
+            for k in LINEAGE_LAGS}
+
+
 def run_figures(run_dir: Path, seed: int = 0) -> dict:
     """The module's figures for one run folder."""
     record = read_step_record(run_dir)
@@ -85,6 +102,8 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
     shuffled = replay_merging(increments, seed + 1, True)
     neutral = neutral_coalescence_lags(ancestors, seed=seed)
     lag = coalescence_lag(ancestors)
+    rng = np.random.default_rng(seed)
+    neutral_back = [lineages_back(relabelled_parents(ancestors, rng)) for _ in range(NEUTRAL_LINEAGE_DRAWS)]
     timestamps = np.asarray(record["timestamp"])
     errors = run_dir / "errors.json"  # experiments/datasets.py's relation error, where it scored the run
     relation_error = json.loads(errors.read_text()).get("trans_mean") if errors.is_file() else None
@@ -97,7 +116,13 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
             "pair_coalescence": float(np.mean(pair_coalescence(ancestors))),
             "replayed": replayed, "shuffled": shuffled, "drift_share": shuffled / replayed if replayed else None,
             "lag_steps": lag, "neutral_lag_median": float(np.median(neutral)),
-            "neutral_lag_quantile": float(np.mean(neutral <= lag))}
+            "neutral_lag_quantile": float(np.mean(neutral <= lag)),
+            # How many histories the particles still held that many steps back, the median over the run's
+            # steps; and the same resamplings relabelled (neutral drift), the median over the draws.
+            "lineages_back": lineages_back(ancestors),
+            "neutral_lineages_back": {
+                lag: (float(np.median([draw[lag] for draw in neutral_back])) if neutral_back[0][lag] is not None
+                      else None) for lag in neutral_back[0]}}
 
 
 def drift_against_threshold(spread: float, thresholds, n: int = 30, steps: int = 20_000, seed: int = 0) -> dict:
@@ -128,7 +153,9 @@ def main(argv=None) -> int:
         print(f"{r['run']}: spread {r['increment_spread']:.3f} nats, persistence {r['persistence']:.2f}, merging "
               f"{r['pair_coalescence'] * 1e3:.2f}e-3 a step (replayed {r['replayed'] * 1e3:.2f}e-3, shuffled "
               f"{r['shuffled'] * 1e3:.2f}e-3: drift {r['drift_share']:.2f}), lag {r['lag_steps']} steps against "
-              f"{r['neutral_lag_median']:.0f} neutral (quantile {r['neutral_lag_quantile']:.2f})")
+              f"{r['neutral_lag_median']:.0f} neutral (quantile {r['neutral_lag_quantile']:.2f}); histories held "
+              + ", ".join(f"{v:.0f} ({r['neutral_lineages_back'][k]:.0f} neutral) at {k}"
+                          for k, v in r["lineages_back"].items() if v is not None) + " steps back")
     for spread, rates in drift.items():
         print(f"pure drift, spread {spread}: " + ", ".join(f"r = {k}: {v * 1e3:.2f}e-3" for k, v in rates.items()))
     return 0

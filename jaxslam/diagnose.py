@@ -14,6 +14,9 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
   (:func:`pair_coalescence`) is the rate at which lineages merge, and ``neutral_lag_quantile``
   where the recorded lag falls among those of the same resamplings with the lucky particles
   drawn afresh (:func:`neutral_coalescence_lags`): near 0, the same lineages kept winning.
+  ``lineages_back``: how many distinct histories the particles held 25, 50, 100 and 200 steps
+  back, the median over the steps (:func:`lineages_at_lag`): the alternatives a loop's closure
+  can still choose from, at every step rather than at the end alone.
 * ``correction_trans`` (m), ``correction_rot`` (rad): how far the best path's motion between
   two processed scans differs from the odometry's (in the earlier pose's frame): the filter's
   corrections; a wrong closure shows as a large one.
@@ -61,6 +64,9 @@ NEUTRAL_DRAWS = 200
 
 MIN_STRETCH = 6
 """The fewest steps between two resamplings that :func:`weight_persistence` splits in halves."""
+
+LINEAGE_LAGS = (25, 50, 100, 200)
+"""The lags (steps) at which the summary's ``lineages_back`` counts the distinct histories."""
 
 
 def step_record(log, result) -> dict[str, np.ndarray]:
@@ -130,6 +136,43 @@ def coalescence_lag(ancestors: np.ndarray) -> int:
     return int(steps - (single[-1] + 1)) if single.size else int(steps)
 
 
+def lineages_at_lag(ancestors: np.ndarray, lag: int) -> np.ndarray:
+    """(S - lag + 1,) int: for each step t from ``lag`` to S (1-based), how many distinct
+    histories the particles that end step t hold over their last ``lag`` steps: the number of
+    step t - lag + 1's proposed particles they descend from (``ancestors`` (S, N) as in
+    :func:`surviving_lineages`; empty where the record has fewer than ``lag`` steps).
+
+    The alternatives a filter still carries ``lag`` steps back, at every step rather than only at
+    the end (:func:`coalescence_lag`): 1 where every particle shares one history over that span.
+    A loop closes only if some history that left the loop's start is still carried when the robot
+    returns. Composed by doubling: log2(lag) gathers of the whole record."""
+    ancestors = np.asarray(ancestors)
+    steps = ancestors.shape[0]
+    if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 1:
+        raise ValueError(f"lineages_at_lag: lag must be a positive number of steps, got {lag!r}")
+    if lag > steps:
+        return np.zeros(0, np.int64)
+    # block[j] sends the particles that end step j + span (1-based) to their ancestors among the
+    # proposed particles of step j + 1: `span` steps of parents composed.
+    block, span = ancestors, 1
+    back, back_span = None, 0  # the same over the lowest bits of lag, done so far
+    remaining = int(lag)
+    while True:
+        if remaining & 1:
+            if back is None:
+                back, back_span = block, span
+            else:  # extend further into the past by the (older) block of `span` steps
+                rows = steps - back_span - span + 1
+                back = np.take_along_axis(block[:rows], back[span:], axis=1)
+                back_span += span
+        remaining >>= 1
+        if not remaining:
+            break
+        block = np.take_along_axis(block[:steps - 2 * span + 1], block[span:], axis=1)
+        span *= 2
+    return (np.count_nonzero(np.diff(np.sort(back, axis=1), axis=1), axis=1) + 1).astype(np.int64)
+
+
 def neutral_coalescence_lags(ancestors: np.ndarray, draws: int = NEUTRAL_DRAWS, seed: int = 0) -> np.ndarray:
     """(draws,) int: :func:`coalescence_lag` of the same resamplings with their parents relabelled
     at random at every step: every step keeps its offspring counts (how many copies of which
@@ -137,14 +180,17 @@ def neutral_coalescence_lags(ancestors: np.ndarray, draws: int = NEUTRAL_DRAWS, 
     nothing about the next (neutral drift, the coalescent's null). A recorded lag far below these
     is lineages that kept winning: lasting differences in the weights (selection), not chance."""
     ancestors = np.asarray(ancestors)
-    steps, n = ancestors.shape
     rng = np.random.default_rng(seed)
-    labels = np.broadcast_to(np.arange(n), (steps, n))
-    lags = np.empty(draws, np.int64)
-    for d in range(draws):
-        relabel = rng.permuted(labels, axis=1)  # a random permutation of the parents per step
-        lags[d] = coalescence_lag(np.take_along_axis(relabel, ancestors, axis=1))
-    return lags
+    return np.array([coalescence_lag(relabelled_parents(ancestors, rng)) for _ in range(draws)], np.int64)
+
+
+def relabelled_parents(ancestors: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(S, N) int: ``ancestors`` with each step's parents relabelled by a random permutation:
+    every step keeps its offspring counts, but which particle had them is drawn afresh (neutral
+    drift with the record's own resamplings; :func:`neutral_coalescence_lags`)."""
+    ancestors = np.asarray(ancestors)
+    relabel = rng.permuted(np.broadcast_to(np.arange(ancestors.shape[1]), ancestors.shape), axis=1)
+    return np.take_along_axis(relabel, ancestors, axis=1)
 
 
 def weight_increments(log_weights: np.ndarray, ancestors: np.ndarray, resampled: np.ndarray) -> np.ndarray:
@@ -423,6 +469,9 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         "slip_steps": int(np.count_nonzero(series["slipped"])),
         "pair_coalescence_per_step": float(np.mean(pair_coalescence(ancestors))) if steps else None,
         "coalescence_lag_steps": lag,
+        # The median over the run's steps; None where the run is shorter than the lag.
+        "lineages_back": {str(k): (float(np.median(lineages_at_lag(ancestors, k))) if steps >= k else None)
+                          for k in LINEAGE_LAGS},
         **({"neutral_lag_steps_median": float(np.median(neutral)),
             "neutral_lag_quantile": float(np.mean(neutral <= lag))} if steps else {}),
         "weight_persistence": {"median_correlation": persistence["median_correlation"],

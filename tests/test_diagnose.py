@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from jaxslam.cli import main
-from jaxslam.diagnose import (coalescence_lag, diagnose, neutral_coalescence_lags, pair_coalescence, read_step_record,
-                              surviving_lineages, weight_increments, weight_persistence)
+from jaxslam.diagnose import (coalescence_lag, diagnose, lineages_at_lag, neutral_coalescence_lags, pair_coalescence,
+                              read_step_record, surviving_lineages, weight_increments, weight_persistence)
 from jaxslam.geometry import between_np
 from weight_records import record_of
 
@@ -36,6 +36,27 @@ def test_surviving_lineages_match_backtracking(seed):
     got = surviving_lineages(ancestors)
     np.testing.assert_array_equal(got, lineages_by_backtracking(ancestors))
     assert got[-1] == np.unique(ancestors[-1]).size and np.all(np.diff(got) >= 0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_lineages_at_lag_match_backtracking_from_every_step(seed):
+    rng = np.random.default_rng(seed)
+    n, steps = 7, 45
+    ancestors = np.where(rng.random((steps, 1)) < 0.33, rng.integers(0, n, (steps, n)), np.arange(n))
+    for lag in [1, 2, 3, 5, 8, 13, 31, steps]:  # single bits, several bits, the whole record
+        # Slow reference: the record cut at each step t, its lineages counted lag steps back.
+        expected = [lineages_by_backtracking(ancestors[:t + 1])[t - lag + 1] for t in range(lag - 1, steps)]
+        np.testing.assert_array_equal(lineages_at_lag(ancestors, lag), expected)
+    # At the last step it is the record's own surviving lineages; a lag longer than the record has none.
+    assert lineages_at_lag(ancestors, 10)[-1] == surviving_lineages(ancestors)[-10]
+    assert lineages_at_lag(ancestors, steps + 1).shape == (0,)
+
+
+def test_lineages_at_lag_refuses_a_lag_that_is_no_number_of_steps():
+    ancestors = np.tile(np.arange(4), (6, 1))
+    for lag in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="lag must be a positive number of steps"):
+            lineages_at_lag(ancestors, lag)
 
 
 def synthetic_record(steps=30, n=5, jump_at=17, seed=0):
@@ -68,6 +89,12 @@ def test_the_injected_jump_is_the_largest_correction_and_lineages_coalesce():
     assert out["summary"]["coalescence_step"] == 11  # the step whose resampling kept one particle
     # That resampling made every pair of particles share a parent; no other step merged any.
     assert out["summary"]["pair_coalescence_per_step"] == pytest.approx(1 / 30)
+    # Step 11's resampling kept one particle: a span of steps holds one history where it includes
+    # step 11 (5-step spans ending at steps 11-15; every 25-step span of the 30 steps), five elsewhere.
+    np.testing.assert_array_equal(lineages_at_lag(record["ancestors"], 5), np.where((np.arange(5, 31) >= 11)
+                                                                                     & (np.arange(5, 31) <= 15), 1, 5))
+    lineages_back = out["summary"]["lineages_back"]
+    assert lineages_back == {"25": 1.0, "50": None, "100": None, "200": None}
     assert series["ess_fraction"][0] == pytest.approx(0.5)
 
 

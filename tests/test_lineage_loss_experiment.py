@@ -44,6 +44,14 @@ def test_chance_and_lasting_weights_are_told_apart(tmp_path):
     # resamples about four times as often and chance alone explains a small part of the merging.
     assert lasting["persistence"] > 0.9 and lasting["drift_share"] < 0.5
     assert lasting["resamplings"] > 2 * chance["resamplings"]
+    # The same lineages winning leave fewer histories at every lag than luck does.
+    # Relabelled, luck's resamplings keep about the histories they kept; the lasting run's keep
+    # more than it did over the shorter lags, where its one winning lineage shows.
+    for lag in ("25", "50", "100", "200"):
+        assert 1 <= lasting["lineages_back"][lag] < chance["lineages_back"][lag] <= n
+        assert chance["lineages_back"][lag] == pytest.approx(chance["neutral_lineages_back"][lag], rel=0.25, abs=1)
+    for lag in ("25", "50"):
+        assert lasting["lineages_back"][lag] < lasting["neutral_lineages_back"][lag]
 
 
 def test_a_folder_without_a_record_is_refused_before_any_work(tmp_path, capsys):
