@@ -15,7 +15,7 @@ For each run folder (``jaxslam map`` or ``experiments/datasets.py`` output):
   same resamplings with the lucky particles drawn afresh at every step
   (:func:`jaxslam.diagnose.neutral_coalescence_lags`), median and the recorded lag's quantile.
 * ``lineages_back``: how many distinct histories the particles still held 25, 50, 100 and 200
-  steps back, the median over the run's steps (:func:`jaxslam.diagnose.lineages_at_lag`): the
+  steps back, the median over the run's steps (:func:`jaxslam.diagnose.lineages_back`): the
   alternatives carried at every step, where ``lag_steps`` is the end's alone;
   ``neutral_lineages_back``: the same of the relabelled resamplings (the median over
   ``NEUTRAL_LINEAGE_DRAWS``): fewer recorded than neutral is selection.
@@ -38,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam.diagnose import (LINEAGE_LAGS, coalescence_lag, lineages_at_lag, neutral_coalescence_lags,
-                              pair_coalescence, read_step_record, relabelled_parents, weight_persistence)
+from jaxslam.diagnose import (coalescence_lag, lineages_back, neutral_coalescence_lags, pair_coalescence,
+                              read_step_record, relabelled_parents, weight_persistence)
 from jaxslam.resampling import resample_if_needed
 
 REPLAYS = 20
@@ -84,13 +84,6 @@ NEUTRAL_LINEAGE_DRAWS = 20
 over hundreds of steps, so a few draws settle it)."""
 
 
-def lineages_back(ancestors: np.ndarray) -> dict:
-    """The median over the steps of :func:`jaxslam.diagnose.lineages_at_lag` at each of
-    ``LINEAGE_LAGS`` (None where the record is shorter)."""
-    return {str(k): float(np.median(lineages_at_lag(ancestors, k))) if k <= len(ancestors) else None
-            for k in LINEAGE_LAGS}
-
-
 def run_figures(run_dir: Path, seed: int = 0) -> dict:
     """The module's figures for one run folder."""
     record = read_step_record(run_dir)
@@ -121,8 +114,8 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
             # steps; and the same resamplings relabelled (neutral drift), the median over the draws.
             "lineages_back": lineages_back(ancestors),
             "neutral_lineages_back": {
-                lag: (float(np.median([draw[lag] for draw in neutral_back])) if neutral_back[0][lag] is not None
-                      else None) for lag in neutral_back[0]}}
+                k: (float(np.median([draw[k] for draw in neutral_back])) if neutral_back[0][k] is not None else None)
+                for k in neutral_back[0]}}
 
 
 def drift_against_threshold(spread: float, thresholds, n: int = 30, steps: int = 20_000, seed: int = 0) -> dict:

@@ -173,6 +173,13 @@ def lineages_at_lag(ancestors: np.ndarray, lag: int) -> np.ndarray:
     return (np.count_nonzero(np.diff(np.sort(back, axis=1), axis=1), axis=1) + 1).astype(np.int64)
 
 
+def lineages_back(ancestors: np.ndarray) -> dict[str, float | None]:
+    """The median over the steps of :func:`lineages_at_lag` at each of ``LINEAGE_LAGS``, keyed by
+    the lag; None where the record is shorter than the lag."""
+    return {str(k): float(np.median(lineages_at_lag(ancestors, k))) if k <= len(ancestors) else None
+            for k in LINEAGE_LAGS}
+
+
 def neutral_coalescence_lags(ancestors: np.ndarray, draws: int = NEUTRAL_DRAWS, seed: int = 0) -> np.ndarray:
     """(draws,) int: :func:`coalescence_lag` of the same resamplings with their parents relabelled
     at random at every step: every step keeps its offspring counts (how many copies of which
@@ -469,11 +476,9 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         "slip_steps": int(np.count_nonzero(series["slipped"])),
         "pair_coalescence_per_step": float(np.mean(pair_coalescence(ancestors))) if steps else None,
         "coalescence_lag_steps": lag,
-        # The median over the run's steps; None where the run is shorter than the lag.
-        "lineages_back": {str(k): (float(np.median(lineages_at_lag(ancestors, k))) if steps >= k else None)
-                          for k in LINEAGE_LAGS},
         **({"neutral_lag_steps_median": float(np.median(neutral)),
             "neutral_lag_quantile": float(np.mean(neutral <= lag))} if steps else {}),
+        "lineages_back": lineages_back(ancestors),
         "weight_persistence": {"median_correlation": persistence["median_correlation"],
                                "median_increment_spread": persistence["median_increment_spread"],
                                "stretches": len(persistence["stretches"])},
