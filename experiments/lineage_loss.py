@@ -18,7 +18,8 @@ For each run folder (``jaxslam map`` or ``experiments/datasets.py`` output):
   steps back, the median over the run's steps (:func:`jaxslam.diagnose.lineages_back`): the
   alternatives carried at every step, where ``lag_steps`` is the end's alone;
   ``neutral_lineages_back``: the same of the relabelled resamplings (the median over
-  ``NEUTRAL_LINEAGE_DRAWS``): fewer recorded than neutral is selection.
+  ``NEUTRAL_LINEAGE_DRAWS``): fewer recorded than neutral is selection; ``lineages_curve``: both
+  at ``CURVE_LAGS``, drawn against the lag by ``--figure``, a line a run, coloured by N.
 
 And, independent of any run, the pure-drift rate of merging against the resampling threshold
 (``--thresholds``): i.i.d. increments of a given spread, systematic resampling at ESS < r N.
@@ -38,8 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam.diagnose import (coalescence_lag, lineages_back, neutral_coalescence_lags, pair_coalescence,
-                              read_step_record, relabelled_parents, weight_persistence)
+from jaxslam.diagnose import (LINEAGE_LAGS, coalescence_lag, lineages_back, neutral_coalescence_lags,
+                              pair_coalescence, read_step_record, relabelled_parents, weight_persistence)
 from jaxslam.resampling import resample_if_needed
 
 REPLAYS = 20
@@ -83,6 +84,9 @@ NEUTRAL_LINEAGE_DRAWS = 20
 """Relabelled copies of a run's resamplings behind ``neutral_lineages_back`` (each gives a median
 over hundreds of steps, so a few draws settle it)."""
 
+CURVE_LAGS = (1, 2, 5, 10, 25, 50, 100, 200, 300, 400, 600, 800)
+"""The lags (steps) of ``lineages_curve`` and ``--figure``; they include ``diagnose.LINEAGE_LAGS``."""
+
 
 def run_figures(run_dir: Path, seed: int = 0) -> dict:
     """The module's figures for one run folder."""
@@ -96,7 +100,9 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
     neutral = neutral_coalescence_lags(ancestors, seed=seed)
     lag = coalescence_lag(ancestors)
     rng = np.random.default_rng(seed)
-    neutral_back = [lineages_back(relabelled_parents(ancestors, rng)) for _ in range(NEUTRAL_LINEAGE_DRAWS)]
+    held = lineages_back(ancestors, CURVE_LAGS)
+    draws = [lineages_back(relabelled_parents(ancestors, rng), CURVE_LAGS) for _ in range(NEUTRAL_LINEAGE_DRAWS)]
+    neutral_held = {k: float(np.median([draw[k] for draw in draws])) if held[k] is not None else None for k in held}
     timestamps = np.asarray(record["timestamp"])
     errors = run_dir / "errors.json"  # experiments/datasets.py's relation error, where it scored the run
     relation_error = json.loads(errors.read_text()).get("trans_mean") if errors.is_file() else None
@@ -112,10 +118,10 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
             "neutral_lag_quantile": float(np.mean(neutral <= lag)),
             # How many histories the particles still held that many steps back, the median over the run's
             # steps; and the same resamplings relabelled (neutral drift), the median over the draws.
-            "lineages_back": lineages_back(ancestors),
-            "neutral_lineages_back": {
-                k: (float(np.median([draw[k] for draw in neutral_back])) if neutral_back[0][k] is not None else None)
-                for k in neutral_back[0]}}
+            "lineages_back": {str(k): held[str(k)] for k in LINEAGE_LAGS},
+            "neutral_lineages_back": {str(k): neutral_held[str(k)] for k in LINEAGE_LAGS},
+            "lineages_curve": {"lags": list(CURVE_LAGS), "held": list(held.values()),
+                               "neutral": list(neutral_held.values())}}
 
 
 def drift_against_threshold(spread: float, thresholds, n: int = 30, steps: int = 20_000, seed: int = 0) -> dict:
@@ -125,12 +131,42 @@ def drift_against_threshold(spread: float, thresholds, n: int = 30, steps: int =
     return {str(threshold): replay_merging(increments, seed, False, threshold) for threshold in thresholds}
 
 
+def plot_lineages(runs: list[dict], path: Path) -> None:
+    """Each run's ``lineages_curve``: the histories held (solid) and neutral drift's (dashed)
+    against the steps back, log-log, coloured by the number of particles."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sizes = sorted({r["num_particles"] for r in runs})
+    colours = {n: plt.cm.viridis(i / max(len(sizes) - 1, 1) * 0.8) for i, n in enumerate(sizes)}
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for r in runs:
+        curve = r["lineages_curve"]
+        lags = [k for k, v in zip(curve["lags"], curve["held"]) if v is not None]
+        colour = colours[r["num_particles"]]
+        ax.plot(lags, curve["held"][:len(lags)], color=colour, lw=1, alpha=0.8)
+        ax.plot(lags, curve["neutral"][:len(lags)], color=colour, lw=1, ls="--", alpha=0.5)
+    for n in sizes:
+        ax.plot([], [], color=colours[n], label=f"N = {n}, held")
+    ax.plot([], [], color="grey", ls="--", label="the same resamplings relabelled (neutral)")
+    ax.set(xscale="log", yscale="log", xlabel="steps back", ylabel="distinct histories held (median over steps)",
+           title="How far back the particles' alternatives reach")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", type=Path, help="run folders holding steps.npz")
     ap.add_argument("--out", type=Path, required=True, help="the JSON to write")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0.25, 0.5, 0.75, 0.9])
     ap.add_argument("--spreads", type=float, nargs="+", default=[0.12, 0.18, 0.25])
+    ap.add_argument("--figure", type=Path, help="also draw the histories held against the steps back (a PNG)")
     args = ap.parse_args(argv)
     missing = [str(r) for r in args.runs if not (r / "steps.npz").is_file()]
     if missing:
@@ -149,6 +185,9 @@ def main(argv=None) -> int:
               f"{r['neutral_lag_median']:.0f} neutral (quantile {r['neutral_lag_quantile']:.2f}); histories held "
               + ", ".join(f"{v:.0f} ({r['neutral_lineages_back'][k]:.0f} neutral) at {k}"
                           for k, v in r["lineages_back"].items() if v is not None) + " steps back")
+    if args.figure is not None:
+        plot_lineages(runs, args.figure)
+        print(f"figure: {args.figure}")
     for spread, rates in drift.items():
         print(f"pure drift, spread {spread}: " + ", ".join(f"r = {k}: {v * 1e3:.2f}e-3" for k, v in rates.items()))
     return 0

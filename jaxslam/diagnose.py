@@ -173,11 +173,10 @@ def lineages_at_lag(ancestors: np.ndarray, lag: int) -> np.ndarray:
     return (np.count_nonzero(np.diff(np.sort(back, axis=1), axis=1), axis=1) + 1).astype(np.int64)
 
 
-def lineages_back(ancestors: np.ndarray) -> dict[str, float | None]:
-    """The median over the steps of :func:`lineages_at_lag` at each of ``LINEAGE_LAGS``, keyed by
+def lineages_back(ancestors: np.ndarray, lags=LINEAGE_LAGS) -> dict[str, float | None]:
+    """The median over the steps of :func:`lineages_at_lag` at each of ``lags`` (steps), keyed by
     the lag; None where the record is shorter than the lag."""
-    return {str(k): float(np.median(lineages_at_lag(ancestors, k))) if k <= len(ancestors) else None
-            for k in LINEAGE_LAGS}
+    return {str(k): float(np.median(lineages_at_lag(ancestors, k))) if k <= len(ancestors) else None for k in lags}
 
 
 def neutral_coalescence_lags(ancestors: np.ndarray, draws: int = NEUTRAL_DRAWS, seed: int = 0) -> np.ndarray:

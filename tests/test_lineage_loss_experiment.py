@@ -29,8 +29,10 @@ def test_chance_and_lasting_weights_are_told_apart(tmp_path):
         (tmp_path / name).mkdir()
         write_step_record(tmp_path / name / "steps.npz", record_of(increments, np.random.default_rng(0)))
     out = tmp_path / "figures" / "lineage_loss.json"
+    figure = tmp_path / "figures" / "lineages.png"
     assert lineage_loss.main([str(tmp_path / "chance"), str(tmp_path / "lasting"), "--out", str(out),
-                              "--thresholds", "0.5", "--spreads", "0.2"]) == 0
+                              "--thresholds", "0.5", "--spreads", "0.2", "--figure", str(figure)]) == 0
+    assert figure.stat().st_size > 10_000
     figures = {Path(r["run"]).name: r for r in json.loads(out.read_text())["runs"]}
     chance, lasting = figures["chance"], figures["lasting"]
     # Chance: the replay merges as fast with the increments dealt at random. Over 2,000 steps
@@ -52,6 +54,11 @@ def test_chance_and_lasting_weights_are_told_apart(tmp_path):
         assert chance["lineages_back"][lag] == pytest.approx(chance["neutral_lineages_back"][lag], rel=0.25, abs=1)
     for lag in ("25", "50"):
         assert lasting["lineages_back"][lag] < lasting["neutral_lineages_back"][lag]
+    # The curve holds the same figures at those lags, and never grows with the lag.
+    for run in (chance, lasting):
+        curve = dict(zip(map(str, run["lineages_curve"]["lags"]), run["lineages_curve"]["held"]))
+        assert all(curve[lag] == run["lineages_back"][lag] for lag in run["lineages_back"])
+        assert np.all(np.diff(run["lineages_curve"]["held"]) <= 0) and run["lineages_curve"]["held"][0] <= n
 
 
 def test_a_folder_without_a_record_is_refused_before_any_work(tmp_path, capsys):
