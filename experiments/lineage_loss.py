@@ -85,7 +85,7 @@ NEUTRAL_LINEAGE_DRAWS = 20
 over hundreds of steps, so a few draws settle it)."""
 
 CURVE_LAGS = (1, 2, 5, 10, 25, 50, 100, 200, 300, 400, 600, 800)
-"""The lags (steps) of ``lineages_curve`` and ``--figure``; they include ``diagnose.LINEAGE_LAGS``."""
+"""The lags (steps) of ``lineages_curve`` and ``--figure``, with ``diagnose.LINEAGE_LAGS``."""
 
 
 def run_figures(run_dir: Path, seed: int = 0) -> dict:
@@ -100,8 +100,9 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
     neutral = neutral_coalescence_lags(ancestors, seed=seed)
     lag = coalescence_lag(ancestors)
     rng = np.random.default_rng(seed)
-    held = lineages_back(ancestors, CURVE_LAGS)
-    draws = [lineages_back(relabelled_parents(ancestors, rng), CURVE_LAGS) for _ in range(NEUTRAL_LINEAGE_DRAWS)]
+    lags = sorted(set(CURVE_LAGS) | set(LINEAGE_LAGS))
+    held = lineages_back(ancestors, lags)
+    draws = [lineages_back(relabelled_parents(ancestors, rng), lags) for _ in range(NEUTRAL_LINEAGE_DRAWS)]
     neutral_held = {k: float(np.median([draw[k] for draw in draws])) if held[k] is not None else None for k in held}
     timestamps = np.asarray(record["timestamp"])
     errors = run_dir / "errors.json"  # experiments/datasets.py's relation error, where it scored the run
@@ -120,7 +121,7 @@ def run_figures(run_dir: Path, seed: int = 0) -> dict:
             # steps; and the same resamplings relabelled (neutral drift), the median over the draws.
             "lineages_back": {str(k): held[str(k)] for k in LINEAGE_LAGS},
             "neutral_lineages_back": {str(k): neutral_held[str(k)] for k in LINEAGE_LAGS},
-            "lineages_curve": {"lags": list(CURVE_LAGS), "held": list(held.values()),
+            "lineages_curve": {"lags": lags, "held": list(held.values()),
                                "neutral": list(neutral_held.values())}}
 
 
@@ -171,6 +172,9 @@ def main(argv=None) -> int:
     missing = [str(r) for r in args.runs if not (r / "steps.npz").is_file()]
     if missing:
         print(f"lineage_loss.py: no steps.npz in {', '.join(missing)}", file=sys.stderr)
+        return 2
+    if args.figure is not None and args.figure.is_dir():
+        print(f"lineage_loss.py: --figure {args.figure} is a folder; give the PNG's path", file=sys.stderr)
         return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
     from tqdm.auto import tqdm

@@ -61,7 +61,11 @@ def test_chance_and_lasting_weights_are_told_apart(tmp_path):
         assert np.all(np.diff(run["lineages_curve"]["held"]) <= 0) and run["lineages_curve"]["held"][0] <= n
 
 
-def test_a_folder_without_a_record_is_refused_before_any_work(tmp_path, capsys):
+def test_a_folder_without_a_record_or_a_folder_for_the_figure_is_refused_before_any_work(tmp_path, capsys):
     out = tmp_path / "lineage_loss.json"
     assert lineage_loss.main([str(tmp_path), "--out", str(out)]) == 2
     assert "no steps.npz" in capsys.readouterr().err and not out.exists()
+    (tmp_path / "run").mkdir()
+    write_step_record(tmp_path / "run" / "steps.npz", record_of(np.zeros((20, 4)), np.random.default_rng(0)))
+    assert lineage_loss.main([str(tmp_path / "run"), "--out", str(out), "--figure", str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err and not out.exists()
