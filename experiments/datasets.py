@@ -123,9 +123,24 @@ def score_run(dataset: str, proposal: str, seed: int, run_dir: Path, data: Path,
     from jaxslam.metrics import relation_error
 
     summary = json.loads((run_dir / "summary.json").read_text())
-    timestamps, poses = read_trajectory(run_dir / "trajectory.txt")
     relations = read_relations(data / DATASETS[dataset][1])
+    # The filter alone is the table's figure; the loop closure's (trajectory.txt where the run
+    # closed loops) is its own column, and the relations more than 20 minutes apart their own row.
+    closed_file = run_dir / "trajectory_filter.txt"
+    filter_file = closed_file if closed_file.is_file() else run_dir / "trajectory.txt"
+    timestamps, poses = read_trajectory(filter_file)
     err = relation_error(timestamps, poses, relations).to_dict()
+    far = np.abs(np.asarray(relations.t2) - np.asarray(relations.t1)) > FAR_APART_S
+    extra_errors = {"far_relations": int(far.sum()),
+                    "far_trans_mean": _far_mean(timestamps, poses, relations, far)}
+    if closed_file.is_file():
+        closed_times, closed_poses = read_trajectory(run_dir / "trajectory.txt")
+        closed_err = relation_error(closed_times, closed_poses, relations).to_dict()
+        extra_errors.update({f"closed_{k}": closed_err[k] for k in ("trans_mean", "trans_std", "rot_mean_deg",
+                                                                      "rot_std_deg")})
+        extra_errors["closed_far_trans_mean"] = _far_mean(closed_times, closed_poses, relations, far)
+        extra_errors["loops_kept"] = summary["closure"]["loops_kept"]
+        extra_errors["closure_s"] = summary["closure"]["timings"]["total"]
     refined = {}
     if (run_dir / "trajectory_refined.txt").is_file():  # every scan localised in the final map
         refined_err = relation_error(*read_trajectory(run_dir / "trajectory_refined.txt"), relations).to_dict()
@@ -136,6 +151,7 @@ def score_run(dataset: str, proposal: str, seed: int, run_dir: Path, data: Path,
         "rot_mean_deg": err["rot_mean_deg"], "rot_std_deg": err["rot_std_deg"],
         "trans2_mean": err["trans2_mean"], "rot2_mean_deg2": err.get("rot2_mean_deg2"),
         "relations": err["count"],
+        **extra_errors,
         **refined,
         "wall_s": wall, "filter_s": summary["timings"]["total"],
         "real_time_factor": summary["log_duration_s"] / wall,
@@ -147,6 +163,22 @@ def score_run(dataset: str, proposal: str, seed: int, run_dir: Path, data: Path,
     }
     (run_dir / "errors.json").write_text(json.dumps(record, indent=2))
     return record
+
+
+FAR_APART_S = 1200.0
+"""Relations whose two scans are more than this many seconds apart (20 minutes) are reported on
+their own: they span the long loops."""
+
+
+def _far_mean(timestamps, poses, relations, far) -> float | None:
+    """The mean translational relation error (m) over the relations ``far`` selects (None if none)."""
+    from jaxslam.io.relations import Relations
+    from jaxslam.metrics import relation_error
+
+    if not far.any():
+        return None
+    subset = Relations(*(np.asarray(field)[far] for field in relations))
+    return float(relation_error(timestamps, poses, subset).trans_mean)
 
 
 def run_seeds_batched(dataset: str, proposal: str, seeds: list[int], out: Path, data: Path,
@@ -194,6 +226,7 @@ def aggregate(records: list[dict]) -> dict:
             keys = ["trans_mean", "trans_std", "rot_mean_deg", "rot_std_deg", "wall_s", "real_time_factor",
                     "peak_memory_mb"]
             refined_keys = [f"refined_{k}" for k in keys[:4]] if all("refined_trans_mean" in r for r in runs) else []
+            refined_keys += [f"closed_{k}" for k in keys[:4]] if all("closed_trans_mean" in r for r in runs) else []
             out.setdefault(dataset, {})[proposal] = {
                 **{k: float(np.mean([r[k] for r in runs])) for k in keys + refined_keys},
                 "trans_mean_over_seeds_std": float(np.std([r["trans_mean"] for r in runs])),
@@ -221,6 +254,11 @@ def markdown(summary: dict) -> str:
                 f"| {dataset} | jaxslam {method_label(proposal)} ({s['seeds']} seeds) | {s['trans_mean']:.3f} ± {s['trans_std']:.3f} "
                 f"| {s['rot_mean_deg']:.2f} ± {s['rot_std_deg']:.2f} | {s['wall_s']:.1f} | {s['real_time_factor']:.1f} "
                 f"| {s['peak_memory_mb']:.0f} |")
+            if "closed_trans_mean" in s:
+                lines.append(
+                    f"| {dataset} | jaxslam {method_label(proposal)} + loop closure | {s['closed_trans_mean']:.3f} ± "
+                    f"{s['closed_trans_std']:.3f} | {s['closed_rot_mean_deg']:.2f} ± {s['closed_rot_std_deg']:.2f} "
+                    "| | | |")
             if "refined_trans_mean" in s:
                 lines.append(
                     f"| {dataset} | jaxslam {method_label(proposal)} + refinement | {s['refined_trans_mean']:.3f} ± "

@@ -151,6 +151,10 @@ def _add_filter_options(p: argparse.ArgumentParser, command_defaults: dict, prop
                    help="output folder (replaced atomically; stale outputs removed) (default %(default)s)")
     p.add_argument("--refine", action="store_true",
                    help="also localise every scan in the final map: trajectory_refined.txt (jaxslam.refine)")
+    p.add_argument("--no-close-loops", action="store_true",
+                   help="the filter alone: no pose graph, no loop search (by default the loops of the best "
+                        "particle's path are closed: trajectory.txt holds the optimised poses, "
+                        "trajectory_filter.txt the filter's, graph.npz the graph; jaxslam.graph)")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                    help="write a checkpoint (OUT.checkpoint.npz, beside the output folder) every N chunks "
                         "(N x --chunk-size processed scans). Without it, Ctrl-C or SIGTERM still writes one "
@@ -383,8 +387,11 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
             return stop.signum is not None
 
         try:
+            from jaxslam.graph import ClosureConfig
+
+            close = None if getattr(args, "no_close_loops", False) else ClosureConfig()
             result = run(jax.random.key(args.seed), log, config, params, settings, chunk_size=args.chunk_size,
-                         progress=not args.no_progress, on_chunk=on_chunk, resume=resume)
+                         progress=not args.no_progress, on_chunk=on_chunk, resume=resume, close_loops=close)
         except RunInterrupted as err:
             print(f"jaxslam {args.command}: interrupted at step {err.steps_done} of {err.num_steps} "
                   f"(checkpoint {ckpt}); resume with --resume", file=sys.stderr)
@@ -414,10 +421,18 @@ def write_map_outputs(out, log, result, params, seed: int, source: str, refine: 
 
         from jaxslam.refine import refine_trajectory
 
-        # In the filter's local frame (result.frame_offset subtracted), as the map was built.
-        _, field, grid = result.dense_map(local=True)
+        from jaxslam.rbpf import grid_to_world
+
+        # In the filter's local frame (result.frame_offset subtracted), as the map was built; on
+        # the closed map from the closed trajectory where loops were closed.
+        closure = result.closure
+        if closure is not None and closure.num_loops:
+            _, field, grid = result.closed_map(log, params)
+            grid, start = grid_to_world(grid, -result.frame_offset), closure.trajectory
+        else:
+            (_, field, grid), start = result.dense_map(local=True), result.trajectory
         t0 = time.perf_counter()
-        refined = refine_trajectory(grid, field, result.to_local(result.trajectory), log.ranges, log.sensor,
+        refined = refine_trajectory(grid, field, result.to_local(start), log.ranges, log.sensor,
                                     params, result.config, odometry=result.to_local(log.odometry))
         refined = refined._replace(poses=result.to_world(refined.poses),
                                    matched_poses=result.to_world(refined.matched_poses))
@@ -459,6 +474,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if status == 0:
         summary = json.loads((Path(args.out) / "summary.json").read_text())
         print(_ground_truth_error_line(summary["ground_truth_error"]))
+        closure = summary.get("closure")
+        if closure is not None:
+            print(f"loop closure: {closure['loops_kept']} loops kept of {closure['candidates']} candidates; closed path "
+                  f"mean {closure['ground_truth_mean_m']:.3f} m (summary.json: closure; graph.npz)")
     return status
 
 
@@ -514,7 +533,9 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else run
     record = read_step_record(run)  # before any work: a clear error for a folder without it
     relations = read_relations(args.relations) if args.relations else None
-    trajectory = read_trajectory(run / "trajectory.txt") if relations is not None else None
+    # The particles' record is the filter's: compare it with the filter's own trajectory.
+    filter_trajectory = run / ("trajectory_filter.txt" if (run / "trajectory_filter.txt").exists() else "trajectory.txt")
+    trajectory = read_trajectory(filter_trajectory) if relations is not None else None
     result = diagnose(record, trajectory, relations)
     out.mkdir(parents=True, exist_ok=True)
     values, nulled = strict_json_values(result)
@@ -531,6 +552,9 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         fig.savefig(out / "diagnosis.png", dpi=120)
     finally:
         plt.close(fig)
+    written = [out / "diagnosis.json", out / "diagnosis.png"]
+    if (run / "graph.npz").exists():
+        written.append(_draw_graph(run, out))
     summary = result["summary"]
     for key, value in summary.items():
         print(f"{key:>40}: {value}")
@@ -538,8 +562,33 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         print(name.replace("_", " ") + ":")
         for event in events:
             print("   " + ", ".join(f"{k} {v:.4g}" for k, v in event.items()))
-    print(f"written to {out / 'diagnosis.json'} and {out / 'diagnosis.png'}")
+    print("written to " + ", ".join(str(path) for path in written))
     return 0
+
+
+def _draw_graph(run: Path, out: Path) -> Path:
+    """graph.png: a run's pose graph (graph.npz) drawn over its map."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from jaxslam.graph import load_graph, plot_graph
+    from jaxslam.io.maps import read_map
+    from jaxslam.plotting import plot_map
+
+    graph = load_graph(run / "graph.npz")
+    fig, ax = plt.subplots(figsize=(9, 9))
+    try:
+        if (run / "map.yaml").exists():
+            occupancy, spec = read_map(run / "map.yaml")
+            occupancy = np.clip(occupancy, 1e-3, 1 - 1e-3)
+            plot_map(ax, np.log(occupancy / (1 - occupancy)), spec)  # plot_map draws log-odds
+        plot_graph(ax, graph)
+        kept = int((graph["loop_refused"] == "").sum())
+        ax.set_title(f"{run}: {kept} loops kept of {graph['loop_refused'].size} candidates")
+        fig.savefig(out / "graph.png", dpi=120)
+    finally:
+        plt.close(fig)
+    return out / "graph.png"
 
 
 def _cmd_doors(args: argparse.Namespace) -> int:

@@ -93,7 +93,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
 
 
 SLAM_OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.txt", "trajectory_refined.txt",
-                     "summary.json", "slam.png", "steps.npz")
+                     "trajectory_filter.txt", "graph.npz", "summary.json", "slam.png", "steps.npz")
 """Every file :func:`write_slam_outputs` can write. Those of an earlier run that a new run does
 not write (e.g. ``trajectory_refined.txt`` without ``--refine``) are removed, never kept stale."""
 
@@ -107,7 +107,12 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json``, ``slam.png`` and
     ``steps.npz`` (the per-step record ``jaxslam diagnose`` reads: :mod:`jaxslam.diagnose`) into ``out_dir``.
 
-    The map is the final best particle's, cropped to its known cells plus a margin of
+    With a loop closure (``result.closure``, :mod:`jaxslam.graph`), ``trajectory.txt`` holds the
+    optimised poses, ``trajectory_filter.txt`` the filter's, ``graph.npz`` the pose graph
+    (:func:`jaxslam.graph.save_graph`), the map is drawn again at the optimised poses
+    (:meth:`jaxslam.slam.SlamResult.closed_map`) and the summary's ``closure`` counts the loops.
+
+    Without one, the map is the final best particle's, cropped to its known cells plus a margin of
     :data:`jaxslam.io.maps.DEFAULT_MARGIN_CELLS` cells (see :func:`jaxslam.io.maps.crop_to_known`;
     ``map.yaml``'s origin is the crop's lower-left corner, in the log's frame), and ``slam.png``
     shows the same area (widened to the best particle's path if that leaves it). The trajectory
@@ -137,9 +142,15 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     from jaxslam.io.trajectory import write_trajectory
     from jaxslam.plotting import plot_slam_result
 
-    logodds, _, grid = result.dense_map()
+    closure = getattr(result, "closure", None)
+    logodds, _, grid = result.dense_map() if closure is None else result.closed_map(log, params)
     cropped, spec = crop_to_known(logodds, grid)
     summary = summarize(log, result, params, seed, source)
+    if closure is not None:
+        summary["closure"] = closure.summary()
+        if getattr(log, "ground_truth", None) is not None:
+            truth = np.asarray(log.ground_truth, np.float64)[closure.node_scans, :2]
+            summary["closure"]["ground_truth_mean_m"] = float(np.mean(np.hypot(*(closure.poses[:, :2] - truth).T)))
     if refined is not None:
         summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
                                  "median_score": float(np.median(refined.scores))}
@@ -151,9 +162,18 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
 
     def write(out: Path) -> None:
         write_map(out / "map", cropped, spec)
-        write_trajectory(out / "trajectory.txt", log.timestamps, result.trajectory)
+        write_trajectory(out / "trajectory.txt", log.timestamps,
+                         result.trajectory if closure is None else closure.trajectory)
         fig = Figure(figsize=(8, 8))
         plot_slam_result(result, log, world=world, ax=fig.subplots())
+        if closure is not None:
+            from jaxslam.graph import save_graph
+
+            write_trajectory(out / "trajectory_filter.txt", log.timestamps, result.trajectory)
+            save_graph(out / "graph.npz", closure)
+            fig.axes[0].plot(closure.poses[:, 0], closure.poses[:, 1], color="tab:blue", lw=1.0,
+                             label=f"closed ({closure.num_loops} loops)")
+            fig.axes[0].legend(loc="upper right", fontsize=8)
         _limit_to_map(fig.axes[0], spec, result.best_path)
         fig.savefig(out / "slam.png", dpi=150)
         if refined is not None:

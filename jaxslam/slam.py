@@ -63,6 +63,10 @@ class SlamResult(NamedTuple):
     ``tiles_in_use`` and ``blocks_in_use``, ``peak_request`` and ``peak_block_request`` (the most
     new tiles and blocks one step asked for), ``bytes`` (pools and directories) and ``growths``:
     one entry per growth (``step`` and the new sizes), each a repeated chunk and a recompile."""
+    closure: "LoopClosure | None" = None
+    """The loop closure behind the filter (:func:`jaxslam.graph.close_loops`: the pose graph, its
+    loops and the optimised ``trajectory``), when ``run`` was asked for it (``close_loops``);
+    None for the filter alone. ``best_path`` and ``trajectory`` stay the filter's."""
 
     @property
     def best_particle(self) -> int:
@@ -85,6 +89,16 @@ class SlamResult(NamedTuple):
         if local:
             return logodds, field, box
         return logodds, field, rbpf.grid_to_world(box, self.frame_offset)
+
+    def closed_map(self, log, params) -> tuple[np.ndarray, np.ndarray, GridSpec]:
+        """The map drawn again at the loop closure's optimised poses, as :meth:`dense_map` returns
+        a map (:func:`jaxslam.graph.draw_map`); the filter's best map where no loop was kept (the
+        poses are then the filter's)."""
+        from jaxslam.graph import draw_map
+
+        if self.closure is None or self.closure.num_loops == 0:
+            return self.dense_map()
+        return draw_map(self.closure, log, params, self.config, self.frame_offset)
 
     def to_world(self, poses) -> np.ndarray:
         """Poses (..., 3) or points (..., 2) of the local frame (``state.poses``,
@@ -133,8 +147,10 @@ def run(
     on_chunk=None,
     resume: RunProgress | None = None,
     initial_pool: tuple[int, int] | None = None,
+    close_loops: "ClosureConfig | None" = None,
 ) -> SlamResult:
-    """Map a whole log: select the scans, then ``lax.scan`` the step over them in chunks.
+    """Map a whole log: select the scans, then ``lax.scan`` the step over them in chunks; with
+    ``close_loops``, then close the loops of the best particle's path (``result.closure``).
 
     The filter runs in a local frame: the translation (x0, y0) of the log's first odometry pose,
     rounded to a multiple of 64 m, is subtracted from the odometry (and ground truth) on the host
@@ -171,8 +187,12 @@ def run(
       initial_pool: ``(capacity, max_new_tiles)`` of the maps' pool at the start (default
         :func:`jaxslam.rbpf.pool_size` of the first scan's footprint); the pool grows as needed, and
         its size never changes the result.
+      close_loops: a :class:`jaxslam.graph.ClosureConfig`: after the filter, build the pose graph,
+        search it for loops and optimise it (:func:`jaxslam.graph.close_loops`; ``result.closure``,
+        ``result.closed_map``); None (the default): the filter alone.
     """
     _check_chunk_size(chunk_size)
+    world_log = log
     t_start = time.perf_counter()
     prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
     log = rbpf.local_log(log, frame_offset)  # from here on, the local frame
@@ -219,8 +239,13 @@ def run(
             raise RunInterrupted(done + chunked.num_done, num_steps)
         state, info, first_chunk_seconds = chunked.carry, with_prior(chunked.outputs), chunked.first_chunk_seconds
 
-    return _finish(state, info, prepared, log, selection, frame_offset, config, settings, growths,
-                   first_chunk_seconds, time.perf_counter() - t_start)
+    result = _finish(state, info, prepared, log, selection, frame_offset, config, settings, growths,
+                     first_chunk_seconds, time.perf_counter() - t_start)
+    if close_loops is not None:
+        from jaxslam.graph import close_loops as close
+
+        result = result._replace(closure=close(world_log, result, params, close_loops, progress=progress))
+    return result
 
 
 # ---------------------------------------------------------------------------------------------

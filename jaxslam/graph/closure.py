@@ -1,0 +1,606 @@
+"""Loop closure behind the particle filter: :func:`close_loops`.
+
+From a finished run (:class:`jaxslam.slam.SlamResult`): the nodes are its processed scans at
+the best particle's poses, the edges between neighbours are its relative poses with the motion
+model's covariance, the submaps are runs of consecutive scans (:mod:`jaxslam.graph.submaps`).
+Every ``query_stride``-th scan is searched against every submap it is not a neighbour of in time
+and could be near (:mod:`jaxslam.graph.loop_search`), in a window that grows with the distance
+travelled since the submap. A match becomes a loop edge when it passes five tests, each of which
+a false loop on an aliasing world fails for its own reason (docs/design.md, "Loop closure"):
+
+1. **score**: its mean fit is at least ``min_score``;
+2. **window**: the refined match lies inside the search window, two cells (two angular steps)
+   from its edge: a best match on the edge is no peak, the true one may lie beyond;
+3. **unique**: no other mode in the window comes within ``max_second_ratio`` of it;
+4. **information**: the match pins the pose: the Laplace covariance of the tempered
+   log-likelihood at the refined pose has its widest translation axis under ``max_std_xy`` and
+   heading under ``max_std_theta`` (a corridor's matches slide along it and fail here);
+5. **consistency**: the loops that close near it (queries within ``consistency_nodes`` nodes,
+   submaps within one; earlier kept loops vote too) are compared with it through the filter's
+   local relative poses: at least ``min_support`` agree, and more agree than disagree (a slide
+   along a corridor agrees with its own kind, but the loops before it disagree).
+
+The graph is then optimised (:func:`jaxslam.graph.pose_graph.optimize`, Dynamic Covariance
+Scaling on the loops); a loop still in conflict with the rest (chi2 above ``max_chi2``) is
+refused and the graph optimised again without it. The map is drawn again at the optimised poses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam.geometry import between_np, compose_np, wrap_angle_np
+from jaxslam.grid import GridSpec
+from jaxslam.graph import pose_graph
+from jaxslam.graph.loop_search import SearchResult, SearchWindow, search_pairs
+from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
+from jaxslam.graph.submaps import Submaps, build_submaps, scan_points
+from jaxslam.map_view import MapView
+from jaxslam.motion import noise_std
+from jaxslam.occupancy import GridMap, empty_map, insert_scan
+from jaxslam.scan_matching import match
+from jaxslam.sensor_model import ENDPOINT
+
+
+@dataclasses.dataclass(frozen=True)
+class ClosureConfig:
+    """Settings of the loop closure. Hashable; the fields marked static set array shapes."""
+
+    nodes_per_submap: int = 20
+    """Consecutive processed scans per submap (static)."""
+    query_stride: int = 3
+    """Every this many processed scans is searched for loops."""
+    submaps_per_query: int = 2
+    """A scan is searched against at most this many submaps, the nearest to its estimated
+    position (their scans overlap: a third adds little)."""
+    num_points: int = 90
+    """Points of a scan the search matches, spread evenly over its valid returns (static)."""
+    search_range: float = 15.0
+    """Longest return the search uses (m); the submaps register endpoints to the filter's
+    ``max_insert_range``."""
+    sigma: float = 0.05
+    """Width of the per-point fit exp(-d^2 / (2 sigma^2)) the search scores (m)."""
+    min_separation: float = 10.0
+    """A submap is searched only from scans at least this far along the path after its last
+    scan (m): nearer ones are the filter's neighbours."""
+    max_node_distance: float = 5.0
+    """A submap is searched from a scan whose estimated position lies within the window plus
+    this of one of the submap's scans (m)."""
+    window_min_xy: float = 1.0
+    """Translation window (m either side) right after the submap."""
+    window_xy_per_metre: float = 0.03
+    """Growth of the translation window per metre travelled since the submap (m/m)."""
+    window_max_xy: float = 8.0
+    """Largest translation window (m either side; static)."""
+    window_min_theta: float = math.radians(30.0)
+    """Angular window (rad either side) right after the submap."""
+    window_theta_per_metre: float = math.radians(0.05)
+    """Growth of the angular window per metre travelled (rad/m)."""
+    window_max_theta: float = math.radians(45.0)
+    """Largest angular window (rad either side; static)."""
+    angular_step: float = 0.01
+    """Angle between candidate headings (rad): a cell's side at 5 m; the hill climb refines
+    the heading below it (static)."""
+    levels: int = 5
+    """Levels of the search's bound (static)."""
+    keep: int = 128
+    """Nodes the search keeps per level (static)."""
+    batch: int = 16
+    """Pairs searched at once (static; memory)."""
+    min_score: float = 0.45
+    """Least mean fit of a loop."""
+    max_second_ratio: float = 0.9
+    """A match whose second mode (0.5 m or 3 degrees away) scores at least this fraction of it is
+    ambiguous."""
+    max_std_xy: float = 0.10
+    """Widest translation std a loop may have (m)."""
+    max_std_theta: float = 0.02
+    """Widest heading std a loop may have (rad)."""
+    consistency_nodes: int = 40
+    """Loops whose queries are at most this many nodes apart check each other."""
+    consistency_xy: float = 0.3
+    """Loops agree when they predict each other's query within this (m) ..."""
+    consistency_theta: float = 0.05
+    """... and this (rad)."""
+    min_support: int = 1
+    """Other loops a loop must agree with."""
+    loop_phi: float = 5.0
+    """Dynamic Covariance Scaling's phi for loop edges (chi2 units)."""
+    max_chi2: float = 25.0
+    """A loop whose chi2 after the least-squares solve exceeds this is refused."""
+    max_rounds: int = 5
+    """Solve-and-refuse rounds at most."""
+    query_block: int = 100
+    """Nodes whose queries are searched before the graph is solved again (time order)."""
+    match_iterations: int = 12
+    """Hill-climbing rounds that refine each match below the search's cell (static)."""
+
+    def window(self, resolution: float, half_cells: int | None = None) -> SearchWindow:
+        """The search's static shape at a map resolution (m), for translation windows up to
+        ``half_cells`` (default: ``window_max_xy``)."""
+        if half_cells is None:
+            half_cells = int(math.ceil(self.window_max_xy / resolution))
+        return SearchWindow(
+            half_cells=int(half_cells),
+            half_angles=int(math.ceil(self.window_max_theta / self.angular_step)),
+            angular_step=float(self.angular_step), levels=int(self.levels), keep=int(self.keep),
+            ambiguity_cells=int(math.ceil(0.5 / resolution)),
+            ambiguity_angles=int(math.ceil(math.radians(3.0) / self.angular_step)))
+
+
+class Loops(NamedTuple):
+    """Candidate loops (host arrays, one row each)."""
+
+    query: np.ndarray
+    """(C,) int: the node searched."""
+    submap: np.ndarray
+    """(C,) int: the submap it matched."""
+    measurement: np.ndarray
+    """(C, 3): the query's pose in the submap's first node's frame."""
+    information: np.ndarray
+    """(C, 3, 3): the match's information (the Laplace fit's inverse covariance)."""
+    score: np.ndarray
+    """(C,) the refined match's mean fit."""
+    second_ratio: np.ndarray
+    """(C,) the second mode's score over the best's."""
+    certified: np.ndarray
+    """(C,) bool: the search's best is the exact optimum of its window."""
+    refused: np.ndarray
+    """(C,) str: why the loop was refused ("" for a kept one): "score", "window", "ambiguous",
+    "information", "consistency" or "chi2"."""
+    chi2: np.ndarray
+    """(C,) the loop's chi2 in the final graph (nan for one refused before the optimisation)."""
+
+    @classmethod
+    def empty(cls) -> "Loops":
+        """No loops (``refused`` of dtype object while the closure collects them)."""
+        return cls(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0),
+                   np.zeros(0), np.zeros(0, bool), np.zeros(0, object), np.zeros(0))
+
+    def extend(self, other: "Loops") -> "Loops":
+        """These loops, then ``other``'s."""
+        return Loops(*(np.concatenate([a, b]) for a, b in zip(self, other)))
+
+
+class LoopClosure(NamedTuple):
+    """What :func:`close_loops` returns (host arrays, world frame)."""
+
+    node_scans: np.ndarray
+    """(S,) int: the log index of each node's scan."""
+    filter_poses: np.ndarray
+    """(S, 3): the filter's poses at the nodes."""
+    poses: np.ndarray
+    """(S, 3): the optimised poses."""
+    trajectory: np.ndarray
+    """(T, 3): an optimised pose for every scan of the log."""
+    edges: Edges
+    """The graph's edges, the kept loops last (node indices)."""
+    loops: Loops
+    """Every candidate loop the search found with a score, kept or refused."""
+    submap_first_node: np.ndarray
+    """(M,) each submap's first node."""
+    pairs_searched: int
+    """Scan-submap pairs the search ran."""
+    timings: dict
+    """Seconds: ``submaps``, ``search``, ``accept``, ``optimize``, ``total``."""
+
+    @property
+    def num_loops(self) -> int:
+        """Loop edges kept in the graph."""
+        return int(np.sum(self.loops.refused == ""))
+
+    def summary(self) -> dict:
+        """Counts and seconds for ``summary.json``: pairs searched, loops kept, refused by reason,
+        the share of searches whose best was certified exact, and the largest correction (m)."""
+        refused = self.loops.refused[self.loops.refused != ""]
+        reasons, counts = np.unique(refused, return_counts=True)
+        shift = np.hypot(*(self.poses - self.filter_poses)[:, :2].T) if self.poses.size else np.zeros(1)
+        return {"nodes": int(self.node_scans.size), "submaps": int(self.submap_first_node.size),
+                "pairs_searched": int(self.pairs_searched), "candidates": int(self.loops.query.size),
+                "loops_kept": self.num_loops, "refused": {str(r): int(c) for r, c in zip(reasons, counts)},
+                "certified_share": float(np.mean(self.loops.certified)) if self.loops.query.size else None,
+                "largest_correction_m": float(shift.max()), "timings": dict(self.timings)}
+
+
+def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params) -> Edges:
+    """Edges between consecutive nodes: the filter's relative poses, with the motion model's
+    covariance of the odometry motion between them ((S, 3) poses, (S, 3) motions, row 0 unused)."""
+    first = np.arange(poses.shape[0] - 1)
+    measurement = between_np(poses[:-1], poses[1:])
+    std = np.asarray(noise_std(jnp.asarray(motions[1:], jnp.float32), motion_params), np.float64)
+    information = np.zeros((first.size, 3, 3))
+    information[:, [0, 1, 2], [0, 1, 2]] = 1.0 / np.maximum(std, 1e-6) ** 2
+    return Edges(first, first + 1, measurement, information, np.full(first.size, SEQUENTIAL))
+
+
+def path_distances(poses: np.ndarray) -> np.ndarray:
+    """(S,) metres travelled along the nodes from the first."""
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+
+
+def graph_distances(travelled: np.ndarray, queries: np.ndarray, submap_last: np.ndarray, loop_query: np.ndarray,
+                    loop_node: np.ndarray) -> np.ndarray:
+    """(Q, M) how far each query is from each submap along the graph: along the path, or through
+    one kept loop (path from the submap to the loop's submap node, the loop, path from the loop's
+    query to this query), whichever is shorter. The drift a window must allow grows with it."""
+    direct = travelled[queries][:, None] - travelled[submap_last][None]
+    if loop_query.size == 0:
+        return direct
+    # Through loop l (its query before this query): |path(submap, l's node)| + path(l's query, query).
+    after = travelled[queries][:, None] - travelled[loop_query][None]  # (Q, L)
+    after = np.where(after >= 0, after, np.inf)
+    across = np.abs(travelled[submap_last][:, None] - travelled[loop_node][None])  # (M, L)
+    through = np.min(after[:, None, :] + across[None], axis=-1)  # (Q, M)
+    return np.minimum(direct, through)
+
+
+def candidate_pairs(poses: np.ndarray, submaps: Submaps, config: ClosureConfig, queries: np.ndarray,
+                    travelled: np.ndarray, distance: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The (query, submap) pairs to search and their windows: each query against the
+    ``submaps_per_query`` nearest submaps that end at least ``min_separation`` metres of path
+    before it and have a node within its window plus ``max_node_distance`` of it.
+
+    Args:
+        poses: (S, 3) the current node estimates.
+        submaps: the submaps.
+        config: the closure's settings.
+        queries: (Q,) nodes to search from.
+        travelled: (S,) :func:`path_distances`.
+        distance: (Q, M) :func:`graph_distances`: what the windows grow with.
+
+    Returns:
+        ``(query (P,), submap (P,), half_xy (P,) m, half_theta (P,) rad)``.
+    """
+    last = submaps.last_node
+    since = travelled[queries][:, None] - travelled[last][None]
+    eligible = (queries[:, None] > last[None]) & (since >= config.min_separation)
+    half_xy = np.minimum(config.window_max_xy, config.window_min_xy + config.window_xy_per_metre * distance)
+    half_theta = np.minimum(config.window_max_theta, config.window_min_theta + config.window_theta_per_metre * distance)
+    near = np.full(eligible.shape, np.inf)
+    for j in range(last.size):  # M is small: a loop over submaps
+        nodes = poses[submaps.first_node[j]:last[j] + 1, :2]
+        near[:, j] = np.min(np.linalg.norm(poses[queries, None, :2] - nodes[None], axis=-1), axis=1)
+    ok = eligible & (near <= half_xy + config.max_node_distance)
+    rank = np.argsort(np.where(ok, near, np.inf), axis=1, kind="stable")[:, :config.submaps_per_query]
+    q_idx = np.repeat(np.arange(queries.size), rank.shape[1])
+    j_idx = rank.ravel()
+    keep = ok[q_idx, j_idx]
+    q_idx, j_idx = q_idx[keep], j_idx[keep]
+    return queries[q_idx], j_idx, half_xy[q_idx, j_idx], half_theta[q_idx, j_idx]
+
+
+@partial(jax.jit, static_argnames=("grid", "iterations"))
+def _refine_one(field, grid: GridSpec, pose, scan, sensor, likelihood, iterations: int):
+    """One match refined below the search's cell on its submap's field (bilinear hill climb),
+    its mean fit there, and its information: minus the Hessian of the tempered log-likelihood
+    (central differences at one cell and 0.01 rad), clamped positive semi-definite."""
+    steps = jnp.array([grid.resolution, grid.resolution, 0.01], jnp.float32)
+    result = match(grid, field, pose, scan, sensor, likelihood, jnp.float32(grid.resolution), jnp.float32(0.005),
+                   iterations, lookup="bilinear")
+    view = MapView(grid, field)
+    eye = jnp.eye(3) * steps
+    corners = [result.pose + sa * eye[:, None, :] + sb * eye[None, :, :] for sa, sb in ((1, 1), (-1, -1), (1, -1), (-1, 1))]
+    stencil = jnp.concatenate([c.reshape(-1, 3) for c in corners])
+    ll = ENDPOINT.log_likelihoods_fn(view, stencil, scan, sensor, likelihood, "bilinear").reshape(4, 3, 3)
+    hess = (ll[0] + ll[1] - ll[2] - ll[3]) / (4.0 * steps[:, None] * steps[None, :])
+    info = -0.5 * (hess + hess.T)
+    w, v = jnp.linalg.eigh(info)
+    info = (v * jnp.maximum(w, 1e-6)) @ v.T
+    return result.pose, info, ENDPOINT.match_score_fn(view, result.pose, scan, sensor, likelihood)
+
+
+def _refine_and_fit(submaps: Submaps, submap, grid_pose, ranges, sensor, likelihood, iterations: int):
+    """:func:`_refine_one` for every match (host arrays), 32 at a time."""
+    fn = jax.vmap(lambda j, p, r: _refine_one(submaps.field[j], submaps.grid, p, r, sensor, likelihood, iterations))
+    poses, infos, scores = [], [], []
+    for start in range(0, len(submap), 32):
+        take = np.arange(start, start + 32).clip(max=len(submap) - 1)
+        p, i, s = fn(jnp.asarray(submap[take]), jnp.asarray(grid_pose[take], jnp.float32), jnp.asarray(ranges[take]))
+        n = min(32, len(submap) - start)
+        poses.append(np.asarray(p)[:n]), infos.append(np.asarray(i)[:n]), scores.append(np.asarray(s)[:n])
+    if not poses:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+    return np.concatenate(poses), np.concatenate(infos).astype(np.float64), np.concatenate(scores)
+
+
+def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.ndarray, poses: np.ndarray,
+                      origins: np.ndarray, config: ClosureConfig) -> tuple[np.ndarray, np.ndarray]:
+    """For each loop, how many other loops agree with it and how many disagree: loops whose
+    queries lie within ``consistency_nodes`` nodes and whose submaps are the same or adjacent
+    are compared through the filter's relative poses (a loop's query pose is its submap's
+    origin composed with its measurement); they agree when they predict the relative pose of
+    the two queries within ``consistency_xy`` and ``consistency_theta`` of the filter's.
+
+    Returns:
+        ``(agree (C,), disagree (C,))`` counts.
+    """
+    implied = compose_np(origins[submap], measurement)  # each query's pose through its loop
+    near = ((np.abs(query[:, None] - query[None]) <= config.consistency_nodes)
+            & (np.abs(submap[:, None] - submap[None]) <= 1) & ~np.eye(query.size, dtype=bool))
+    a, b = np.nonzero(near)
+    through_loops = between_np(implied[a], implied[b])
+    through_filter = between_np(poses[query[a]], poses[query[b]])
+    diff = between_np(through_filter, through_loops)
+    agree = (np.hypot(diff[:, 0], diff[:, 1]) <= config.consistency_xy) & (np.abs(diff[:, 2]) <= config.consistency_theta)
+    return np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
+
+
+def _accept(submaps: Submaps, query, submap, result: SearchResult, guess, half_xy, half_theta, ranges, sensor,
+            likelihood, estimate, kept_before: Loops, config: ClosureConfig) -> Loops:
+    """The searched pairs whose score is near the threshold, refined, fitted and put to the
+    score, window, uniqueness, information and consistency tests (``refused`` says which failed)."""
+    promising = np.nonzero(result.score >= 0.8 * config.min_score)[0]
+    query, submap = query[promising], submap[promising]
+    guess, half_xy, half_theta = guess[promising], half_xy[promising], half_theta[promising]
+    refined, information, score = _refine_and_fit(submaps, submap, result.pose[promising], ranges[query], sensor,
+                                                  likelihood, config.match_iterations)
+    measurement = refined.astype(np.float64)
+    measurement[:, :2] += submaps.corner[submap]
+    measurement[:, 2] = wrap_angle_np(measurement[:, 2])
+    second_ratio = result.second_score[promising] / np.maximum(result.score[promising], 1e-9)
+    cov = np.linalg.inv(information) if promising.size else np.zeros((0, 3, 3))
+    std_xy = np.sqrt(np.clip(np.linalg.eigvalsh(cov[:, :2, :2])[:, -1], 0, None)) if promising.size else np.zeros(0)
+    std_theta = np.sqrt(np.clip(cov[:, 2, 2], 0, None))
+    # A peak on the window's edge is no mode of the score: the best match may lie outside, where
+    # the search did not look (along a corridor, a shifted doorway).
+    offset = refined - guess
+    margin_xy = 2 * submaps.grid.resolution
+    at_edge = ((np.max(np.abs(offset[:, :2]), axis=1) > half_xy - margin_xy)
+               | (np.abs(wrap_angle_np(offset[:, 2])) > half_theta - 2 * config.angular_step))
+    refused = np.full(promising.size, "", dtype=object)
+    refused[score < config.min_score] = "score"
+    refused[(refused == "") & at_edge] = "window"
+    refused[(refused == "") & (second_ratio >= config.max_second_ratio)] = "ambiguous"
+    refused[(refused == "") & ((std_xy > config.max_std_xy) | (std_theta > config.max_std_theta))] = "information"
+    # Consistency: the block's loops that passed, and the loops kept before (which vote but are
+    # not judged again): a loop needs min_support agreeing and more agreeing than disagreeing.
+    passed = np.nonzero(refused == "")[0]
+    earlier = np.nonzero(kept_before.refused == "")[0]
+    agree, disagree = consistency_votes(np.concatenate([query[passed], kept_before.query[earlier]]),
+                                        np.concatenate([submap[passed], kept_before.submap[earlier]]),
+                                        np.concatenate([measurement[passed], kept_before.measurement[earlier]]),
+                                        estimate, estimate[submaps.first_node], config)
+    agree, disagree = agree[:passed.size], disagree[:passed.size]
+    refused[passed[(agree < config.min_support) | (disagree >= agree)]] = "consistency"
+    return Loops(query, submap, measurement, information, score, second_ratio,
+                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan))
+
+
+def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray, estimate: np.ndarray,
+           solved_until: int, config: ClosureConfig) -> np.ndarray:
+    """The graph optimised with the kept loops (their ``chi2`` written into ``found``; loops in
+    conflict refused as "chi2"). Nodes from ``solved_until`` on follow the last solved node by
+    the filter's steps. Plain least squares first: a true loop after a long drift has a chi2 of
+    thousands at the filter's poses, where a robust kernel would switch it off; loops still in
+    conflict after the solve are refused and the graph solved again; the kernel then polishes."""
+    initial = estimate.copy()
+
+    def solve(loop_phi, start):
+        kept = np.nonzero(found.refused == "")[0]
+        loop_edges = Edges(submaps.first_node[found.submap[kept]], found.query[kept], found.measurement[kept],
+                           found.information[kept], np.full(kept.size, LOOP))
+        solved = pose_graph.optimize(PoseGraph(start, pose_graph.concat_edges(sequential, loop_edges)),
+                                     loop_phi=loop_phi)
+        found.chi2[kept] = solved.chi2[sequential.count:]
+        return kept, solved.poses
+
+    poses = initial
+    for _ in range(config.max_rounds):
+        kept, poses = solve(None, initial)
+        conflict = kept[found.chi2[kept] > config.max_chi2]
+        if conflict.size == 0:
+            break
+        found.refused[conflict] = "chi2"
+    _, poses = solve(config.loop_phi, poses)
+    # The nodes not yet searched follow the last searched one rigidly (their filter steps).
+    if solved_until < poses.shape[0]:
+        anchor = solved_until - 1
+        poses[solved_until:] = compose_np(poses[anchor], between_np(local[anchor], local[solved_until:]))
+    return poses
+
+
+def close_loops(log, result, params, config: ClosureConfig = ClosureConfig(), progress: bool = False) -> LoopClosure:
+    """Close the loops of a finished filter run (see the module docstring).
+
+    Args:
+        log: the log the filter ran on.
+        result: its :class:`jaxslam.slam.SlamResult`.
+        params: the filter's :class:`jaxslam.config.SlamParams` (motion noise, insertion,
+            likelihood).
+        config: the closure's settings.
+        progress: show a tqdm bar over the search's pairs.
+
+    Returns:
+        :class:`LoopClosure` (world frame).
+    """
+    return close_trajectory_loops(log, result.selection.indices, result.best_path, result.selection.motions, params,
+                                  result.config, result.frame_offset, config, progress)
+
+
+def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_config, frame_offset,
+                           config: ClosureConfig = ClosureConfig(), progress: bool = False) -> LoopClosure:
+    """:func:`close_loops` from a trajectory rather than a run: what ``jaxslam close`` does with
+    a finished run's ``trajectory.txt``.
+
+    Args:
+        log: the log (T scans).
+        node_scans: (S,) int increasing log indices of the nodes (the processed scans).
+        node_poses: (S, 3) their poses in the log's frame (m, m, rad).
+        motions: (S, 3) odometry motion from the previous node, in its frame (row 0 unused).
+        params: :class:`jaxslam.config.SlamParams`.
+        slam_config: the filter's :class:`jaxslam.config.SlamConfig` (resolution, insertion range).
+        frame_offset: (2,) the translation subtracted from world poses for float32 work (m).
+        config: the closure's settings.
+        progress: show a tqdm bar over the search's pairs.
+    """
+    from jaxslam.io.trajectory import trajectory_per_scan
+
+    from jaxslam.rbpf import to_local, to_world
+
+    t0 = time.perf_counter()
+    node_scans = np.asarray(node_scans)
+    filter_poses = np.asarray(node_poses, np.float64)
+    if node_scans.ndim != 1 or filter_poses.shape != (node_scans.size, 3) or np.shape(motions) != filter_poses.shape:
+        raise ValueError(f"close_loops: node_scans (S,), node_poses (S, 3) and motions (S, 3) must agree, got "
+                         f"{node_scans.shape}, {filter_poses.shape} and {np.shape(motions)}")
+    local = to_local(filter_poses, frame_offset)
+    sequential = sequential_edges(local, np.asarray(motions, np.float64), params.motion)
+    if path_distances(local)[-1] < config.min_separation:  # no submap can be searched: nothing to build
+        trajectory = trajectory_per_scan(log, node_scans, filter_poses)
+        return LoopClosure(node_scans, filter_poses, filter_poses.copy(), trajectory, sequential,
+                           Loops(*Loops.empty()._replace(refused=np.zeros(0, str))), np.zeros(0, int), 0,
+                           {"submaps": 0.0, "search": 0.0, "accept": 0.0, "optimize": 0.0,
+                            "total": time.perf_counter() - t0})
+    ranges = np.asarray(log.ranges[node_scans], np.float32)
+    resolution = slam_config.resolution
+    window = config.window(resolution)
+    submaps = build_submaps(local, ranges, log.sensor, params.insertion, resolution, slam_config.max_insert_range,
+                            config.nodes_per_submap, config.sigma, config.levels)
+    t1 = time.perf_counter()
+
+    points, valid = scan_points(ranges, log.sensor, config.search_range, config.num_points)
+    travelled = path_distances(local)
+    likelihood = params.likelihood._replace(sigma=jnp.float32(config.sigma))
+    found = Loops.empty()
+    estimate = local.copy()  # the current estimate: optimised up to the last block, then the filter's steps
+    seconds = {"search": 0.0, "accept": 0.0, "optimize": 0.0}
+    pairs = 0
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=int(local.shape[0]), desc="loop closure", unit="node")
+    # In time order, a block of queries at a time, as a robot would close them: the windows grow
+    # with the path since the last loop, not since the start, and the guesses come from the
+    # graph as optimised so far.
+    for block_start in range(0, local.shape[0], config.query_block):
+        block_end = min(block_start + config.query_block, local.shape[0])
+        queries = np.arange(block_start, block_end)
+        queries = queries[queries % config.query_stride == 0]
+        kept_now = found.refused == ""
+        distance = graph_distances(travelled, queries, submaps.last_node, found.query[kept_now],
+                                   submaps.last_node[found.submap[kept_now]])
+        t_a = time.perf_counter()
+        query, submap, half_xy, half_theta = candidate_pairs(estimate, submaps, config, queries, travelled, distance)
+        pairs += int(query.size)
+        origins = estimate[submaps.first_node]
+        rel = between_np(origins[submap], estimate[query])
+        guess = np.concatenate([rel[:, :2] - submaps.corner[submap], rel[:, 2:]], axis=-1)
+        result = search_pairs(submaps, submap, points[query], valid[query], guess,
+                              np.ceil(half_xy / resolution).astype(np.int32), half_theta, window, batch=config.batch)
+        t_b = time.perf_counter()
+        new = _accept(submaps, query, submap, result, guess, half_xy, half_theta, ranges, log.sensor, likelihood,
+                      estimate, found, config)
+        found = found.extend(new)
+        t_c = time.perf_counter()
+        if np.any(new.refused == ""):
+            estimate = _solve(found, submaps, sequential, local, estimate, block_end, config)
+        t_d = time.perf_counter()
+        seconds["search"] += t_b - t_a
+        seconds["accept"] += t_c - t_b
+        seconds["optimize"] += t_d - t_c
+        if bar is not None:
+            bar.update(block_end - block_start)
+    if bar is not None:
+        bar.close()
+    optimized = estimate
+    kept = found.refused == ""
+    edges = pose_graph.concat_edges(sequential, Edges(submaps.first_node[found.submap[kept]], found.query[kept],
+                                                      found.measurement[kept], found.information[kept],
+                                                      np.full(int(kept.sum()), LOOP)))
+    t4 = time.perf_counter()
+
+    poses = to_world(optimized, frame_offset)
+    trajectory = trajectory_per_scan(log, node_scans, poses)
+    loops = found._replace(refused=found.refused.astype(str))
+    timings = {"submaps": t1 - t0, **seconds, "total": time.perf_counter() - t0}
+    return LoopClosure(node_scans, filter_poses, poses, trajectory, edges, loops, submaps.first_node, pairs, timings)
+
+
+@partial(jax.jit, static_argnames=("grid", "max_insert_range", "field_radius"))
+def _draw(poses, ranges, sensor, params, grid: GridSpec, max_insert_range: float, field_radius: int) -> GridMap:
+    def body(grid_map, xs):
+        grid_map, _ = insert_scan(grid, grid_map, xs[0], xs[1], sensor, params, max_insert_range, field_radius)
+        return grid_map, None
+
+    grid_map, _ = jax.lax.scan(body, empty_map(grid), (poses, ranges))
+    return grid_map
+
+
+def draw_map(closure: LoopClosure, log, params, slam_config, frame_offset) -> tuple[np.ndarray, np.ndarray, GridSpec]:
+    """The map drawn again at the optimised poses: every node's scan inserted into one dense grid
+    with the filter's insertion. Returns ``(logodds (H, W) float16, hit_dist2 (H, W) uint8,
+    grid)``, the grid in the world frame (as :meth:`jaxslam.slam.SlamResult.dense_map`)."""
+    from jaxslam.rbpf import grid_to_world, to_local
+
+    local = to_local(closure.poses, frame_offset)
+    reach = slam_config.max_insert_range + 1.0
+    lo = local[:, :2].min(axis=0) - reach
+    hi = local[:, :2].max(axis=0) + reach
+    res = slam_config.resolution
+    lo = np.floor(lo / res) * res
+    grid = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], res)
+    grid_map = _draw(jnp.asarray(local, jnp.float32), jnp.asarray(log.ranges[closure.node_scans]), log.sensor,
+                     params.insertion, grid, float(slam_config.max_insert_range), int(slam_config.field_radius))
+    return np.asarray(grid_map.logodds), np.asarray(grid_map.hit_dist2), grid_to_world(grid, frame_offset)
+
+
+GRAPH_FILE = "graph.npz"
+"""The pose graph in a run's output folder (:func:`save_graph`)."""
+
+
+def save_graph(path, closure: LoopClosure) -> None:
+    """Write the graph of a loop closure as a NumPy archive: the nodes (``node_scans``,
+    ``filter_poses``, ``poses``), the edges (``edge_first``, ``edge_second``,
+    ``edge_measurement``, ``edge_information``, ``edge_kind``, and ``edge_chi2`` at the optimised
+    poses), every candidate loop (``loop_*``: the fields of :class:`Loops`, ``loop_node`` its
+    submap's first node) and ``submap_first_node``."""
+    edges = closure.edges
+    loops = closure.loops
+    arrays = {"node_scans": closure.node_scans, "filter_poses": closure.filter_poses, "poses": closure.poses,
+              "submap_first_node": closure.submap_first_node,
+              "edge_first": edges.first, "edge_second": edges.second, "edge_measurement": edges.measurement,
+              "edge_information": edges.information, "edge_kind": edges.kind,
+              "edge_chi2": pose_graph.chi2(closure.poses, edges),
+              "loop_node": closure.submap_first_node[loops.submap] if loops.submap.size else np.zeros(0, int)}
+    arrays.update({f"loop_{name}": np.asarray(value) for name, value in loops._asdict().items()})
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def load_graph(path) -> dict[str, np.ndarray]:
+    """The arrays :func:`save_graph` wrote."""
+    with np.load(path, allow_pickle=False) as data:
+        return {name: data[name] for name in data.files}
+
+
+def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None) -> None:
+    """Draw a saved graph (:func:`load_graph`) on a map's axes (world frame): the filter's path,
+    the optimised path, and every candidate loop as a line from its submap's first node to its
+    query at the optimised poses: kept in green, refused in red (thin), labelled by reason count."""
+    poses, filt = graph["poses"], graph["filter_poses"]
+    ax.plot(filt[:, 0], filt[:, 1], color="tab:red", lw=0.6, alpha=0.6, label="filter")
+    ax.plot(poses[:, 0], poses[:, 1], color="tab:blue", lw=0.8, label="closed")
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], color="tab:green", lw=0.8, ls="--", label="ground truth")
+    refused = graph["loop_refused"]
+    for kept, colour, lw in ((False, "tab:red", 0.4), (True, "tab:green", 0.8)):
+        mask = (refused == "") == kept
+        if not mask.any():
+            continue
+        a, b = poses[graph["loop_node"][mask]], poses[graph["loop_query"][mask]]
+        segments = np.stack([a[:, :2], b[:, :2]], axis=1)
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(segments, colors=colour, linewidths=lw,
+                                         label=f"loops {'kept' if kept else 'refused'} ({int(mask.sum())})"))
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=7)

@@ -1,0 +1,205 @@
+"""A pose graph over SE(2) and its optimisation: :class:`PoseGraph`, :func:`optimize`.
+
+Nodes are robot poses (x, y, theta); an edge (first, second, measurement, information) says
+that node ``second`` seen from node ``first`` is at ``measurement`` (the relative pose
+``between(x_first, x_second)``), with a Gaussian of that information (inverse covariance). The
+optimiser is sparse Levenberg-Marquardt: each iteration builds the Gauss-Newton system from the
+edges' Jacobians (NumPy, vectorised over edges) and solves it with ``scipy.sparse``'s sparse LU
+(SuperLU; the choice against GTSAM and CHOLMOD: docs/design.md, "Loop closure"). Loop edges go through Dynamic Covariance Scaling (Agarwal et al. 2013), a robust
+kernel that scales a loop's information down by ``s^2``, ``s = min(1, 2 phi / (phi + chi2))``,
+so that one false loop cannot fold the map. The first node is held fixed (the gauge).
+
+Everything here is host code: the graph is built once per run from the filter's output, and
+its solve is a sparse factorisation, which XLA does not offer on the CPU.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+from jaxslam.geometry import between_np, wrap_angle_np
+
+SEQUENTIAL, LOOP = 0, 1
+"""Edge kinds: between consecutive nodes (the filter's relative poses), and loop closures."""
+
+
+class Edges(NamedTuple):
+    """E edges of a pose graph (NumPy arrays)."""
+
+    first: np.ndarray
+    """(E,) int: the node each measurement is taken from."""
+    second: np.ndarray
+    """(E,) int: the node measured."""
+    measurement: np.ndarray
+    """(E, 3) float64: ``second``'s pose in ``first``'s frame (m, m, rad)."""
+    information: np.ndarray
+    """(E, 3, 3) float64: the measurement's inverse covariance (1/m^2, 1/(m rad), 1/rad^2)."""
+    kind: np.ndarray
+    """(E,) int: :data:`SEQUENTIAL` or :data:`LOOP`."""
+
+    @property
+    def count(self) -> int:
+        return int(self.first.shape[0])
+
+
+def concat_edges(*edges: Edges) -> Edges:
+    """Edges of several sets, in order."""
+    return Edges(*(np.concatenate(parts) for parts in zip(*edges)))
+
+
+class PoseGraph(NamedTuple):
+    """Nodes and edges (NumPy)."""
+
+    poses: np.ndarray
+    """(S, 3) float64 node poses (m, m, rad): the initial guess, or the optimised poses."""
+    edges: Edges
+    """The constraints between them."""
+
+
+class OptimizeResult(NamedTuple):
+    """What :func:`optimize` returns."""
+
+    poses: np.ndarray
+    """(S, 3) float64 optimised node poses; node 0 as given."""
+    chi2: np.ndarray
+    """(E,) each edge's squared Mahalanobis error at ``poses`` (unscaled information)."""
+    loop_scales: np.ndarray
+    """(E,) the robust kernel's scale s of each edge's information (s^2 applied; 1 for
+    sequential edges and where the kernel is off)."""
+    iterations: int
+    """Levenberg-Marquardt iterations taken."""
+    cost: float
+    """Final robust cost: sum of s^2 chi2 (Dynamic Covariance Scaling's objective up to constants)."""
+
+
+def edge_errors(poses: np.ndarray, edges: Edges) -> np.ndarray:
+    """(E, 3) error of each edge: the measured pose's offset from the predicted one, in the
+    measurement's frame, ``between(measurement, between(x_first, x_second))``."""
+    predicted = between_np(poses[edges.first], poses[edges.second])
+    return between_np(edges.measurement, predicted)
+
+
+def chi2(poses: np.ndarray, edges: Edges) -> np.ndarray:
+    """(E,) squared Mahalanobis error of each edge at ``poses``."""
+    e = edge_errors(poses, edges)
+    return np.einsum("ei,eij,ej->e", e, edges.information, e)
+
+
+def _jacobians(poses: np.ndarray, edges: Edges) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The errors (E, 3) and their Jacobians (E, 3, 3) with respect to the first and second
+    node's (x, y, theta)."""
+    a, b, z = poses[edges.first], poses[edges.second], edges.measurement
+    ca, sa = np.cos(a[:, 2]), np.sin(a[:, 2])
+    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    # R_a^T (t_b - t_a) and its derivative in theta_a.
+    local = np.stack([ca * dx + sa * dy, -sa * dx + ca * dy], axis=-1)
+    dlocal = np.stack([-sa * dx + ca * dy, -ca * dx - sa * dy], axis=-1)
+    rzt = np.stack([np.stack([cz, sz], -1), np.stack([-sz, cz], -1)], axis=-2)  # R_z^T (E, 2, 2)
+    rat = np.stack([np.stack([ca, sa], -1), np.stack([-sa, ca], -1)], axis=-2)  # R_a^T
+    d = local - z[:, :2]
+    error = np.concatenate([np.einsum("eij,ej->ei", rzt, d),
+                            wrap_angle_np(b[:, 2] - a[:, 2] - z[:, 2])[:, None]], axis=-1)
+    rr = np.einsum("eij,ejk->eik", rzt, rat)
+    jac_a = np.zeros((len(a), 3, 3))
+    jac_b = np.zeros((len(a), 3, 3))
+    jac_a[:, :2, :2] = -rr
+    jac_a[:, :2, 2] = np.einsum("eij,ej->ei", rzt, dlocal)
+    jac_a[:, 2, 2] = -1.0
+    jac_b[:, :2, :2] = rr
+    jac_b[:, 2, 2] = 1.0
+    return error, jac_a, jac_b
+
+
+def dcs_scales(chi2_values: np.ndarray, kind: np.ndarray, phi: float | None) -> np.ndarray:
+    """Dynamic Covariance Scaling's s = min(1, 2 phi / (phi + chi2)) for loop edges (1 for the
+    others, and for every edge where ``phi`` is None)."""
+    if phi is None:
+        return np.ones_like(chi2_values)
+    s = np.minimum(1.0, 2.0 * phi / (phi + chi2_values))
+    return np.where(kind == LOOP, s, 1.0)
+
+
+def _normal_equations(poses, edges, weights):
+    """The Gauss-Newton system H dx = -g over nodes 1..S-1 (node 0 fixed) with each edge's
+    information times ``weights`` (E,)."""
+    num = poses.shape[0]
+    error, ja, jb = _jacobians(poses, edges)
+    omega = edges.information * weights[:, None, None]
+    rows, cols, vals = [], [], []
+    g = np.zeros((num, 3))
+    for (i_nodes, ji), (k_nodes, jk) in (((edges.first, ja), (edges.first, ja)), ((edges.first, ja), (edges.second, jb)),
+                                         ((edges.second, jb), (edges.first, ja)), ((edges.second, jb), (edges.second, jb))):
+        block = np.einsum("eji,ejk,ekl->eil", ji, omega, jk)  # J_i^T Omega J_k (E, 3, 3)
+        r = (3 * i_nodes)[:, None, None] + np.arange(3)[None, :, None]
+        c = (3 * k_nodes)[:, None, None] + np.arange(3)[None, None, :]
+        rows.append(np.broadcast_to(r, block.shape).ravel())
+        cols.append(np.broadcast_to(c, block.shape).ravel())
+        vals.append(block.ravel())
+    np.add.at(g, edges.first, np.einsum("eji,ejk,ek->ei", ja, omega, error))
+    np.add.at(g, edges.second, np.einsum("eji,ejk,ek->ei", jb, omega, error))
+    h = scipy.sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                                shape=(3 * num, 3 * num)).tocsc()
+    return h[3:, 3:], g.ravel()[3:], error
+
+
+def optimize(graph: PoseGraph, loop_phi: float | None = 1.0, max_iterations: int = 30, tolerance: float = 1e-6,
+             initial_damping: float = 1e-4) -> OptimizeResult:
+    """Levenberg-Marquardt on the pose graph, node 0 held fixed.
+
+    Args:
+        graph: the initial poses (S, 3) and the edges.
+        loop_phi: Dynamic Covariance Scaling's phi for loop edges (in chi2 units; None: plain
+            least squares). Small phi trusts loops less.
+        max_iterations: iterations at most.
+        tolerance: stop when the cost falls by less than this fraction.
+        initial_damping: the first damping, times the mean diagonal of H.
+
+    Returns:
+        :class:`OptimizeResult`.
+    """
+    poses = np.array(graph.poses, dtype=np.float64)
+    edges = graph.edges
+    if poses.ndim != 2 or poses.shape[1] != 3 or poses.shape[0] < 2:
+        raise ValueError(f"optimize: poses must be (S, 3) with S >= 2, got {poses.shape}")
+    for name, idx in (("first", edges.first), ("second", edges.second)):
+        if idx.size and (idx.min() < 0 or idx.max() >= poses.shape[0]):
+            raise ValueError(f"optimize: edge {name} indices must lie in [0, {poses.shape[0]})")
+
+    def robust_cost(p):
+        c = chi2(p, edges)
+        s = dcs_scales(c, edges.kind, loop_phi)
+        return float(np.sum(s**2 * c)), s
+
+    cost, scales = robust_cost(poses)
+    damping = None
+    it = 0
+    for it in range(1, max_iterations + 1):
+        h, g, _ = _normal_equations(poses, edges, scales**2)
+        diag = h.diagonal()
+        if damping is None:
+            damping = initial_damping * float(np.mean(diag))
+        improved = False
+        for _ in range(10):
+            lhs = h + scipy.sparse.diags(damping * np.maximum(diag, 1e-9))
+            step = scipy.sparse.linalg.spsolve(lhs.tocsc(), -g)
+            trial = poses.copy()
+            trial[1:] += step.reshape(-1, 3)
+            trial[:, 2] = wrap_angle_np(trial[:, 2])
+            trial_cost, trial_scales = robust_cost(trial)
+            if np.isfinite(trial_cost) and trial_cost <= cost:
+                improved = True
+                break
+            damping *= 10.0
+        if not improved:
+            break
+        damping = max(damping / 3.0, 1e-12)
+        done = cost - trial_cost <= tolerance * max(cost, 1e-12)
+        poses, cost, scales = trial, trial_cost, trial_scales
+        if done:
+            break
+    return OptimizeResult(poses, chi2(poses, edges), scales, it, cost)

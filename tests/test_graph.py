@@ -1,0 +1,274 @@
+"""The loop closure (jaxslam.graph): the SE(2) pose graph's Jacobians and solve, the branch and
+bound against an exhaustive NumPy search, and the closure on the twin-rooms world built to alias."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam.config import SlamConfig, default_params
+from jaxslam.geometry import between_np, compose_np
+from jaxslam.graph import ClosureConfig, close_trajectory_loops, load_graph, save_graph
+from jaxslam.graph import pose_graph
+from jaxslam.graph.loop_search import SearchWindow, search_batch
+from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
+from jaxslam.graph.submaps import square_bounds
+from jaxslam.laserlog import select_updates
+from jaxslam.sim.aliasing import TWIN_OFFSET, twin_rooms_scenario
+
+# ---------------------------------------------------------------------------------------------
+# The pose graph.
+
+
+def _random_edges(rng, poses, pairs, kind):
+    first, second = np.array(pairs).T
+    measurement = between_np(poses[first], poses[second])
+    info = np.zeros((len(first), 3, 3))
+    info[:, [0, 1, 2], [0, 1, 2]] = rng.uniform(1.0, 100.0, (len(first), 3))
+    return Edges(first, second, measurement, info, np.full(len(first), kind))
+
+
+def test_jacobians_match_finite_differences():
+    rng = np.random.default_rng(0)
+    poses = rng.normal(size=(6, 3)) * [3.0, 3.0, 1.0]
+    edges = _random_edges(rng, poses, [(0, 1), (1, 2), (4, 2), (5, 0)], LOOP)
+    edges = edges._replace(measurement=edges.measurement + rng.normal(scale=0.1, size=edges.measurement.shape))
+    error, jac_a, jac_b = pose_graph._jacobians(poses, edges)
+    np.testing.assert_allclose(error, pose_graph.edge_errors(poses, edges), atol=1e-12)
+    eps = 1e-6
+    for e in range(edges.count):
+        one = Edges(*(field[e:e + 1] for field in edges))
+        for node, jac in ((edges.first[e], jac_a), (edges.second[e], jac_b)):
+            for k in range(3):
+                bumped = poses.copy()
+                bumped[node, k] += eps
+                numeric = (pose_graph.edge_errors(bumped, one)[0] - error[e]) / eps
+                np.testing.assert_allclose(numeric, jac[e, :, k], atol=1e-4)
+
+
+def _square_walk(rng, laps=2, side=8, noise=(0.03, 0.03, 0.01)):
+    """True poses of a walk round a square, and a chain of noisy relative measurements."""
+    steps = []
+    for _ in range(laps * 4):
+        steps += [[1.0, 0.0, 0.0]] * (side - 1) + [[1.0, 0.0, np.pi / 2]]
+    truth = [np.zeros(3)]
+    for step in steps:
+        truth.append(compose_np(truth[-1], step))
+    truth = np.array(truth)
+    measured = between_np(truth[:-1], truth[1:]) + rng.normal(scale=noise, size=(len(steps), 3))
+    return truth, measured
+
+
+def test_optimize_closes_a_square_and_a_robust_kernel_refuses_a_false_loop():
+    rng = np.random.default_rng(1)
+    truth, measured = _square_walk(rng)
+    num, lap = truth.shape[0], 32
+    dead_reckoned = [truth[0]]
+    for step in measured:
+        dead_reckoned.append(compose_np(dead_reckoned[-1], step))
+    dead_reckoned = np.array(dead_reckoned)
+    info = np.zeros((num - 1, 3, 3))
+    info[:, [0, 1, 2], [0, 1, 2]] = 1.0 / np.array([0.03, 0.03, 0.01]) ** 2
+    chain = Edges(np.arange(num - 1), np.arange(1, num), measured, info, np.full(num - 1, SEQUENTIAL))
+    # True loops: every other node of the first lap is seen again from its twin of the second.
+    true_loops = _random_edges(rng, truth, [(i, i + lap) for i in range(0, lap, 2)], LOOP)
+    edges = pose_graph.concat_edges(chain, true_loops)
+    solved = pose_graph.optimize(PoseGraph(dead_reckoned, edges), loop_phi=None)
+
+    def err(p):  # how far lap 2 lies from lap 1 against the truth (the loops' business), m
+        first = np.arange(lap)
+        diff = between_np(between_np(truth[first], truth[first + lap]), between_np(p[first], p[first + lap]))
+        return np.mean(np.hypot(diff[:, 0], diff[:, 1]))
+
+    before, after = err(dead_reckoned), err(solved.poses)
+    assert before > 0.2 and after < 0.25 * before
+    np.testing.assert_array_equal(solved.poses[0], dead_reckoned[0])  # the gauge
+    # A false loop 3 m off, strongly weighted: least squares bends; the kernel keeps the map.
+    false = Edges(np.array([5]), np.array([45]), np.array([[3.0, 0.0, 0.0]]), np.eye(3)[None] * 1e4,
+                  np.array([LOOP]))
+    with_false = pose_graph.concat_edges(edges, false)
+    plain = pose_graph.optimize(PoseGraph(solved.poses, with_false), loop_phi=None)
+    robust = pose_graph.optimize(PoseGraph(solved.poses, with_false), loop_phi=1.0)
+    assert err(plain.poses) > 2 * err(robust.poses)
+    assert robust.loop_scales[-1] < 0.05 and np.all(robust.loop_scales[chain.count:-1] > 0.5)
+
+
+def test_optimize_refuses_bad_input():
+    poses = np.zeros((3, 3))
+    edges = Edges(np.array([0]), np.array([3]), np.zeros((1, 3)), np.eye(3)[None], np.array([LOOP]))
+    with pytest.raises(ValueError, match="second indices must lie in"):
+        pose_graph.optimize(PoseGraph(poses, edges))
+    with pytest.raises(ValueError, match="poses must be"):
+        pose_graph.optimize(PoseGraph(np.zeros((1, 3)), edges))
+
+
+# ---------------------------------------------------------------------------------------------
+# The branch and bound against an exhaustive search.
+
+
+def _brute_force(fit, points, valid, guess, half_cells, half_angles, angular_step, resolution):
+    """The best (score, row offset, col offset, angle step) over the whole window, in NumPy."""
+    best = (-1.0, 0, 0, 0)
+    n = max(valid.sum(), 1)
+    for k in range(-half_angles, half_angles + 1):
+        a = guess[2] + k * angular_step
+        c, s = np.cos(a), np.sin(a)
+        x = guess[0] + c * points[:, 0] - s * points[:, 1]
+        y = guess[1] + s * points[:, 0] + c * points[:, 1]
+        rows = np.floor(y / resolution).astype(np.float32).astype(int)
+        cols = np.floor(x / resolution).astype(np.float32).astype(int)
+        for dr in range(-half_cells, half_cells + 1):
+            for dc in range(-half_cells, half_cells + 1):
+                r, q = rows + dr, cols + dc
+                inside = (r >= 0) & (r < fit.shape[0]) & (q >= 0) & (q < fit.shape[1]) & valid
+                score = fit[r[inside], q[inside]].astype(float).sum() / (255.0 * n)
+                if score > best[0]:
+                    best = (score, dr, dc, k)
+    return best
+
+
+def test_square_bounds_bound_every_shift():
+    rng = np.random.default_rng(2)
+    fit = rng.integers(0, 256, size=(1, 16, 20)).astype(np.uint8)
+    for level, bound in enumerate(square_bounds(fit, 3), start=1):
+        side = 2**level
+        padded = np.pad(fit[0], ((0, side), (0, side)))
+        for r in range(16):
+            for c in range(20):
+                assert bound[0, r, c] == padded[r:r + side, c:c + side].max()
+
+
+def test_branch_and_bound_finds_the_exhaustive_optimum_where_it_certifies():
+    rng = np.random.default_rng(3)
+    resolution = 0.1
+    # A submap of a few walls and posts; the scan is the walls seen from a pose, shifted.
+    fit = np.zeros((64, 64), np.uint8)
+    fit[10, 5:60] = 255
+    fit[5:50, 50] = 255
+    fit[30:34, 20:22] = 200
+    fit[45, 10:30] = 255
+    fit = np.maximum.reduce([np.roll(np.roll(fit, dr, 0), dc, 1) * (0.6 if dr or dc else 1.0)
+                             for dr in (-1, 0, 1) for dc in (-1, 0, 1)]).astype(np.uint8)
+    cells = np.argwhere(fit == 255)
+    pick = cells[rng.choice(len(cells), 40, replace=False)]
+    true_pose = np.array([3.0, 2.8, 0.05])
+    world = (pick[:, ::-1] + 0.5) * resolution  # (x, y) of the cells' centres
+    c, s = np.cos(true_pose[2]), np.sin(true_pose[2])
+    rel = world - true_pose[:2]
+    points = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], -1).astype(np.float32)
+    valid = np.ones(len(points), bool)
+    window = SearchWindow(half_cells=8, half_angles=3, angular_step=0.025, levels=2, keep=16, ambiguity_cells=3,
+                          ambiguity_angles=2)
+    bounds = tuple(jnp.asarray(b) for b in square_bounds(fit[None], window.levels))
+    guesses = np.array([true_pose + [0.3, -0.2, 0.05], true_pose + [-0.5, 0.4, -0.05], true_pose])
+    result = search_batch(jnp.asarray(fit[None]), bounds, jnp.zeros(3, jnp.int32), jnp.asarray(points[None].repeat(3, 0)),
+                          jnp.asarray(valid[None].repeat(3, 0)), jnp.asarray(guesses, jnp.float32),
+                          jnp.full(3, 8, jnp.int32), jnp.full(3, 0.08, jnp.float32), resolution, window)
+    for p in range(3):
+        score, dr, dc, k = _brute_force(fit, points, valid, guesses[p].astype(np.float32), 8, 3, 0.025, resolution)
+        if bool(result.certified[p]):
+            assert float(result.score[p]) == pytest.approx(score, abs=1e-6)
+        else:  # uncertified: never better than the optimum, and the optimum lies under the dropped bound
+            assert float(result.score[p]) <= score + 1e-6 and score <= float(result.dropped_bound[p]) + 1e-6
+    assert np.any(np.asarray(result.certified))
+    best = int(np.argmax(np.asarray(result.score)))
+    np.testing.assert_allclose(np.asarray(result.pose[best])[:2], true_pose[:2], atol=2 * resolution)
+
+
+# ---------------------------------------------------------------------------------------------
+# The closure on the world built to alias.
+
+
+@pytest.fixture(scope="module")
+def twin_rooms():
+    """The twin-rooms tour and a drifted copy of its true path (a filter's heading bias of
+    0.001 rad and a 1 % scale error per processed scan): the closure's input, without a filter."""
+    scenario = twin_rooms_scenario(jax.random.key(0))
+    selection = select_updates(scenario.log, 0.5, 0.25)
+    truth = scenario.true_poses[selection.indices]
+    steps = between_np(truth[:-1], truth[1:])
+    steps[:, 2] += 0.001
+    steps[:, :2] *= 1.01
+    drifted = [truth[0]]
+    for step in steps:
+        drifted.append(compose_np(drifted[-1], step))
+    return scenario, selection, truth, np.array(drifted)
+
+
+def _loop_errors(closure, truth):
+    """(C,) how far each candidate loop's measurement is from the truth (m)."""
+    loops = closure.loops
+    origin = closure.submap_first_node[loops.submap]
+    diff = between_np(between_np(truth[origin], truth[loops.query]), loops.measurement)
+    return np.hypot(diff[:, 0], diff[:, 1])
+
+
+def test_twin_rooms_no_false_loop_is_kept_and_the_path_comes_closer(twin_rooms, tmp_path):
+    scenario, selection, truth, drifted = twin_rooms
+    closure = close_trajectory_loops(scenario.log, selection.indices, drifted, selection.motions, default_params(),
+                                     SlamConfig(), np.zeros(2))
+    kept = closure.loops.refused == ""
+    errors = _loop_errors(closure, truth)
+    assert kept.sum() >= 10  # the true loop (room A twice) is closed ...
+    assert np.all(errors[kept] < 0.3)  # ... and no kept loop is off by a room
+    before = np.mean(np.hypot(*(drifted - truth)[:, :2].T))
+    after = np.mean(np.hypot(*(closure.poses - truth)[:, :2].T))
+    assert after < 0.4 * before
+    # The trajectory holds a pose per scan, the processed ones the graph's.
+    np.testing.assert_allclose(closure.trajectory[selection.indices], closure.poses, atol=1e-9)
+    save_graph(tmp_path / "graph.npz", closure)
+    graph = load_graph(tmp_path / "graph.npz")
+    assert graph["loop_refused"].shape == kept.shape and int((graph["loop_refused"] == "").sum()) == kept.sum()
+    assert graph["edge_kind"].sum() == kept.sum()  # LOOP = 1, one edge per kept loop
+
+
+def test_twin_rooms_a_window_wider_than_the_drift_aliases(twin_rooms):
+    """The window is the defence: one wide enough to reach the twin room (12 m) finds the
+    perfect matches 10 m off, and they pass every test (the twin is the same to the centimetre)."""
+    scenario, selection, truth, drifted = twin_rooms
+    wide = dataclasses.replace(ClosureConfig(), window_min_xy=12.0, window_max_xy=12.0, max_node_distance=15.0)
+    closure = close_trajectory_loops(scenario.log, selection.indices, drifted, selection.motions, default_params(),
+                                     SlamConfig(), np.zeros(2), wide)
+    errors = _loop_errors(closure, truth)
+    kept = closure.loops.refused == ""
+    aliased = np.abs(errors - np.hypot(*TWIN_OFFSET[:2])) < 3.0
+    assert np.any(kept & (errors > 1.0)) and np.any(aliased)
+
+
+def test_close_loops_refuses_mismatched_input(twin_rooms):
+    scenario, selection, _, drifted = twin_rooms
+    with pytest.raises(ValueError, match="must agree"):
+        close_trajectory_loops(scenario.log, selection.indices[:-1], drifted, selection.motions, default_params(),
+                               SlamConfig(), np.zeros(2))
+
+
+# ---------------------------------------------------------------------------------------------
+# jaxslam map: closed by default, the filter alone on request.
+
+
+def test_map_closes_loops_by_default_and_not_on_request(tmp_path, twin_rooms):
+    from jaxslam.cli import main
+    from logs import write_flaser_log
+
+    scenario = twin_rooms[0]
+    log_path = tmp_path / "twin.clf"
+    write_flaser_log(log_path, scenario.log)  # room A, room B, room A again: the loop
+    common = ["map", str(log_path), "--particles", "3", "--proposal", "smp", "--no-progress",
+              "--set", "max_insert_range=8"]
+    assert main([*common, "--out", str(tmp_path / "closed")]) == 0
+    assert main([*common, "--no-close-loops", "--out", str(tmp_path / "filter")]) == 0
+    closed, alone = tmp_path / "closed", tmp_path / "filter"
+    summary = json.loads((closed / "summary.json").read_text())
+    graph = load_graph(closed / "graph.npz")
+    assert summary["closure"]["loops_kept"] == int((graph["loop_refused"] == "").sum()) > 0
+    # The filter's trajectory is the same with and without the closure; the closed one differs.
+    np.testing.assert_array_equal(np.loadtxt(closed / "trajectory_filter.txt"), np.loadtxt(alone / "trajectory.txt"))
+    assert not np.array_equal(np.loadtxt(closed / "trajectory.txt"), np.loadtxt(alone / "trajectory.txt"))
+    assert not (alone / "graph.npz").exists() and not (alone / "trajectory_filter.txt").exists()
+    assert "closure" not in json.loads((alone / "summary.json").read_text())
+    assert main(["diagnose", str(closed)]) == 0 and (closed / "graph.png").is_file()
