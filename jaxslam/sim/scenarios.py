@@ -326,6 +326,10 @@ def box_world_path(
     circle_radius: float = 1.75,
     step_length: float = 0.1,
     max_turn_per_step: float = 0.1,
+    clockwise: bool = False,
+    circle_center=None,
+    checkpoint=None,
+    turnaround=None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The true path of :func:`box_world_scenario` and facts about it.
 
@@ -336,22 +340,36 @@ def box_world_path(
     the turnaround point, comes back over X to the circle, and so on; after the last lap it
     drives over X and stops at the turnaround point facing the hedge.
 
+    ``clockwise`` circles the other way (entering north of the X-circle line, leaving south of
+    it); ``circle_center``, ``checkpoint`` and ``turnaround`` ((2,) m; default
+    :data:`BOX2_CENTER`, :data:`CHECKPOINT_X`, :data:`TURNAROUND`) move the circle, X and the
+    turnaround point (X must lie outside the circle): the box-world family's worlds
+    (:mod:`jaxslam.sim.box_family`). The defaults give the box world's path.
+
     Returns:
       ``(poses, info)``: (T, 3) float64 poses and a dict with ``lap_end_indices`` (index of
       the pose that completes each lap) and ``turn_radius``.
     """
+    center = BOX2_CENTER if circle_center is None else np.asarray(circle_center, np.float64)
+    checkpoint = CHECKPOINT_X if checkpoint is None else np.asarray(checkpoint, np.float64)
+    turnaround = TURNAROUND if turnaround is None else np.asarray(turnaround, np.float64)
     radius = circle_radius
     # Tangent points on the circle for lines through X: with cos(beta) = r / d, the robot
     # enters at polar angle pi + beta (south of the X-box line) heading counter-clockwise
-    # along the tangent, and leaves at pi - beta (north of it) on the tangent back to X.
-    distance = float(np.hypot(*(BOX2_CENTER - CHECKPOINT_X)))
-    toward_x = float(np.arctan2(*(CHECKPOINT_X - BOX2_CENTER)[::-1]))
+    # along the tangent, and leaves at pi - beta (north of it) on the tangent back to X;
+    # clockwise, the mirror image (sign -1).
+    sign = -1.0 if clockwise else 1.0
+    distance = float(np.hypot(*(center - checkpoint)))
+    if not distance > radius:
+        raise ValueError(f"box_world_path: the checkpoint lies {distance:.3g} m from the circle's centre, "
+                         f"inside the circle of radius {radius:.3g} m")
+    toward_x = float(np.arctan2(*(checkpoint - center)[::-1]))
     beta = float(np.arccos(radius / distance))
-    enter_angle, leave_angle = toward_x + beta, toward_x - beta
-    enter = BOX2_CENTER + radius * np.array([np.cos(enter_angle), np.sin(enter_angle)])
-    leave = BOX2_CENTER + radius * np.array([np.cos(leave_angle), np.sin(leave_angle)])
-    # From entering to leaving, counter-clockwise: whole laps plus the arc between them.
-    leave_sweep = float(np.mod(leave_angle - enter_angle, 2.0 * np.pi))
+    enter_angle, leave_angle = toward_x + sign * beta, toward_x - sign * beta
+    enter = center + radius * np.array([np.cos(enter_angle), np.sin(enter_angle)])
+    leave = center + radius * np.array([np.cos(leave_angle), np.sin(leave_angle)])
+    # From entering to leaving, in the direction of travel: whole laps plus the arc between them.
+    leave_sweep = float(np.mod(sign * (leave_angle - enter_angle), 2.0 * np.pi))
     turn_radius = step_length / max_turn_per_step
 
     def line(points, start_heading=None):
@@ -359,10 +377,11 @@ def box_world_path(
                              turn_radius=turn_radius)
 
     def circle(num_laps):
-        return circle_path(BOX2_CENTER, radius, num_laps + leave_sweep / (2 * np.pi), step_length, enter_angle)
+        return circle_path(center, radius, num_laps + leave_sweep / (2 * np.pi), step_length, enter_angle,
+                           clockwise=clockwise)
 
-    heading_to_box1 = float(np.arctan2(*(TURNAROUND - CHECKPOINT_X)[::-1]))
-    parts = [line([CHECKPOINT_X, TURNAROUND, CHECKPOINT_X, enter], start_heading=heading_to_box1)]
+    heading_to_box1 = float(np.arctan2(*(turnaround - checkpoint)[::-1]))
+    parts = [line([checkpoint, turnaround, checkpoint, enter], start_heading=heading_to_box1)]
     lap_ends = []
     visits = [laps_per_visit] * (laps // laps_per_visit) + ([laps % laps_per_visit] if laps % laps_per_visit else [])
     for v, num_laps in enumerate(visits):
@@ -372,7 +391,7 @@ def box_world_path(
         lap_ends += [offset + int(round(per_lap * (k + 1))) for k in range(num_laps)]
         parts.append(loop)
         last = v + 1 == len(visits)
-        out = [leave, CHECKPOINT_X, TURNAROUND] + ([] if last else [CHECKPOINT_X, enter])
+        out = [leave, checkpoint, turnaround] + ([] if last else [checkpoint, enter])
         parts.append(line(out, start_heading=loop[-1, 2]))
     poses = concat_paths(*parts, atol=1e-5)
     return poses, dict(lap_end_indices=np.array(lap_ends, dtype=np.int64), turn_radius=turn_radius)
@@ -399,6 +418,11 @@ def box_world_scenario(
     dt: float = 0.1,
     motion: MotionParams | None = None,
     field_of_view: float = np.pi,
+    world: SegmentWorld | None = None,
+    clockwise: bool = False,
+    circle_center=None,
+    checkpoint=None,
+    turnaround=None,
 ) -> Scenario:
     """The box world of Grzonka et al. (Figs. 1 and 4), the test case for look-ahead proposals.
 
@@ -438,27 +462,38 @@ def box_world_scenario(
     These stds scale with the step: with longer steps (fewer, larger independent errors)
     the same coefficients give more drift.
 
+    ``world`` (a :class:`SegmentWorld`; default :func:`box_world`), ``clockwise``,
+    ``circle_center``, ``checkpoint`` and ``turnaround`` (as :func:`box_world_path`'s) give
+    another world of the same plan: the box-world family (:mod:`jaxslam.sim.box_family`).
+
     Returns:
       A :class:`Scenario`. metadata: ``checkpoint_x`` ((2,) m), ``x_passages`` (indices of
       the scans at which the true path passes over X, within ``x_tolerance`` = 0.3 m: the
       start, out and back after every visit but the last, and the end), ``x_tolerance``,
-      ``turnaround`` ((2,) m), ``box1_center``, ``box2_center``, ``circle_radius``,
+      ``turnaround`` ((2,) m), ``box1_center`` (the default world's only), ``box2_center``
+      (the circle's centre), ``circle_radius``, ``clockwise``,
       ``lap_end_indices`` (the scan completing each lap), ``laps``, ``turn_radius``,
       ``motion_params``, ``range_noise_std``, ``step_length``, ``dt``.
     """
     if motion is None:
         motion = BOX_WORLD_MOTION
-    world = box_world()
-    true_poses, info = box_world_path(laps, laps_per_visit, circle_radius, step_length, max_turn_per_step)
+    default_world = world is None
+    world = box_world() if default_world else world
+    center = BOX2_CENTER if circle_center is None else np.asarray(circle_center, np.float64)
+    checkpoint = CHECKPOINT_X if checkpoint is None else np.asarray(checkpoint, np.float64)
+    turnaround = TURNAROUND if turnaround is None else np.asarray(turnaround, np.float64)
+    true_poses, info = box_world_path(laps, laps_per_visit, circle_radius, step_length, max_turn_per_step,
+                                      clockwise, center, checkpoint, turnaround)
     sensor = make_sensor(uniform_beams(num_beams, field_of_view), range_min=0.05, range_max=range_max)
     log = simulate_log(key, world, true_poses, sensor, motion, range_noise_std, dt=dt, source="<box world scenario>")
     metadata = dict(
-        checkpoint_x=CHECKPOINT_X.copy(),
-        turnaround=TURNAROUND.copy(),
-        x_passages=passage_indices(true_poses, CHECKPOINT_X, X_TOLERANCE),
+        checkpoint_x=checkpoint.copy(),
+        turnaround=turnaround.copy(),
+        x_passages=passage_indices(true_poses, checkpoint, X_TOLERANCE),
         x_tolerance=X_TOLERANCE,
-        box1_center=BOX1_CENTER.copy(),
-        box2_center=BOX2_CENTER.copy(),
+        **({"box1_center": BOX1_CENTER.copy()} if default_world else {}),
+        box2_center=center.copy(),
+        clockwise=bool(clockwise),
         circle_radius=circle_radius,
         lap_end_indices=info["lap_end_indices"],
         laps=laps,
