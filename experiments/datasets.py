@@ -140,7 +140,7 @@ def score_run(dataset: str, proposal: str, seed: int, run_dir: Path, data: Path,
                                                                       "rot_std_deg")})
         extra_errors["closed_far_trans_mean"] = _far_mean(closed_times, closed_poses, relations, far)
         extra_errors["loops_kept"] = summary["closure"]["loops_kept"]
-        extra_errors["closure_s"] = summary["closure"]["timings"]["total"]
+        extra_errors["closure_s"] = summary["timings"]["closure"]["total"]
     refined = {}
     if (run_dir / "trajectory_refined.txt").is_file():  # every scan localised in the final map
         refined_err = relation_error(*read_trajectory(run_dir / "trajectory_refined.txt"), relations).to_dict()

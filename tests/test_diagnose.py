@@ -124,8 +124,9 @@ def test_diagnose_command_reads_a_map_run(tmp_path, capsys):
     record = read_step_record(out)
     steps = record["ancestors"].shape[0]
     assert record["proposed_poses"].shape == (steps, 4, 3) and record["best_path"].shape == (steps + 1, 3)
-    # Relations from the run's own trajectory, one of them 0.1 m off: the diagnosis finds it.
-    traj = np.loadtxt(out / "trajectory.txt")
+    # Relations from the filter's own trajectory (the diagnosis is the filter's: beside a loop
+    # closure, trajectory_filter.txt), one of them 0.1 m off: the diagnosis finds it.
+    traj = np.loadtxt(out / "trajectory_filter.txt")
     i, j = np.array([2, 10, 30]), np.array([8, 40, 59])
     motion = between_np(traj[i, 1:], traj[j, 1:])
     motion[2, 1] += 0.1

@@ -45,7 +45,6 @@ from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps, scan_points
 from jaxslam.map_view import MapView
 from jaxslam.motion import noise_std
-from jaxslam.occupancy import GridMap, empty_map, insert_scan
 from jaxslam.scan_matching import match
 from jaxslam.sensor_model import ENDPOINT
 
@@ -198,8 +197,9 @@ class LoopClosure(NamedTuple):
         return int(np.sum(self.loops.refused == ""))
 
     def summary(self) -> dict:
-        """Counts and seconds for ``summary.json``: pairs searched, loops kept, refused by reason,
-        the share of searches whose best was certified exact, and the largest correction (m)."""
+        """Counts for ``summary.json``'s ``closure`` (its seconds go under ``timings``): pairs
+        searched, loops kept, refused by reason, the share of searches whose best was certified
+        exact, and the largest correction (m)."""
         refused = self.loops.refused[self.loops.refused != ""]
         reasons, counts = np.unique(refused, return_counts=True)
         shift = np.hypot(*(self.poses - self.filter_poses)[:, :2].T) if self.poses.size else np.zeros(1)
@@ -207,7 +207,7 @@ class LoopClosure(NamedTuple):
                 "pairs_searched": int(self.pairs_searched), "candidates": int(self.loops.query.size),
                 "loops_kept": self.num_loops, "refused": {str(r): int(c) for r, c in zip(reasons, counts)},
                 "certified_share": float(np.mean(self.loops.certified)) if self.loops.query.size else None,
-                "largest_correction_m": float(shift.max()), "timings": dict(self.timings)}
+                "largest_correction_m": float(shift.max())}
 
 
 def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params) -> Edges:
@@ -334,13 +334,26 @@ def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.nda
     return np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
 
 
-def _accept(submaps: Submaps, query, submap, result: SearchResult, guess, half_xy, half_theta, ranges, sensor,
-            likelihood, estimate, kept_before: Loops, config: ClosureConfig) -> Loops:
+class _Searched(NamedTuple):
+    """One block's searched pairs (host arrays, one row a pair)."""
+
+    query: np.ndarray
+    submap: np.ndarray
+    guess: np.ndarray
+    half_xy: np.ndarray
+    half_theta: np.ndarray
+    result: SearchResult
+
+
+def _accept(submaps: Submaps, searched: _Searched, ranges, sensor, likelihood, estimate, kept_before: Loops,
+            config: ClosureConfig) -> Loops:
     """The searched pairs whose score is near the threshold, refined, fitted and put to the
     score, window, uniqueness, information and consistency tests (``refused`` says which failed)."""
+    result = searched.result
     promising = np.nonzero(result.score >= 0.8 * config.min_score)[0]
-    query, submap = query[promising], submap[promising]
-    guess, half_xy, half_theta = guess[promising], half_xy[promising], half_theta[promising]
+    query, submap = searched.query[promising], searched.submap[promising]
+    guess, half_xy, half_theta = (searched.guess[promising], searched.half_xy[promising],
+                                  searched.half_theta[promising])
     refined, information, score = _refine_and_fit(submaps, submap, result.pose[promising], ranges[query], sensor,
                                                   likelihood, config.match_iterations)
     measurement = refined.astype(np.float64)
@@ -375,6 +388,30 @@ def _accept(submaps: Submaps, query, submap, result: SearchResult, guess, half_x
                   (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan))
 
 
+def loop_edges(loops: Loops, submaps: Submaps) -> Edges:
+    """The graph's edges of the kept loops: from each one's submap's first node to its query."""
+    kept = loops.refused == ""
+    return Edges(submaps.first_node[loops.submap[kept]], loops.query[kept], loops.measurement[kept],
+                 loops.information[kept], np.full(int(kept.sum()), LOOP))
+
+
+def _search_block(queries, estimate, travelled, found: Loops, submaps: Submaps, points, valid,
+                  config: ClosureConfig) -> _Searched:
+    """Search a block's queries against their candidate submaps, from the current estimate, in
+    windows grown over the graph's distance (through the loops kept so far)."""
+    kept = found.refused == ""
+    distance = graph_distances(travelled, queries, submaps.last_node, found.query[kept],
+                               submaps.last_node[found.submap[kept]])
+    query, submap, half_xy, half_theta = candidate_pairs(estimate, submaps, config, queries, travelled, distance)
+    rel = between_np(estimate[submaps.first_node][submap], estimate[query])
+    guess = np.concatenate([rel[:, :2] - submaps.corner[submap], rel[:, 2:]], axis=-1)
+    resolution = submaps.grid.resolution
+    result = search_pairs(submaps, submap, points[query], valid[query], guess,
+                          np.ceil(half_xy / resolution).astype(np.int32), half_theta, config.window(resolution),
+                          batch=config.batch)
+    return _Searched(query, submap, guess, half_xy, half_theta, result)
+
+
 def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray, estimate: np.ndarray,
            solved_until: int, config: ClosureConfig) -> np.ndarray:
     """The graph optimised with the kept loops (their ``chi2`` written into ``found``; loops in
@@ -386,9 +423,7 @@ def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray,
 
     def solve(loop_phi, start):
         kept = np.nonzero(found.refused == "")[0]
-        loop_edges = Edges(submaps.first_node[found.submap[kept]], found.query[kept], found.measurement[kept],
-                           found.information[kept], np.full(kept.size, LOOP))
-        solved = pose_graph.optimize(PoseGraph(start, pose_graph.concat_edges(sequential, loop_edges)),
+        solved = pose_graph.optimize(PoseGraph(start, pose_graph.concat_edges(sequential, loop_edges(found, submaps))),
                                      loop_phi=loop_phi)
         found.chi2[kept] = solved.chi2[sequential.count:]
         return kept, solved.poses
@@ -462,7 +497,6 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
                             "total": time.perf_counter() - t0})
     ranges = np.asarray(log.ranges[node_scans], np.float32)
     resolution = slam_config.resolution
-    window = config.window(resolution)
     submaps = build_submaps(local, ranges, log.sensor, params.insertion, resolution, slam_config.max_insert_range,
                             config.nodes_per_submap, config.sigma, config.levels)
     t1 = time.perf_counter()
@@ -484,123 +518,27 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     for block_start in range(0, local.shape[0], config.query_block):
         block_end = min(block_start + config.query_block, local.shape[0])
         queries = np.arange(block_start, block_end)
-        queries = queries[queries % config.query_stride == 0]
-        kept_now = found.refused == ""
-        distance = graph_distances(travelled, queries, submaps.last_node, found.query[kept_now],
-                                   submaps.last_node[found.submap[kept_now]])
         t_a = time.perf_counter()
-        query, submap, half_xy, half_theta = candidate_pairs(estimate, submaps, config, queries, travelled, distance)
-        pairs += int(query.size)
-        origins = estimate[submaps.first_node]
-        rel = between_np(origins[submap], estimate[query])
-        guess = np.concatenate([rel[:, :2] - submaps.corner[submap], rel[:, 2:]], axis=-1)
-        result = search_pairs(submaps, submap, points[query], valid[query], guess,
-                              np.ceil(half_xy / resolution).astype(np.int32), half_theta, window, batch=config.batch)
+        searched = _search_block(queries[queries % config.query_stride == 0], estimate, travelled, found, submaps,
+                                 points, valid, config)
+        pairs += int(searched.query.size)
         t_b = time.perf_counter()
-        new = _accept(submaps, query, submap, result, guess, half_xy, half_theta, ranges, log.sensor, likelihood,
-                      estimate, found, config)
+        new = _accept(submaps, searched, ranges, log.sensor, likelihood, estimate, found, config)
         found = found.extend(new)
         t_c = time.perf_counter()
         if np.any(new.refused == ""):
             estimate = _solve(found, submaps, sequential, local, estimate, block_end, config)
-        t_d = time.perf_counter()
-        seconds["search"] += t_b - t_a
-        seconds["accept"] += t_c - t_b
-        seconds["optimize"] += t_d - t_c
+        for stage, seconds_taken in (("search", t_b - t_a), ("accept", t_c - t_b), ("optimize", time.perf_counter() - t_c)):
+            seconds[stage] += seconds_taken
         if bar is not None:
             bar.update(block_end - block_start)
     if bar is not None:
         bar.close()
     optimized = estimate
-    kept = found.refused == ""
-    edges = pose_graph.concat_edges(sequential, Edges(submaps.first_node[found.submap[kept]], found.query[kept],
-                                                      found.measurement[kept], found.information[kept],
-                                                      np.full(int(kept.sum()), LOOP)))
-    t4 = time.perf_counter()
+    edges = pose_graph.concat_edges(sequential, loop_edges(found, submaps))
 
     poses = to_world(optimized, frame_offset)
     trajectory = trajectory_per_scan(log, node_scans, poses)
     loops = found._replace(refused=found.refused.astype(str))
     timings = {"submaps": t1 - t0, **seconds, "total": time.perf_counter() - t0}
     return LoopClosure(node_scans, filter_poses, poses, trajectory, edges, loops, submaps.first_node, pairs, timings)
-
-
-@partial(jax.jit, static_argnames=("grid", "max_insert_range", "field_radius"))
-def _draw(poses, ranges, sensor, params, grid: GridSpec, max_insert_range: float, field_radius: int) -> GridMap:
-    def body(grid_map, xs):
-        grid_map, _ = insert_scan(grid, grid_map, xs[0], xs[1], sensor, params, max_insert_range, field_radius)
-        return grid_map, None
-
-    grid_map, _ = jax.lax.scan(body, empty_map(grid), (poses, ranges))
-    return grid_map
-
-
-def draw_map(closure: LoopClosure, log, params, slam_config, frame_offset) -> tuple[np.ndarray, np.ndarray, GridSpec]:
-    """The map drawn again at the optimised poses: every node's scan inserted into one dense grid
-    with the filter's insertion. Returns ``(logodds (H, W) float16, hit_dist2 (H, W) uint8,
-    grid)``, the grid in the world frame (as :meth:`jaxslam.slam.SlamResult.dense_map`)."""
-    from jaxslam.rbpf import grid_to_world, to_local
-
-    local = to_local(closure.poses, frame_offset)
-    reach = slam_config.max_insert_range + 1.0
-    lo = local[:, :2].min(axis=0) - reach
-    hi = local[:, :2].max(axis=0) + reach
-    res = slam_config.resolution
-    lo = np.floor(lo / res) * res
-    grid = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], res)
-    grid_map = _draw(jnp.asarray(local, jnp.float32), jnp.asarray(log.ranges[closure.node_scans]), log.sensor,
-                     params.insertion, grid, float(slam_config.max_insert_range), int(slam_config.field_radius))
-    return np.asarray(grid_map.logodds), np.asarray(grid_map.hit_dist2), grid_to_world(grid, frame_offset)
-
-
-GRAPH_FILE = "graph.npz"
-"""The pose graph in a run's output folder (:func:`save_graph`)."""
-
-
-def save_graph(path, closure: LoopClosure) -> None:
-    """Write the graph of a loop closure as a NumPy archive: the nodes (``node_scans``,
-    ``filter_poses``, ``poses``), the edges (``edge_first``, ``edge_second``,
-    ``edge_measurement``, ``edge_information``, ``edge_kind``, and ``edge_chi2`` at the optimised
-    poses), every candidate loop (``loop_*``: the fields of :class:`Loops`, ``loop_node`` its
-    submap's first node) and ``submap_first_node``."""
-    edges = closure.edges
-    loops = closure.loops
-    arrays = {"node_scans": closure.node_scans, "filter_poses": closure.filter_poses, "poses": closure.poses,
-              "submap_first_node": closure.submap_first_node,
-              "edge_first": edges.first, "edge_second": edges.second, "edge_measurement": edges.measurement,
-              "edge_information": edges.information, "edge_kind": edges.kind,
-              "edge_chi2": pose_graph.chi2(closure.poses, edges),
-              "loop_node": closure.submap_first_node[loops.submap] if loops.submap.size else np.zeros(0, int)}
-    arrays.update({f"loop_{name}": np.asarray(value) for name, value in loops._asdict().items()})
-    with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
-
-
-def load_graph(path) -> dict[str, np.ndarray]:
-    """The arrays :func:`save_graph` wrote."""
-    with np.load(path, allow_pickle=False) as data:
-        return {name: data[name] for name in data.files}
-
-
-def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None) -> None:
-    """Draw a saved graph (:func:`load_graph`) on a map's axes (world frame): the filter's path,
-    the optimised path, and every candidate loop as a line from its submap's first node to its
-    query at the optimised poses: kept in green, refused in red (thin), labelled by reason count."""
-    poses, filt = graph["poses"], graph["filter_poses"]
-    ax.plot(filt[:, 0], filt[:, 1], color="tab:red", lw=0.6, alpha=0.6, label="filter")
-    ax.plot(poses[:, 0], poses[:, 1], color="tab:blue", lw=0.8, label="closed")
-    if truth is not None:
-        ax.plot(truth[:, 0], truth[:, 1], color="tab:green", lw=0.8, ls="--", label="ground truth")
-    refused = graph["loop_refused"]
-    for kept, colour, lw in ((False, "tab:red", 0.4), (True, "tab:green", 0.8)):
-        mask = (refused == "") == kept
-        if not mask.any():
-            continue
-        a, b = poses[graph["loop_node"][mask]], poses[graph["loop_query"][mask]]
-        segments = np.stack([a[:, :2], b[:, :2]], axis=1)
-        from matplotlib.collections import LineCollection
-
-        ax.add_collection(LineCollection(segments, colors=colour, linewidths=lw,
-                                         label=f"loops {'kept' if kept else 'refused'} ({int(mask.sum())})"))
-    ax.set_aspect("equal")
-    ax.legend(loc="upper right", fontsize=7)

@@ -1,0 +1,97 @@
+"""A loop closure's outputs: the map drawn again at the optimised poses (:func:`draw_map`), the
+graph as a NumPy archive (:func:`save_graph`, :func:`load_graph`, what ``jaxslam map`` writes as
+``graph.npz``) and its figure (:func:`plot_graph`, what ``jaxslam diagnose`` draws)."""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam.graph import pose_graph
+from jaxslam.graph.closure import LoopClosure
+from jaxslam.grid import GridSpec
+from jaxslam.occupancy import GridMap, empty_map, insert_scan
+
+
+@partial(jax.jit, static_argnames=("grid", "max_insert_range", "field_radius"))
+def _draw(poses, ranges, sensor, params, grid: GridSpec, max_insert_range: float, field_radius: int) -> GridMap:
+    def body(grid_map, xs):
+        grid_map, _ = insert_scan(grid, grid_map, xs[0], xs[1], sensor, params, max_insert_range, field_radius)
+        return grid_map, None
+
+    grid_map, _ = jax.lax.scan(body, empty_map(grid), (poses, ranges))
+    return grid_map
+
+
+def draw_map(closure: LoopClosure, log, params, slam_config, frame_offset) -> tuple[np.ndarray, np.ndarray, GridSpec]:
+    """The map drawn again at the optimised poses: every node's scan inserted into one dense grid
+    with the filter's insertion. Returns ``(logodds (H, W) float16, hit_dist2 (H, W) uint8,
+    grid)``, the grid in the world frame (as :meth:`jaxslam.slam.SlamResult.dense_map`)."""
+    from jaxslam.rbpf import grid_to_world, to_local
+
+    local = to_local(closure.poses, frame_offset)
+    reach = slam_config.max_insert_range + 1.0
+    lo = local[:, :2].min(axis=0) - reach
+    hi = local[:, :2].max(axis=0) + reach
+    res = slam_config.resolution
+    lo = np.floor(lo / res) * res
+    grid = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], res)
+    grid_map = _draw(jnp.asarray(local, jnp.float32), jnp.asarray(log.ranges[closure.node_scans]), log.sensor,
+                     params.insertion, grid, float(slam_config.max_insert_range), int(slam_config.field_radius))
+    return np.asarray(grid_map.logodds), np.asarray(grid_map.hit_dist2), grid_to_world(grid, frame_offset)
+
+
+GRAPH_FILE = "graph.npz"
+"""The pose graph in a run's output folder (:func:`save_graph`)."""
+
+
+def save_graph(path, closure: LoopClosure) -> None:
+    """Write the graph of a loop closure as a NumPy archive: the nodes (``node_scans``,
+    ``filter_poses``, ``poses``), the edges (``edge_first``, ``edge_second``,
+    ``edge_measurement``, ``edge_information``, ``edge_kind``, and ``edge_chi2`` at the optimised
+    poses), every candidate loop (``loop_*``: the fields of :class:`Loops`, ``loop_node`` its
+    submap's first node) and ``submap_first_node``."""
+    edges = closure.edges
+    loops = closure.loops
+    arrays = {"node_scans": closure.node_scans, "filter_poses": closure.filter_poses, "poses": closure.poses,
+              "submap_first_node": closure.submap_first_node,
+              "edge_first": edges.first, "edge_second": edges.second, "edge_measurement": edges.measurement,
+              "edge_information": edges.information, "edge_kind": edges.kind,
+              "edge_chi2": pose_graph.chi2(closure.poses, edges),
+              "loop_node": closure.submap_first_node[loops.submap] if loops.submap.size else np.zeros(0, int)}
+    arrays.update({f"loop_{name}": np.asarray(value) for name, value in loops._asdict().items()})
+    with open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def load_graph(path) -> dict[str, np.ndarray]:
+    """The arrays :func:`save_graph` wrote."""
+    with np.load(path, allow_pickle=False) as data:
+        return {name: data[name] for name in data.files}
+
+
+def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None) -> None:
+    """Draw a saved graph (:func:`load_graph`) on a map's axes (world frame): the filter's path,
+    the optimised path, and every candidate loop as a line from its submap's first node to its
+    query at the optimised poses: kept in green, refused in red (thin), labelled by reason count."""
+    poses, filt = graph["poses"], graph["filter_poses"]
+    ax.plot(filt[:, 0], filt[:, 1], color="tab:red", lw=0.6, alpha=0.6, label="filter")
+    ax.plot(poses[:, 0], poses[:, 1], color="tab:blue", lw=0.8, label="closed")
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], color="tab:green", lw=0.8, ls="--", label="ground truth")
+    refused = graph["loop_refused"]
+    for kept, colour, lw in ((False, "tab:red", 0.4), (True, "tab:green", 0.8)):
+        mask = (refused == "") == kept
+        if not mask.any():
+            continue
+        a, b = poses[graph["loop_node"][mask]], poses[graph["loop_query"][mask]]
+        segments = np.stack([a[:, :2], b[:, :2]], axis=1)
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(segments, colors=colour, linewidths=lw,
+                                         label=f"loops {'kept' if kept else 'refused'} ({int(mask.sum())})"))
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=7)
