@@ -31,6 +31,8 @@ from _runs import ResultStore  # experiments/_runs.py: the shared resume helper
 WORLDS = ("twin_rooms", "office")
 INPUTS = ("filter", "drift")
 WINDOWS = {"default": {}, "wide": {"window_min_xy": 12.0, "window_max_xy": 12.0, "max_node_distance": 15.0}}
+VARIANT = {}
+"""ClosureConfig fields every run of this invocation sets (``--set NAME=VALUE``), recorded in the settings."""
 FILTER = {"proposal": "smp", "num_particles": 20, "linear_update": 0.25, "angular_update": 0.25}
 """The filter's settings (the demo's)."""
 CORRECT_XY, CORRECT_THETA = 0.3, 0.05
@@ -104,7 +106,7 @@ def run_one(world: str, source: str, window: str, seed: int) -> tuple[dict, obje
     from jaxslam.rbpf import local_frame_offset
 
     scenario = scenario_of(world, seed)
-    closure_config = dataclasses.replace(ClosureConfig(), **WINDOWS[window])
+    closure_config = dataclasses.replace(ClosureConfig(), **WINDOWS[window], **VARIANT)
     config, settings, params = build_setup(dict(FILTER))
     t0 = time.perf_counter()
     if source == "filter":
@@ -160,6 +162,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=3, help="seeds per cell (default 3)")
     parser.add_argument("--worlds", nargs="+", choices=WORLDS, default=list(WORLDS))
     parser.add_argument("--inputs", nargs="+", choices=INPUTS, default=list(INPUTS))
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="a ClosureConfig field for every run (e.g. min_score=0.5), recorded in the settings")
     parser.add_argument("--figure", help="PNG of the twin rooms' first filter run (or drift run): the loops kept and refused")
     args = parser.parse_args(argv)
     if args.seeds < 1:
@@ -168,7 +172,16 @@ def main(argv=None) -> int:
         parser.error(f"--figure must be a PNG file, got the folder {args.figure}")
     from tqdm import tqdm
 
-    store = ResultStore(args.out, {"filter": FILTER, "windows": WINDOWS},
+    from jaxslam.graph import ClosureConfig
+
+    fields = {f.name: f.type for f in dataclasses.fields(ClosureConfig)}
+    for item in args.set:
+        name, _, value = item.partition("=")
+        if name not in fields:
+            parser.error(f"--set {item}: {name!r} is no ClosureConfig field ({', '.join(fields)})")
+        default = getattr(ClosureConfig(), name)
+        VARIANT[name] = value if isinstance(default, str) else type(default)(value)
+    store = ResultStore(args.out, {"filter": FILTER, "windows": WINDOWS, "set": dict(VARIANT)},
                         key=lambda r: (r["world"], r["input"], r["window"], r["seed"]))
     cells = [(w, i, win, s) for w in args.worlds for i in args.inputs for win in WINDOWS for s in range(args.seeds)
              if win == "default" or w == "twin_rooms"]
