@@ -6,7 +6,8 @@ model's covariance, the submaps are runs of consecutive scans (:mod:`jaxslam.gra
 Every ``query_stride``-th scan is searched against every submap it is not a neighbour of in time
 and could be near (:mod:`jaxslam.graph.loop_search`), in a window that grows with the distance
 travelled since the submap. A match becomes a loop edge when it passes five tests, each of which
-a false loop on an aliasing world fails for its own reason (docs/design.md, "Loop closure"):
+a false loop on an aliasing world fails for its own reason (docs/design.md, "Loop closure behind
+the filter"):
 
 1. **score**: its mean fit is at least ``min_score``;
 2. **window**: the refined match lies inside the search window, two cells (two angular steps)
@@ -20,9 +21,12 @@ a false loop on an aliasing world fails for its own reason (docs/design.md, "Loo
    local relative poses: at least ``min_support`` agree, and more agree than disagree (a slide
    along a corridor agrees with its own kind, but the loops before it disagree).
 
-The graph is then optimised (:func:`jaxslam.graph.pose_graph.optimize`, Dynamic Covariance
-Scaling on the loops); a loop still in conflict with the rest (chi2 above ``max_chi2``) is
-refused and the graph optimised again without it. The map is drawn again at the optimised poses.
+The queries are taken in time order, ``query_block`` nodes at a time, each block searched from
+the graph as solved so far; after a block that kept loops the graph is solved
+(:func:`jaxslam.graph.pose_graph.optimize`): plain least squares, the loops still in conflict
+(chi2 above ``max_chi2``) refused and the graph solved again, then Dynamic Covariance Scaling on
+the loops from that solution. :mod:`jaxslam.graph.output` draws the map again at the optimised
+poses and writes the graph.
 """
 
 from __future__ import annotations
@@ -121,6 +125,31 @@ class ClosureConfig:
     """Nodes whose queries are searched before the graph is solved again (time order)."""
     match_iterations: int = 12
     """Hill-climbing rounds that refine each match below the search's cell (static)."""
+
+    def __post_init__(self):
+        counts = ("nodes_per_submap", "query_stride", "submaps_per_query", "num_points", "levels", "keep", "batch",
+                  "consistency_nodes", "max_rounds", "query_block", "match_iterations")
+        lengths = ("search_range", "sigma", "window_min_xy", "window_max_xy", "window_min_theta", "window_max_theta",
+                   "angular_step", "max_std_xy", "max_std_theta", "consistency_xy", "consistency_theta", "loop_phi",
+                   "max_chi2")
+        for name in counts:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"ClosureConfig: {name} must be a positive integer, got {value!r}")
+        for name in lengths + ("min_separation", "max_node_distance", "window_xy_per_metre",
+                               "window_theta_per_metre", "min_score", "max_second_ratio"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"ClosureConfig: {name} must be a finite number >= 0, got {value!r}")
+        for name in lengths:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"ClosureConfig: {name} must be > 0, got {getattr(self, name)!r}")
+        if self.window_min_xy > self.window_max_xy or self.window_min_theta > self.window_max_theta:
+            raise ValueError("ClosureConfig: a window's minimum exceeds its maximum (window_min_xy > window_max_xy "
+                             "or window_min_theta > window_max_theta)")
+        if not (0 < self.min_score <= 1 and 0 < self.max_second_ratio <= 1):
+            raise ValueError(f"ClosureConfig: min_score and max_second_ratio must lie in (0, 1], got "
+                             f"{self.min_score!r} and {self.max_second_ratio!r}")
 
     def window(self, resolution: float, half_cells: int | None = None) -> SearchWindow:
         """The search's static shape at a map resolution (m), for translation windows up to
