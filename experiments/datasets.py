@@ -226,9 +226,9 @@ def aggregate(records: list[dict]) -> dict:
             keys = ["trans_mean", "trans_std", "rot_mean_deg", "rot_std_deg", "wall_s", "real_time_factor",
                     "peak_memory_mb"]
             refined_keys = [f"refined_{k}" for k in keys[:4]] if all("refined_trans_mean" in r for r in runs) else []
-            refined_keys += [f"closed_{k}" for k in keys[:4]] if all("closed_trans_mean" in r for r in runs) else []
+            closed_keys = [f"closed_{k}" for k in keys[:4]] if all("closed_trans_mean" in r for r in runs) else []
             out.setdefault(dataset, {})[proposal] = {
-                **{k: float(np.mean([r[k] for r in runs])) for k in keys + refined_keys},
+                **{k: float(np.mean([r[k] for r in runs])) for k in keys + refined_keys + closed_keys},
                 "trans_mean_over_seeds_std": float(np.std([r["trans_mean"] for r in runs])),
                 **({"refined_trans_mean_over_seeds_std": float(np.std([r["refined_trans_mean"] for r in runs]))}
                    if refined_keys else {}),
