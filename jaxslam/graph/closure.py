@@ -521,7 +521,7 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     if path_distances(local)[-1] < config.min_separation:  # no submap can be searched: nothing to build
         trajectory = trajectory_per_scan(log, node_scans, filter_poses)
         return LoopClosure(node_scans, filter_poses, filter_poses.copy(), trajectory, sequential,
-                           Loops(*Loops.empty()._replace(refused=np.zeros(0, str))), np.zeros(0, int), 0,
+                           Loops.empty()._replace(refused=np.zeros(0, str)), np.zeros(0, int), 0,
                            {"submaps": 0.0, "search": 0.0, "accept": 0.0, "optimize": 0.0,
                             "total": time.perf_counter() - t0})
     ranges = np.asarray(log.ranges[node_scans], np.float32)

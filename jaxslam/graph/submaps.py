@@ -182,15 +182,16 @@ def scan_points(ranges: np.ndarray, sensor: SensorSpec, max_range: float, num_po
     ok = (ranges >= float(sensor.range_min)) & (ranges < min(float(sensor.range_max), max_range))
     ends = np.asarray(jax.vmap(lambda r: beam_endpoints(jnp.zeros((1, 3)), r, sensor)[0][0])(
         jnp.asarray(ranges)))  # (S, B, 2) in the robot frame
-    points = np.zeros((ranges.shape[0], num_points, 2), np.float32)
-    valid = np.zeros((ranges.shape[0], num_points), bool)
-    for s in range(ranges.shape[0]):
-        beams = np.nonzero(ok[s])[0]
-        if beams.size == 0:
-            continue
-        pick = beams[np.unique(np.round(np.linspace(0, beams.size - 1, min(num_points, beams.size))).astype(int))]
-        points[s, :pick.size] = ends[s, pick]
-        valid[s, :pick.size] = True
+    # Each scan's valid beams first, in beam order; then num_points ranks spread over them (all
+    # of them where there are fewer), vectorised over the scans.
+    count = ok.sum(axis=1)
+    used = np.minimum(count, num_points)
+    order = np.argsort(~ok, axis=1, kind="stable")
+    slot = np.arange(num_points)
+    rank = np.round(slot[None] * (count[:, None] - 1) / np.maximum(used[:, None] - 1, 1)).astype(np.int64)
+    valid = slot[None] < used[:, None]
+    beam = np.take_along_axis(order, np.where(valid, rank, 0), axis=1)
+    points = np.where(valid[..., None], np.take_along_axis(ends, beam[..., None], axis=1), 0.0).astype(np.float32)
     return points, valid
 
 
