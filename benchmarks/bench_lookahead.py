@@ -28,7 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import paged_map, rbpf
+from jaxslam import maps as paged
+from jaxslam import rbpf
 from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between, compose
 from jaxslam.proposals import lookahead
@@ -83,8 +84,8 @@ def setup(num_beams: int, horizon: int):
 
     scans = np.stack([np.asarray(scan(jnp.asarray(p))) for p in path])
     params = default_params()
-    insert = jax.jit(paged_map.insert_scans, static_argnums=(0, 6, 7))
-    grid_map = paged_map.empty(spec, 1, 2000)  # one particle's map
+    insert = jax.jit(paged.insert_scans, static_argnums=(0, 6, 7))
+    grid_map = paged.empty(spec, 1, 2000)  # one particle's map
     for p, r in zip(path[:10], scans[:10]):
         grid_map, _ = insert(spec, grid_map, jnp.asarray(p)[None], jnp.asarray(r), sensor, params.insertion, 15.0, 4)
     motions = np.asarray(between(path[:-1], path[1:]), np.float32)
@@ -99,7 +100,7 @@ def setup(num_beams: int, horizon: int):
 
 
 def make_state(grid_map, pose, n):
-    maps = paged_map.resample(grid_map, jnp.zeros((n,), jnp.int32))  # n particles sharing its tiles
+    maps = paged.resample(grid_map, jnp.zeros((n,), jnp.int32))  # n particles sharing its tiles
     return rbpf.SlamState(jnp.broadcast_to(pose, (n, 3)), jnp.full((n,), -math.log(n), jnp.float32), maps,
                           jnp.int32(0))
 
@@ -125,8 +126,8 @@ _step = jax.jit(rbpf.step, static_argnames="config")
 
 
 def _propose_all(keys, poses, maps, inputs, sensor, params, config):
-    return jax.vmap(lookahead.propose, in_axes=(0, 0, paged_map.FIELD_AXES, None, None, None, None))(
-        keys, poses, paged_map.fields(maps), inputs, sensor, params, config)
+    return jax.vmap(lookahead.propose, in_axes=(0, 0, paged.FIELD_AXES, None, None, None, None))(
+        keys, poses, paged.fields(maps), inputs, sensor, params, config)
 
 
 _propose = jax.jit(_propose_all, static_argnames="config")
@@ -189,7 +190,7 @@ def main(argv=None):
     main_row = measure_step(base, spec, sensor, params, grid_map, inputs, pose, n0, l0, k0, reps)
 
     # Baseline in the same run: the same number of beam lookups, plain nearest cell in dense maps.
-    _, field, dense_grid = paged_map.to_dense(spec, grid_map, 0)
+    _, field, dense_grid = paged.to_dense(spec, grid_map, 0)
     dense_fields = jnp.broadcast_to(jnp.asarray(field), (n0,) + field.shape)
     num_poses = l0 * (k0 + 1)
     rng = np.random.default_rng(0)

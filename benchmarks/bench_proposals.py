@@ -57,8 +57,8 @@ def pose_evaluations(config) -> int:
     else:  # the hill climber of earlier versions: a start, six moves a round, the stencil, the score
         base = 1 + 6 * config.match_iterations + 27 + 1
     # The slip search's test: two window posteriors of one particle a step, shared by all
-    # (jaxslam.rbpf.slip_log_odds; the second pass at the steps where it fires is not counted).
-    from jaxslam.rbpf import searches_window
+    # (jaxslam.slip_search.slip_log_odds; the second pass at the steps where it fires is not counted).
+    from jaxslam.slip_search import searches_window
 
     slip_test = 2 * base / config.num_particles if searches_window(config) else 0
     if config.proposal == "lp":

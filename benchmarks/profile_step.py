@@ -80,7 +80,8 @@ def _proposals_fn(config, step_inputs, sensor, params):
     (``config.particle_block`` particles at a time, the likelihood's beams subsampled)."""
     import jax
 
-    from jaxslam import paged_map, particle_filter
+    from jaxslam import maps as paged
+    from jaxslam import particle_filter
     from jaxslam.laser import subsample_beams
     from jaxslam.proposals import PROPOSALS
 
@@ -92,7 +93,7 @@ def _proposals_fn(config, step_inputs, sensor, params):
 
     @jax.jit
     def proposals(key, state):
-        field = paged_map.fields(state.maps)
+        field = paged.fields(state.maps)
         return particle_filter.map_in_blocks(
             lambda p: propose_fn(p[0], p[1], field._replace(directory=p[2]), lik_inputs, lik_sensor, params, config),
             (jax.random.split(key, config.num_particles), state.poses, field.directory), config.particle_block)
@@ -109,7 +110,8 @@ def _read_costs(config, step_inputs, sensor, params, state, repeats: int) -> dic
 
     import jax
 
-    from jaxslam import map_view, paged_map
+    from jaxslam import map_view
+    from jaxslam import maps as paged
 
     capacity = state.maps.hit_dist2.shape[0]
 
@@ -122,7 +124,7 @@ def _read_costs(config, step_inputs, sensor, params, state, repeats: int) -> dic
 
     cases = {
         "as_is": (config, contextlib.nullcontext()),
-        "no_page_table": (config, mock.patch.object(paged_map, "tile_slots", slots_without_page_table)),
+        "no_page_table": (config, mock.patch.object(paged.lookup, "tile_slots", slots_without_page_table)),
         "no_map_read": (config, mock.patch.object(map_view, "cell_values", no_read)),
         "beam_stride_4": (dataclasses.replace(config, beam_stride=4), contextlib.nullcontext()),
     }
@@ -158,7 +160,8 @@ def main(argv=None):
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxslam import paged_map, particle_filter, rbpf, slam
+    from jaxslam import maps as paged
+    from jaxslam import particle_filter, rbpf, slam
     from jaxslam.config import build_setup
     from jaxslam.io import read_log
     from jaxslam.laserlog import check_log
@@ -192,8 +195,8 @@ def main(argv=None):
                                valid, sensor, params)
         if bool(info.pool_overflow.any()):
             pool = slam._larger_pool(state.maps, config.grid)
-            state = state._replace(maps=paged_map.grow(config.grid, state.maps, pool))
-    report["tiles_in_use"] = int(paged_map.tiles_in_use(state.maps))
+            state = state._replace(maps=paged.grow(config.grid, state.maps, pool))
+    report["tiles_in_use"] = int(paged.tiles_in_use(state.maps))
     report["top_buffers"] = _top_buffers(dump, "_run_chunk", args.top)
 
     # The step's parts alone, from that state, at the next step's inputs.
@@ -208,11 +211,11 @@ def main(argv=None):
 
     @jax.jit
     def insertion(maps, poses, survivors):
-        return paged_map.insert_scans(config.grid, maps, poses, step_inputs.ranges, sensor, params.insertion,
+        return paged.insert_scans(config.grid, maps, poses, step_inputs.ranges, sensor, params.insertion,
                                       config.max_insert_range, config.field_radius, survivors,
                                       config.particle_block)
 
-    resample_maps = jax.jit(paged_map.resample)
+    resample_maps = jax.jit(paged.resample)
     step = jax.jit(lambda key, state: rbpf.step(key, state, step_inputs, sensor, params, config))
     parts = {"proposals": (proposals, (jax.random.key(2), state)),
              "insertion": (insertion, (state.maps, out.pose, survivors)),

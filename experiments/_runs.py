@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 from typing import Any, Callable, Hashable
 
-from jaxslam.outputs import write_file_atomic
+from jaxslam.io.files import write_file_atomic
 
 
 class SettingsMismatch(Exception):

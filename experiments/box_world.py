@@ -41,7 +41,8 @@ import jax
 import numpy as np
 from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the shared resume helper
 
-from jaxslam import rbpf, slam
+from jaxslam import slam
+from jaxslam.laserlog import local_frame_offset
 from jaxslam.cli import parse_assignments
 from jaxslam.config import CONFIG_FIELDS, SETTINGS_FIELDS, ConfigError, build_setup
 from jaxslam.metrics import checkpoint_passages, normalized_weights, passage_errors, revisiting_accuracy
@@ -135,7 +136,7 @@ def filter_setup(record: dict, scenario, world: dict):
     virtual grid (the world and ``grid_margin`` metres round it, from the filter's local origin),
     the insertion range and the simulator's odometry noise times ``motion_scale``."""
     xmin, ymin, xmax, ymax = scenario.world.bounds
-    x0, y0 = rbpf.local_frame_offset(scenario.log)
+    x0, y0 = local_frame_offset(scenario.log)
     reach = max(abs(xmin - x0), abs(xmax - x0), abs(ymin - y0), abs(ymax - y0)) + world["grid_margin"]
     noise = scaled_noise(scenario.metadata["motion_params"], world["motion_scale"])
     flat = {"max_insert_range": scenario.log.sensor.range_max.item() + world["insert_range_margin"],

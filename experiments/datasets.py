@@ -12,8 +12,9 @@ GMapping measured on this machine), ``DIR/robustness.md`` (per log and method: t
 mean ± standard error over seeds and the failed runs, :func:`failed_runs`), ``DIR/seeds.md``,
 each run's map PNG and ``DIR/failed_maps.png`` (the failed runs' maps side by side). With
 ``--refine`` each run also localises every scan in its final map
-and fuses the matches with the odometry (``jaxslam map --refine``, :mod:`jaxslam.refine`); the
-table shows that trajectory's error on a row of its own.
+and fuses the matches with the odometry (as ``jaxslam map`` does by default, :mod:`jaxslam.refine`;
+without it the runs pass ``--no-refine``); the table shows that trajectory's error on a row of
+its own.
 Finished runs are skipped on restart, so the script can be stopped and resumed, and a later
 call into the same folder (same settings) adds its runs to ``results.json`` beside the earlier ones
 (``experiments/_runs.py``; a folder written with other settings is refused).
@@ -88,8 +89,7 @@ def map_arguments(dataset: str, proposal: str, seed: int, run_dir: Path, data: P
     cli_proposal = "lp" if proposal.startswith("lp") else proposal
     args = ["map", str(data / log_name), "--proposal", cli_proposal, "--particles", str(settings["particles"]),
             "--seed", str(seed), "--out", str(run_dir), "--no-progress"]
-    if settings["refine"]:
-        args += ["--refine"]
+    args += ["--refine"] if settings["refine"] else ["--no-refine"]
     if cli_proposal == "lp":
         args += ["--localizers", str(settings["localizers"]), "--horizon", str(settings["horizon"])]
     for item in PROPOSALS[proposal]:
@@ -430,7 +430,7 @@ def main(argv=None) -> int:
                              "paper's (localizers from the motion model); lp-c0: the library's with "
                              "lookahead.selection_correction=0 (the evidence alone weighs the particles)")
     parser.add_argument("--refine", action="store_true",
-                        help="also localise every scan in each final map (jaxslam map --refine): a refined row")
+                        help="also localise every scan in each final map (jaxslam map's default; without it --no-refine): a refined row")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="change one of the table's settings for every run (after them, so it wins), "
                              "e.g. num_particles=100; use a new --out (runs are cached there)")

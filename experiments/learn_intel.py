@@ -55,7 +55,7 @@ def main(argv=None) -> int:
     from jaxslam.config import build_setup, params_to_dict
     from jaxslam.io import read_log
     from jaxslam.learning import fit
-    from jaxslam.paged_map import PoolSize
+    from jaxslam.maps import PoolSize
 
     log = read_log(path)
     elapsed = log.timestamps - log.timestamps[0]

@@ -103,7 +103,7 @@ def run_one(world: str, source: str, window: str, seed: int) -> tuple[dict, obje
     from jaxslam.config import build_setup
     from jaxslam.graph import ClosureConfig, close_trajectory_loops
     from jaxslam.laserlog import select_updates
-    from jaxslam.rbpf import local_frame_offset
+    from jaxslam.laserlog import local_frame_offset
 
     scenario = scenario_of(world, seed)
     closure_config = dataclasses.replace(ClosureConfig(), **WINDOWS[window], **VARIANT)

@@ -32,9 +32,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
+from jaxslam.maps import PagedGridSpec
 from jaxslam.motion import MotionParams, motion_params
 from jaxslam.occupancy import InsertionParams
-from jaxslam.paged_map import PagedGridSpec
 from jaxslam.proposals import PROPOSALS
 from jaxslam.resampling import RESAMPLERS
 from jaxslam.sensor_model import SENSOR_MODELS
@@ -61,7 +61,7 @@ class SlamConfig:
     map_extent: float = 1280.0
     """Side (m) of the square virtual grid the maps live on, centred on the log's first pose
     (rounded; ``slam.run``'s local frame). Memory grows with the area mapped, not with this:
-    a particle's map holds only the tiles it wrote (:mod:`jaxslam.paged_map`); its directory
+    a particle's map holds only the tiles it wrote (:mod:`jaxslam.maps`); its directory
     costs 4 bytes per 16 x 16 tiles of the extent (2.5 KB at the default 1.28 km and 64-cell tiles)."""
     tile_size: int = 64
     """Cells per side of a map tile: the unit particles share and copy on write."""
@@ -288,7 +288,7 @@ class ScanMatchParams(NamedTuple):
     """The slip search runs at a step when the heaviest particle's posterior probability that the
     step's odometry slipped is above this (its window posterior's evidence under the slip
     component against the usual motion model; 1 never runs it). The odometry is common to every
-    particle, so one particle can tell. See :func:`jaxslam.rbpf.slip_log_odds`."""
+    particle, so one particle can tell. See :func:`jaxslam.slip_search.slip_log_odds`."""
     slip_probability: Float[Array, ""]
     """epsilon, the prior probability that a step's odometry slipped: the motion model is then the
     mixture (1 - epsilon) p(x | x_{t-1}, u_t) + epsilon N(x_{t-1} (+) u_t, diag(slip stds^2))."""

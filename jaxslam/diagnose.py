@@ -23,7 +23,7 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
 * ``spread`` (m): the particles' proposed positions' standard deviation (root of the trace).
 * ``fallbacks``: particles whose scan match failed (SMP) or whose localizers lost all weight
   (LP); ``slipped``: particles that drew from the odometry's slip component (the filter's slip
-  search, :func:`jaxslam.rbpf.slip_log_odds`; ``slip_steps`` in the summary and ``slips`` in the
+  search, :func:`jaxslam.slip_search.slip_log_odds`; ``slip_steps`` in the summary and ``slips`` in the
   events list the steps); ``log_evidence``: the step's log p(z_t | z_1:t-1) estimate.
 * ``increment_spread`` (nats): the spread over the particles of the step's log-weight
   increments; the summary's ``weight_persistence`` says whether what accumulates between two

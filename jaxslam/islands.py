@@ -3,7 +3,7 @@ Moral & Moulines 2015, "On parallel implementation of sequential Monte Carlo met
 particle model", Statistics and Computing 25) of :mod:`jaxslam.rbpf` filters.
 
 N particles are split into I islands of N / I. An island is one RBPF (:mod:`jaxslam.rbpf`) with
-its own map pools (:class:`~jaxslam.paged_map.PagedMaps`: tiles and blocks shared by that
+its own map pools (:class:`~jaxslam.maps.PagedMaps`: tiles and blocks shared by that
 island's particles only, sized by :func:`jaxslam.rbpf.pool_size` of the island's config), its
 own within-island weights and its own selective resampling. Above the islands sits a second
 particle filter whose particles are the islands: island g's weight is multiplied every step by
@@ -51,7 +51,7 @@ from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 from jaxslam import particle_filter, rbpf, resampling
 from jaxslam.config import ConfigError, SlamConfig, SlamParams
 from jaxslam.laser import SensorSpec
-from jaxslam.paged_map import PoolSize
+from jaxslam.maps import PoolSize
 from jaxslam.proposals.base import StepInputs
 
 AXIS = "islands"

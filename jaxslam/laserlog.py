@@ -3,7 +3,10 @@
 A log lives on the host (NumPy). Update selection (GMapping's linear/angular
 thresholds) happens here, before the filter: :func:`select_updates` picks the
 scans the filter processes and composes the odometry between them into one
-motion each.
+motion each. :func:`trajectory_per_scan` gives every scan a pose from the processed ones (the
+relations of Kümmerle et al., and any per-scan metric, need a pose at every scan's timestamp);
+:func:`poses_at` reads a time-stamped pose stream (odometry, ground truth) at other timestamps,
+as the readers do to pair each scan with odometry.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxslam.geometry import between
+from jaxslam.geometry import between, compose, interpolate, wrap_angle_np
 from jaxslam.laser import SensorSpec
 
 
@@ -220,3 +223,140 @@ def select_updates(log: LaserLog, linear_update: float, angular_update: float) -
     motions = np.zeros((idx.size, 3), dtype=np.float64)
     motions[1:] = np.asarray(between(odom[idx[:-1]], odom[idx[1:]]))
     return UpdateSelection(idx, motions.astype(np.float32))
+
+
+class PosesAt(NamedTuple):
+    """Poses of a time-stamped stream read at query timestamps."""
+
+    poses: np.ndarray
+    """(Q, 3) float64 [x, y, theta] (m, m, rad) at each query time; rows outside the stream's
+    time span are zero (see ``covered``)."""
+    covered: np.ndarray
+    """(Q,) bool: whether the query time lies within [first, last] stream timestamp."""
+
+
+def poses_at(query_times, stream_times, stream_poses) -> PosesAt:
+    """Interpolate a pose stream at ``query_times`` with :func:`jaxslam.geometry.interpolate`.
+
+    Args:
+        query_times: (Q,) seconds, any order.
+        stream_times: (M,) seconds, non-decreasing (equal neighbours allowed), M >= 1.
+        stream_poses: (M, 3) poses [x, y, theta] (m, m, rad) at ``stream_times``.
+
+    Returns:
+        :class:`PosesAt`: (Q, 3) float64 poses and a (Q,) mask of the query times inside the
+        stream's span. A query equal to a stream timestamp gets that stream pose exactly;
+        one strictly between two stream messages gets the pose that fraction of the way
+        along the relative motion between them. Queries outside the span are not
+        extrapolated: the caller decides what to do with them (the readers drop and warn).
+    """
+    query = np.asarray(query_times, dtype=np.float64).reshape(-1)
+    times = np.asarray(stream_times, dtype=np.float64).reshape(-1)
+    poses = np.asarray(stream_poses, dtype=np.float64).reshape(-1, 3)
+    if times.size == 0 or poses.shape[0] != times.size:
+        raise ValueError(f"poses_at needs M >= 1 times and (M, 3) poses, got {times.shape} and {poses.shape}")
+    if np.any(np.diff(times) < 0):
+        raise ValueError("poses_at needs non-decreasing stream timestamps")
+    covered = (query >= times[0]) & (query <= times[-1])
+    # Index of the last stream message at or before each query (side="right" so that with
+    # equal neighbours the later one is taken; then times[j + 1] > query strictly).
+    before = np.clip(np.searchsorted(times, query, side="right") - 1, 0, times.size - 1)
+    after = np.minimum(before + 1, times.size - 1)
+    span = times[after] - times[before]
+    exact = (query == times[before]) | (span <= 0)
+    fraction = np.where(exact, 0.0, (query - times[before]) / np.where(span > 0, span, 1.0))
+    fraction = np.clip(fraction, 0.0, 1.0)
+    result = np.asarray(interpolate(poses[before], poses[after], fraction), dtype=np.float64)
+    # Exact hits keep the stream pose bit for bit (interpolate runs in float32).
+    result = np.where(exact[:, None], poses[before], result)
+    result = np.where(covered[:, None], result, 0.0)
+    return PosesAt(result, covered)
+
+
+def trajectory_per_scan(log: LaserLog, processed_indices, processed_poses) -> np.ndarray:
+    """A pose for every scan of ``log`` from the poses of the processed scans.
+
+    At a processed scan the result is its pose. At a skipped scan ``i`` it is the pose of
+    the nearest processed scan ``k`` before it composed with the odometry motion since:
+    ``compose(pose[k], between(odom[k], odom[i]))``. Scans before the first processed one
+    use the first processed scan the same way (the motion is then backwards in time).
+
+    Args:
+        log: the log the filter ran on (T scans).
+        processed_indices: (S,) int, strictly increasing scan indices in [0, T), S >= 1.
+        processed_poses: (S, 3) poses [x, y, theta] (m, m, rad) estimated at those scans.
+
+    Returns:
+        (T, 3) float64 poses (m, m, rad), theta wrapped to (-pi, pi].
+    """
+    idx = np.asarray(processed_indices).reshape(-1)
+    poses = np.asarray(processed_poses, dtype=np.float64)
+    if idx.size == 0:
+        raise ValueError("trajectory_per_scan needs at least one processed scan")
+    if not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"processed_indices must be integers, got dtype {idx.dtype}")
+    if poses.shape != (idx.size, 3):
+        raise ValueError(f"processed_poses has shape {poses.shape}, expected ({idx.size}, 3)")
+    if np.any(np.diff(idx) <= 0):
+        raise ValueError("processed_indices must be strictly increasing")
+    if idx[0] < 0 or idx[-1] >= log.num_scans:
+        raise ValueError(f"processed_indices must lie in [0, {log.num_scans}), got {idx[0]}..{idx[-1]}")
+    if not np.all(np.isfinite(poses)):
+        raise ValueError("processed_poses must be finite")
+    scans = np.arange(log.num_scans)
+    # The processed scan each scan hangs off: the last one at or before it, else the first.
+    anchor = np.clip(np.searchsorted(idx, scans, side="right") - 1, 0, idx.size - 1)
+    odom = log.odometry
+    motion = between(odom[idx[anchor]], odom)
+    result = np.asarray(compose(poses[anchor], motion), dtype=np.float64)
+    # Processed scans keep their pose exactly (compose runs in float32).
+    result[idx] = poses
+    result[idx, 2] = wrap_angle_np(poses[:, 2])
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# The filter's local frame (the one place that moves poses between it and the log's frame).
+
+
+def local_frame_offset(log: LaserLog) -> np.ndarray:
+    """(2,) float64: the origin of the filter's local frame in the log's frame, where the virtual
+    grid is centred: the translation of the log's first odometry pose, rounded to a multiple of
+    64 m. Subtracted on the host in float64 before anything is cast to float32 (float32 resolves
+    0.5 m at 5,000 km from the origin, e.g. in UTM coordinates)."""
+    # Rounded to a multiple of 64 m: a log that starts within 32 m of the origin runs exactly as
+    # given, and shifting a log by a multiple of 64 m changes no bit of the filter's arithmetic
+    # (the local logs are equal); |local coordinates| <= 32 m + the log's extent.
+    return np.round(np.asarray(log.odometry[0, :2], dtype=np.float64) / 64.0) * 64.0 + 0.0
+
+
+def to_world(poses, frame_offset) -> np.ndarray:
+    """Local-frame poses (..., 3) or points (..., 2) in the log's (world) frame: float64, the
+    (2,) ``frame_offset`` added."""
+    out = np.array(poses, dtype=np.float64)
+    out[..., :2] += frame_offset
+    return out
+
+
+def to_local(poses, frame_offset) -> np.ndarray:
+    """World-frame poses (..., 3) or points (..., 2) in the filter's local frame: float64, the
+    (2,) ``frame_offset`` subtracted."""
+    out = np.array(poses, dtype=np.float64)
+    out[..., :2] -= frame_offset
+    return out
+
+
+def grid_to_world(grid, frame_offset):
+    """A grid (``GridSpec`` or ``PagedGridSpec``) of the local frame placed in the log's frame:
+    its origin moved by the (2,) ``frame_offset``."""
+    x0, y0 = (float(v) for v in frame_offset)
+    return dataclasses.replace(grid, origin=(grid.origin[0] + x0, grid.origin[1] + y0))
+
+
+def local_log(log: LaserLog, frame_offset) -> LaserLog:
+    """``log`` with its odometry and ground truth in the local frame of ``frame_offset``
+    (:func:`local_frame_offset`); the same object when the offset is zero."""
+    if not np.any(frame_offset):
+        return log
+    ground_truth = None if log.ground_truth is None else to_local(log.ground_truth, frame_offset)
+    return dataclasses.replace(log, odometry=to_local(log.odometry, frame_offset), ground_truth=ground_truth)

@@ -42,8 +42,8 @@ from jaxslam.computed_once import computed_once
 from jaxslam.grid import GridSpec, cell_clip_bound, world_to_cell
 from jaxslam.laser import SensorSpec, beam_endpoints, valid_returns
 from jaxslam.map_view import MapView
+from jaxslam.maps import PagedField, PagedGridSpec
 from jaxslam.occupancy import FAR
-from jaxslam.paged_map import PagedField, PagedGridSpec
 
 FIELD_LOOKUPS = ("nearest", "bilinear")
 """How an endpoint reads the likelihood field (see the module docstring)."""

@@ -1,7 +1,7 @@
 """One particle's map as a sensor model reads it: :class:`MapView`.
 
-The SLAM filters keep their maps paged (:mod:`jaxslam.paged_map`: one particle's
-:class:`~jaxslam.paged_map.PagedField` is its directory into pools shared by all particles);
+The SLAM filters keep their maps paged (:mod:`jaxslam.maps`: one particle's
+:class:`~jaxslam.maps.PagedField` is its directory into pools shared by all particles);
 tests, the refinement and the localization tools hold a dense ``(H, W)`` field on a
 :class:`~jaxslam.grid.GridSpec`. A sensor model (:mod:`jaxslam.sensor_model`) reads either
 through a view, so the difference between the two lives here and nowhere else.
@@ -15,7 +15,7 @@ import jax
 from jaxtyping import Array, Int
 
 from jaxslam.grid import GridSpec, flat_index
-from jaxslam.paged_map import PagedField, PagedGridSpec, cell_values
+from jaxslam.maps import PagedField, PagedGridSpec, cell_values
 
 
 @jax.tree_util.register_dataclass
@@ -25,10 +25,10 @@ class MapView:
 
     spec: GridSpec | PagedGridSpec = dataclasses.field(metadata={"static": True})
     """The grid: a dense :class:`~jaxslam.grid.GridSpec` or a paged map's
-    :class:`~jaxslam.paged_map.PagedGridSpec` (static)."""
+    :class:`~jaxslam.maps.PagedGridSpec` (static)."""
     values: Array | PagedField
     """The quantity: a dense (H, W) array on ``spec``, or one particle's
-    :class:`~jaxslam.paged_map.PagedField` (directory and shared pools) on a paged ``spec``."""
+    :class:`~jaxslam.maps.PagedField` (directory and shared pools) on a paged ``spec``."""
 
     def __post_init__(self):
         if isinstance(self.values, PagedField) != isinstance(self.spec, PagedGridSpec):

@@ -2,7 +2,7 @@
 
 All metrics run on the host (NumPy) on per-scan trajectories: timestamps (T,) in
 seconds and poses (T, 3) [x, y, theta] (m, m, rad), e.g. from
-:func:`jaxslam.io.trajectory.trajectory_per_scan`.
+:func:`jaxslam.laserlog.trajectory_per_scan`.
 """
 
 from __future__ import annotations

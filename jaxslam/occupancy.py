@@ -14,7 +14,7 @@ Every cell of a map holds two values on a :class:`~jaxslam.grid.GridSpec` grid:
   so that a likelihood evaluation reads one cell per beam (in a paged map three gathers:
   directory, block, tile).
 
-The SLAM filter's maps are paged (:mod:`jaxslam.paged_map`), not a dense grid per particle:
+The SLAM filter's maps are paged (:mod:`jaxslam.maps`), not a dense grid per particle:
 fixed-size tiles of these two arrays live in one pool shared by all particles, each particle
 has a directory into shared blocks of page table that point at the tiles, and a particle that
 inserts a scan into a tile or block it shares gets its own copy first (copy on write);
@@ -215,7 +215,7 @@ def floored_to_cells(spec: GridSpec, xy: Float[Array, "... 2"]) -> Int[Array, ".
 
 def _flat_index(index):
     """An index of cell storage, flattened: one array of flat indices, or (for a pool of tiles
-    too large for one int32 index, ``paged_map.FLAT_INDEX_CELLS``) a tuple of per-axis arrays."""
+    too large for one int32 index, ``jaxslam.maps.FLAT_INDEX_CELLS``) a tuple of per-axis arrays."""
     return tuple(i.reshape(-1) for i in index) if isinstance(index, tuple) else index.reshape(-1)
 
 
@@ -284,7 +284,7 @@ def insert_scan(
     endpoint ever inserted (a scatter-min of the squared cell distances within
     ``field_radius`` cells of each endpoint).
 
-    The filters keep their maps paged (:mod:`jaxslam.paged_map`, which applies the same
+    The filters keep their maps paged (:mod:`jaxslam.maps`, which applies the same
     updates to the same cells); a dense map is for a single map (tests, tools).
 
     Returns the new map and the number of beam samples (free or endpoint) that fell outside

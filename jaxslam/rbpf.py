@@ -4,7 +4,7 @@ Each of N particles carries a pose and its own occupancy grid map. A step draws 
 particle's next pose from the configured proposal (:data:`jaxslam.proposals.PROPOSALS`; all
 see the map m_{t-1}), updates its weight, inserts the scan into its map at the new pose, and
 resamples when the ESS falls below ``resample_threshold * N``. The maps are paged
-(:mod:`jaxslam.paged_map`): tiles in one pool and blocks of page table in another, shared by
+(:mod:`jaxslam.maps`): tiles in one pool and blocks of page table in another, shared by
 all particles, so resampling copies small directories, and an insertion copies only the shared
 blocks and tiles it writes.
 
@@ -26,15 +26,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
-from jaxslam import motion, paged_map, particle_filter, resampling, window_posterior
+from jaxslam import maps as paged
+from jaxslam import motion, particle_filter
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, SlamParams
 from jaxslam.grid import in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
-from jaxslam.laserlog import LaserLog, UpdateSelection, select_updates
-from jaxslam.paged_map import PagedMaps, PoolSize
+from jaxslam.laserlog import LaserLog, UpdateSelection, local_frame_offset, local_log, select_updates
+from jaxslam.maps import PagedMaps, PoolSize
 from jaxslam.proposals import PROPOSALS
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 from jaxslam.sensor_model import sensor_model
+from jaxslam.slip_search import searches_window, with_slip_search, without_slip_search
 
 
 class SlamState(NamedTuple):
@@ -79,7 +81,7 @@ class SlamInfo(NamedTuple):
     num_fallbacks: Int[Array, ""]
     """Particles whose proposal fell back (SMP: failed match; LP: no weight)."""
     num_slipped: Int[Array, ""]
-    """Particles whose new pose came from the odometry's slip component (:func:`slip_mixture`;
+    """Particles whose new pose came from the odometry's slip component (:func:`jaxslam.slip_search.slip_mixture`;
     0 at a step where the slip search did not run)."""
     outside_samples: Int[Array, ""]
     """Beam samples (all particles) that fell outside the virtual grid and were dropped."""
@@ -100,7 +102,7 @@ tiles, 15 m beams), and all of it where a log's first scan is not known."""
 
 
 def pool_size(config: SlamConfig, first_scan_tiles: int | None = None) -> PoolSize:
-    """The maps' pools a run starts with (see :class:`~jaxslam.paged_map.PagedMaps`). An insertion
+    """The maps' pools a run starts with (see :class:`~jaxslam.maps.PagedMaps`). An insertion
     copies or creates up to about 20 tiles per particle on Intel (64-cell tiles, 15 m beams; more
     after a resampling, fewer when the particles own their tiles) and up to 4 blocks. The first
     step asks for the most: every tile the first scan touched is shared, so every particle copies
@@ -112,7 +114,7 @@ def pool_size(config: SlamConfig, first_scan_tiles: int | None = None) -> PoolSi
     sizing from Intel's alone made FR-clinic's first step outgrow the pool and recompile. The
     tile pool starts with room for three such requests: what the particles hold (on Intel's first
     3,000 scans 1.9 to 2.1 requests' worth at the end, at N = 30 to 1,000) and the next request
-    (there at most 0.74 of one), at most :func:`~jaxslam.paged_map.max_pool_tiles` (a pool beyond
+    (there at most 0.74 of one), at most :func:`~jaxslam.maps.max_pool_tiles` (a pool beyond
     2**31 cells, from about N = 7,300 on 64-cell tiles, is indexed by (slot, cell) pairs). It is
     the largest allocation per particle (0.9 MB at 64-cell tiles), so it starts no larger:
     :func:`jaxslam.slam.run` grows the pools when a step needs more (one recompile each time,
@@ -123,7 +125,7 @@ def pool_size(config: SlamConfig, first_scan_tiles: int | None = None) -> PoolSi
     k = spec.window_tiles(config.max_insert_range, config.field_radius)
     kb = spec.window_blocks(k)
     n = config.num_particles
-    most = paged_map.max_pool_tiles(spec)  # int32 slots: memory runs out long before
+    most = paged.max_pool_tiles(spec)  # int32 slots: memory runs out long before
     # Rounded up to a multiple of 8: logs of one laser share a compiled step unless their first
     # footprints differ by more (a pool's size is a static shape).
     per_particle = (TILES_PER_PARTICLE if first_scan_tiles is None
@@ -156,14 +158,14 @@ def init(
     pose = jnp.zeros(3, jnp.float32) if initial_pose is None else jnp.asarray(initial_pose, jnp.float32)
     # The insertion is not differentiable (cells are chosen by rounding the pose): no gradient
     # enters it, so none leaves it either (its tangents would only be NaN-prone noise).
-    one, _ = paged_map.insert_scans(spec, paged_map.empty(spec, 1, *pool), jax.lax.stop_gradient(pose[None]),
+    one, _ = paged.insert_scans(spec, paged.empty(spec, 1, *pool), jax.lax.stop_gradient(pose[None]),
                                     jnp.asarray(first_ranges, jnp.float32), sensor,
                                     jax.lax.stop_gradient(params.insertion), config.max_insert_range,
                                     config.field_radius)
     return SlamState(
         poses=jnp.broadcast_to(pose, (n, 3)),
         log_weights=jnp.full((n,), -math.log(n), jnp.float32),
-        maps=paged_map.resample(one, jnp.zeros((n,), jnp.int32)),
+        maps=paged.resample(one, jnp.zeros((n,), jnp.int32)),
         step=jnp.int32(0),
     )
 
@@ -207,80 +209,129 @@ def step_with_score_terms(
     """:func:`step`, with the step's share of the score (:func:`particle_filter.fixed_lag_score`;
     a step not taken has none).
 
-    One RBPF update with scan ``inputs.ranges`` (all beams) after motion ``inputs.motion``.
+    One RBPF update with scan ``inputs.ranges`` (all beams) after motion ``inputs.motion``: every
+    particle proposes its pose (:func:`propose`; with the slip search, :func:`jaxslam.slip_search.with_slip_search`,
+    where :func:`jaxslam.slip_search.searches_window`), the weights are updated and the particles resampled
+    (:func:`weigh_and_resample`), and the survivors insert the scan into their maps
+    (:func:`update_maps`).
 
     The step is taken only when ``valid`` (False: a padding step past the end of a log) and the
     maps' pools hold its new tiles. A step not taken changes nothing (poses, weights, maps, step
     count) and adds no evidence (``info.log_evidence`` 0); ``state.maps.overflow`` and
     ``info.pool_overflow`` say when the pools were too small, and stay set, so that every later
-    step is not taken either: grow the pools (:func:`jaxslam.paged_map.grow`) and take the
-    steps again from the first one not taken (:func:`jaxslam.slam.run` does)."""
-    spec = config.grid
-    n = config.num_particles
-    # A step not taken sees a scan with no usable beam (nothing enters the maps, every weight
-    # increment is 0) and may not resample; its pose draws are discarded.
+    step is not taken either: grow the pools (:func:`jaxslam.maps.grow`) and take the
+    steps again from the first one not taken (:func:`jaxslam.slam.run` does). The gate is
+    :func:`_gate_inputs` before the step and :func:`_gate_outputs` after it."""
+    active, inputs, params = _gate_inputs(valid, state, inputs, params)
+    key_prop, key_res = jax.random.split(key)
+    lik_inputs, lik_sensor = likelihood_inputs(inputs, sensor, config)
+    propose_fn = with_slip_search(propose) if searches_window(config) else without_slip_search(propose)
+    out, num_slipped = propose_fn(key_prop, state, lik_inputs, lik_sensor, params, config)
+    update = weigh_and_resample(key_res, state, out, params, config)
+    mapped = update_maps(state.maps, out.pose, update.ancestors, inputs.ranges, sensor, params, config, active)
+    info = _info(out, num_slipped, update, mapped, lik_inputs, lik_sensor, params, config)
+    new_state = SlamState(out.pose[mapped.ancestors], update.new_log_weights, mapped.maps, state.step + 1)
+    terms = update.score_terms._replace(ancestors=mapped.ancestors)
+    return _gate_outputs(mapped.taken, state, new_state, info, terms)
+
+
+# ---------------------------------------------------------------------------------------------
+# The step's parts, in the order it takes them.
+
+
+def _gate_inputs(valid: Bool[Array, ""] | bool, state: SlamState, inputs: StepInputs, params: SlamParams
+                 ) -> tuple[Bool[Array, ""], StepInputs, SlamParams]:
+    """The gate before a step: ``(active, inputs, params)``. The step is active when ``valid`` and
+    the pools have not overflowed (``state.maps.overflow``). An inactive step sees a scan with no
+    usable beam (:func:`_noop_inputs`: nothing enters the maps, every weight increment is 0) and
+    may not resample (``resample_threshold`` 0); its pose draws are discarded
+    (:func:`_gate_outputs`)."""
     active = jnp.asarray(valid, bool) & ~state.maps.overflow
     inputs = jax.tree.map(lambda a, b: jnp.where(active, a, b), inputs, _noop_inputs(inputs))
     params = params._replace(resample_threshold=jnp.where(active, params.resample_threshold, 0.0))
-    key_prop, key_res = jax.random.split(key)
+    return active, inputs, params
 
+
+def likelihood_inputs(inputs: StepInputs, sensor: SensorSpec, config: SlamConfig) -> tuple[StepInputs, SensorSpec]:
+    """The scans (this step's and the future ones) and the laser as the likelihoods see them: every
+    ``config.beam_stride``-th beam (:func:`jaxslam.laser.subsample_beams`; the insertion takes
+    all beams)."""
     lik_sensor, lik_ranges = subsample_beams(sensor, inputs.ranges, config.beam_stride)
     _, lik_future = subsample_beams(sensor, inputs.future_ranges, config.beam_stride)
-    lik_inputs = inputs._replace(ranges=lik_ranges, future_ranges=lik_future)
+    return inputs._replace(ranges=lik_ranges, future_ranges=lik_future), lik_sensor
+
+
+def propose(key: PRNGKeyArray, state: SlamState, inputs: StepInputs, sensor: SensorSpec, params: SlamParams,
+            config: SlamConfig, step_motion: motion.MotionParams | None = None) -> ProposalOutput:
+    """Every particle's new pose and log-weight increment, (N,)-batched: the configured proposal
+    (``PROPOSALS[config.proposal].propose_fn``) in each particle's map, with the particle's key
+    of ``split(key, N)``. ``inputs`` and ``sensor`` as the likelihoods see them
+    (:func:`likelihood_inputs`); ``step_motion``: the motion model for this step (None:
+    ``params.motion``; the slip search's :func:`jaxslam.slip_search.slip_motion`)."""
     propose_fn = PROPOSALS[config.proposal].propose_fn
+    field = paged.fields(state.maps)
+
+    def propose_one(particle):
+        key, pose, directory = particle
+        return propose_fn(key, pose, field._replace(directory=directory), inputs, sensor, params, config, step_motion)
+
     # No gradient reaches the previous poses: the maps they built do not move with them (the
     # insertion is not differentiable), and a pose moved against a fixed map is a biased and
     # very noisy motion gradient (motion.sample_with_score).
     # In blocks of config.particle_block particles: the window posterior's candidates times beams
     # would otherwise be the step's largest intermediate, N times over.
-    field = paged_map.fields(state.maps)
+    return particle_filter.map_in_blocks(
+        propose_one,
+        (jax.random.split(key, config.num_particles), jax.lax.stop_gradient(state.poses), field.directory),
+        config.particle_block)
 
-    def propose_all(key, step_motion):
-        def propose_one(particle):
-            key, pose, directory = particle
-            return propose_fn(key, pose, field._replace(directory=directory), lik_inputs, lik_sensor, params,
-                              config, step_motion)
 
-        return particle_filter.map_in_blocks(
-            propose_one, (jax.random.split(key, n), jax.lax.stop_gradient(state.poses), field.directory),
-            config.particle_block)
+def weigh_and_resample(key: PRNGKeyArray, state: SlamState, out: ProposalOutput, params: SlamParams,
+                       config: SlamConfig) -> particle_filter.WeightUpdate:
+    """The weights times the proposals' increments, normalised, and the particles resampled when
+    the ESS falls below ``params.resample_threshold`` * N
+    (:func:`jaxslam.particle_filter.reweight_and_resample`)."""
+    return particle_filter.reweight_and_resample(key, out.pose, state.log_weights, out.log_weight_increment,
+                                                 params.resample_threshold, config.resampler)
 
-    out: ProposalOutput = propose_all(key_prop, None)
-    num_slipped = jnp.int32(0)
-    if searches_window(config):
-        # The slip search. The odometry is common to every particle, so one particle can tell
-        # whether this step's odometry slipped: the heaviest, whose map is the filter's best.
-        # When its posterior puts more than scan_match.slip_trigger on the slip component, the
-        # proposals run again under it and every particle draws from the mixture
-        # (slip_mixture); at other steps the slip component's share is taken as 0.
-        heaviest = jnp.argmax(state.log_weights)
-        slip_odds = jax.lax.stop_gradient(slip_log_odds(
-            state.poses[heaviest], field._replace(directory=field.directory[heaviest]), lik_inputs, lik_sensor,
-            params, config))
 
-        def with_slip(out):
-            slipped = propose_all(jax.random.fold_in(key_prop, _TAG_SLIP), slip_motion(params))
-            return slip_mixture(jax.random.fold_in(key_prop, _TAG_SLIP_CHOICE), out, slipped,
-                                params.scan_match.slip_probability)
+class MapUpdate(NamedTuple):
+    """What :func:`update_maps` returns."""
 
-        triggered = jax.nn.sigmoid(slip_odds) > params.scan_match.slip_trigger
-        out, chose_slip = jax.lax.cond(triggered, with_slip, lambda out: (out, jnp.zeros((n,), bool)), out)
-        num_slipped = jnp.sum(chose_slip).astype(jnp.int32)
+    maps: PagedMaps
+    """The maps after the step: the survivors' with the scan, resampled by ``ancestors``."""
+    ancestors: Int[Array, "N"]
+    """The resampling's ancestors where the step is taken, else the identity."""
+    taken: Bool[Array, ""]
+    """Whether the step is taken: active, and its insertion fitted in the pools."""
+    outside: Int[Array, "N"]
+    """Beam samples per particle that fell outside the virtual grid."""
 
-    update = particle_filter.reweight_and_resample(key_res, out.pose, state.log_weights, out.log_weight_increment,
-                                                   params.resample_threshold, config.resampler)
-    # Only the particles the resampling keeps insert the scan: the others' maps are dropped next.
-    survivors = jnp.zeros((n,), bool).at[update.ancestors].set(True)
-    maps, outside = paged_map.insert_scans(spec, state.maps, jax.lax.stop_gradient(out.pose), inputs.ranges, sensor,
+
+def update_maps(maps: PagedMaps, poses: Float[Array, "N 3"], ancestors: Int[Array, "N"], ranges: Float[Array, "B"],
+                sensor: SensorSpec, params: SlamParams, config: SlamConfig, active: Bool[Array, ""]) -> MapUpdate:
+    """The scan (all beams) inserted into the maps of the particles the resampling keeps, at their
+    new ``poses`` (the others' maps are dropped next), then the maps resampled. An insertion that
+    did not fit in the pools writes nothing and the step is not taken: the maps keep their
+    particles, and ``overflow`` stays set (it is sticky)."""
+    n = config.num_particles
+    survivors = jnp.zeros((n,), bool).at[ancestors].set(True)
+    inserted, outside = paged.insert_scans(config.grid, maps, jax.lax.stop_gradient(poses), ranges, sensor,
                                            jax.lax.stop_gradient(params.insertion), config.max_insert_range,
                                            config.field_radius, survivors,
                                            config.particle_block)  # not differentiable: see init
-    # An insertion that did not fit wrote nothing: the step is not taken.
-    taken = active & ~maps.overflow
-    ancestors = jnp.where(taken, update.ancestors, jnp.arange(n, dtype=update.ancestors.dtype))
-    maps = paged_map.resample(maps, ancestors)
-    maps = maps._replace(overflow=state.maps.overflow | maps.overflow)
-    info = SlamInfo(
+    taken = active & ~inserted.overflow
+    ancestors = jnp.where(taken, ancestors, jnp.arange(n, dtype=ancestors.dtype))
+    resampled = paged.resample(inserted, ancestors)
+    return MapUpdate(resampled._replace(overflow=maps.overflow | resampled.overflow), ancestors, taken, outside)
+
+
+def _info(out: ProposalOutput, num_slipped: Int[Array, ""], update: particle_filter.WeightUpdate, mapped: MapUpdate,
+          lik_inputs: StepInputs, lik_sensor: SensorSpec, params: SlamParams, config: SlamConfig) -> SlamInfo:
+    """The step's :class:`SlamInfo`, as if it were taken (:func:`_gate_outputs` corrects a step
+    not taken)."""
+    grid = config.grid.grid
+    return SlamInfo(
         ess=update.ess,
         resampled=update.resampled,
         best_particle=jnp.argmax(update.log_weights).astype(jnp.int32),
@@ -288,97 +339,37 @@ def step_with_score_terms(
         pose_covariance=update.pose_covariance,
         # The sensor model's normalising constant, the same for every particle, so it is left
         # out of the weights: with it the log-evidence is that of a density in likelihood.sigma.
-        log_evidence=jnp.where(taken, update.log_evidence + sensor_model(config).log_normalizer_fn(
-            lik_ranges, lik_sensor, params.likelihood, config.resolution), 0.0),
+        log_evidence=update.log_evidence + sensor_model(config).log_normalizer_fn(
+            lik_inputs.ranges, lik_sensor, params.likelihood, config.resolution),
         degenerate=update.degenerate,
         proposed_poses=out.pose,
-        log_weights=jnp.where(taken, update.log_weights, state.log_weights),
-        ancestors=ancestors,
+        log_weights=update.log_weights,
+        ancestors=mapped.ancestors,
         num_fallbacks=jnp.sum(out.fallback).astype(jnp.int32),
         num_slipped=num_slipped,
-        outside_samples=jnp.sum(outside).astype(jnp.int32),
-        poses_outside=jnp.sum(~in_bounds(spec.grid, world_to_cell(spec.grid, out.pose[:, :2]))).astype(jnp.int32),
-        tiles_in_use=paged_map.tiles_in_use(maps).astype(jnp.int32),
-        pool_overflow=maps.overflow,
+        outside_samples=jnp.sum(mapped.outside).astype(jnp.int32),
+        poses_outside=jnp.sum(~in_bounds(grid, world_to_cell(grid, out.pose[:, :2]))).astype(jnp.int32),
+        tiles_in_use=paged.tiles_in_use(mapped.maps).astype(jnp.int32),
+        pool_overflow=mapped.maps.overflow,
     )
-    new_state = SlamState(jnp.where(taken, out.pose[ancestors], state.poses),
-                          jnp.where(taken, update.new_log_weights, state.log_weights), maps,
-                          state.step + jnp.where(taken, 1, 0).astype(state.step.dtype))
-    terms = particle_filter.ScoreTerms(jnp.where(taken, update.log_weights, state.log_weights),
-                                       jnp.where(taken, update.score_terms.increments, 0.0), ancestors)
+
+
+def _gate_outputs(taken: Bool[Array, ""], state: SlamState, new_state: SlamState, info: SlamInfo,
+                  terms: particle_filter.ScoreTerms
+                  ) -> tuple[SlamState, SlamInfo, particle_filter.ScoreTerms]:
+    """The gate after a step: a step not ``taken`` keeps ``state``'s poses, weights and step count,
+    reports no evidence (0) and no share of the score. Its maps and ancestors are already the
+    previous ones (:func:`update_maps`)."""
+    def keep(a, b):
+        return jnp.where(taken, a, b)
+
+    info = info._replace(log_evidence=keep(info.log_evidence, 0.0),
+                         log_weights=keep(info.log_weights, state.log_weights))
+    new_state = SlamState(keep(new_state.poses, state.poses), keep(new_state.log_weights, state.log_weights),
+                          new_state.maps, keep(new_state.step, state.step))
+    terms = terms._replace(log_weights=keep(terms.log_weights, state.log_weights),
+                           increments=keep(terms.increments, 0.0))
     return new_state, info, terms
-
-
-_TAG_SLIP, _TAG_SLIP_CHOICE = 0x511, 0x512  # fold-in tags of the slip search's keys
-
-
-def searches_window(config: SlamConfig) -> bool:
-    """Whether ``config``'s proposal searches the window posterior (the SMP, the LP from the
-    match), and so gets the slip search (static)."""
-    return config.proposal == "smp" or (config.proposal == "lp" and config.lookahead_initial == "scan_match")
-
-
-def slip_motion(params: SlamParams) -> motion.MotionParams:
-    """The motion model's slip component: zero-mean noise of ``scan_match.slip_std_xy`` (x, y) and
-    ``slip_std_theta`` (heading) round the odometry's prediction, whatever the motion (the window
-    posterior is then sized from these stds)."""
-    sm = params.scan_match
-    zero = jnp.zeros_like(sm.slip_std_xy)
-    return motion.motion_params(zero, zero, zero, zero, sm.slip_std_xy, sm.slip_std_theta)
-
-
-def slip_log_odds(pose: Float[Array, "3"], field, inputs: StepInputs, sensor: SensorSpec, params: SlamParams,
-                  config: SlamConfig) -> Float[Array, ""]:
-    """log [epsilon eta_slip / ((1 - epsilon) eta_usual)] for one particle: the posterior log-odds
-    that this step's odometry slipped, eta_c the window posterior's evidence (its ``log_eta``)
-    under the usual motion model and under its slip component (:func:`slip_motion`), epsilon
-    ``scan_match.slip_probability``. ``inputs`` and ``sensor`` beam-subsampled as the proposals'."""
-    def log_evidence(step_params):
-        return window_posterior.window_posterior(pose, field, inputs.motion, inputs.ranges, sensor, step_params,
-                                                 config, fit_gain=1.0).log_eta
-
-    eps = params.scan_match.slip_probability
-    slipped = log_evidence(params._replace(motion=slip_motion(params)))
-    odds = resampling.safe_log(eps) + slipped - jnp.log1p(-eps) - log_evidence(params)
-    return jnp.where(jnp.isnan(odds), -jnp.inf, odds)
-
-
-def slip_mixture(key: PRNGKeyArray, usual: ProposalOutput, slipped: ProposalOutput,
-                 slip_probability: Float[Array, ""]) -> tuple[ProposalOutput, Bool[Array, "N"]]:
-    """Each particle's draw under the motion model (1 - epsilon) p_usual + epsilon p_slip, from
-    one draw under each component.
-
-    Each proposal's increment estimates its component's evidence eta_c = p(z_t | x_{t-1}, m, u_t)
-    under that component. The particle keeps the slip draw with probability
-    epsilon eta_slip / ((1 - epsilon) eta_usual + epsilon eta_slip) and its increment is the
-    log of that denominator, whichever draw it keeps: the evidence under the mixture (where
-    each draw is from its component's posterior, the proposal is then the mixture's posterior
-    and this is its exact weight). Increments of -inf under both give -inf and the usual draw.
-
-    Args:
-      key: for the choices.
-      usual, slipped: (N,)-batched outputs of the proposals under the usual motion model and
-        under :func:`slip_motion`.
-      slip_probability: epsilon in [0, 1).
-
-    Returns:
-      ``(mixed, chose_slip)``: the outputs kept (the increment replaced) and (N,) bool.
-    """
-    eps = jnp.asarray(slip_probability, usual.log_weight_increment.dtype)
-    log_usual = jnp.log1p(-eps) + usual.log_weight_increment
-    log_slip = resampling.safe_log(eps) + slipped.log_weight_increment
-    # Double where: logaddexp(-inf, -inf) has a NaN gradient, which a sum over particles spreads.
-    none = jnp.isneginf(log_usual) & jnp.isneginf(log_slip)
-    total = jnp.where(none, -jnp.inf, jnp.logaddexp(jnp.where(none, 0.0, log_usual), jnp.where(none, 0.0, log_slip)))
-    finite = jnp.isfinite(total)
-    slip_share = jnp.exp(jnp.where(finite, log_slip - jnp.where(finite, total, 0.0), -jnp.inf))
-    chose_slip = jax.random.uniform(key, total.shape) < jax.lax.stop_gradient(slip_share)
-
-    def pick(a, b):
-        return jnp.where(chose_slip.reshape(chose_slip.shape + (1,) * (a.ndim - 1)), b, a)
-
-    mixed = jax.tree.map(pick, usual, slipped)
-    return mixed._replace(log_weight_increment=total), chose_slip
 
 
 def _noop_inputs(inputs: StepInputs) -> StepInputs:
@@ -427,53 +418,6 @@ class PreparedLog(NamedTuple):
     """The stacked (S - 1, ...) inputs of the steps after it (:func:`build_inputs`)."""
     sensor: SensorSpec
     """The laser."""
-
-
-# ---------------------------------------------------------------------------------------------
-# The filter's local frame (the one place that moves poses between it and the log's frame).
-
-
-def local_frame_offset(log: LaserLog) -> np.ndarray:
-    """(2,) float64: the origin of the filter's local frame in the log's frame, where the virtual
-    grid is centred: the translation of the log's first odometry pose, rounded to a multiple of
-    64 m. Subtracted on the host in float64 before anything is cast to float32 (float32 resolves
-    0.5 m at 5,000 km from the origin, e.g. in UTM coordinates)."""
-    # Rounded to a multiple of 64 m: a log that starts within 32 m of the origin runs exactly as
-    # given, and shifting a log by a multiple of 64 m changes no bit of the filter's arithmetic
-    # (the local logs are equal); |local coordinates| <= 32 m + the log's extent.
-    return np.round(np.asarray(log.odometry[0, :2], dtype=np.float64) / 64.0) * 64.0 + 0.0
-
-
-def to_world(poses, frame_offset) -> np.ndarray:
-    """Local-frame poses (..., 3) or points (..., 2) in the log's (world) frame: float64, the
-    (2,) ``frame_offset`` added."""
-    out = np.array(poses, dtype=np.float64)
-    out[..., :2] += frame_offset
-    return out
-
-
-def to_local(poses, frame_offset) -> np.ndarray:
-    """World-frame poses (..., 3) or points (..., 2) in the filter's local frame: float64, the
-    (2,) ``frame_offset`` subtracted."""
-    out = np.array(poses, dtype=np.float64)
-    out[..., :2] -= frame_offset
-    return out
-
-
-def grid_to_world(grid, frame_offset):
-    """A grid (``GridSpec`` or ``PagedGridSpec``) of the local frame placed in the log's frame:
-    its origin moved by the (2,) ``frame_offset``."""
-    x0, y0 = (float(v) for v in frame_offset)
-    return dataclasses.replace(grid, origin=(grid.origin[0] + x0, grid.origin[1] + y0))
-
-
-def local_log(log: LaserLog, frame_offset) -> LaserLog:
-    """``log`` with its odometry and ground truth in the local frame of ``frame_offset``
-    (:func:`local_frame_offset`); the same object when the offset is zero."""
-    if not np.any(frame_offset):
-        return log
-    ground_truth = None if log.ground_truth is None else to_local(log.ground_truth, frame_offset)
-    return dataclasses.replace(log, odometry=to_local(log.odometry, frame_offset), ground_truth=ground_truth)
 
 
 def check_extent(log: LaserLog, config: SlamConfig) -> None:

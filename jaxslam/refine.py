@@ -2,7 +2,7 @@
 
 The RBPF estimates a pose only for the scans it processes (one after every 0.5 m or
 0.25 rad by default, a small share of the scans); the others get the odometry composed onto
-the last processed pose (:func:`jaxslam.io.trajectory.trajectory_per_scan`), so between processed scans the
+the last processed pose (:func:`jaxslam.laserlog.trajectory_per_scan`), so between processed scans the
 trajectory is as good as the odometry. Once the filter is done, its best particle's map is
 a consistent model of the whole environment, and every scan can be localised in it: start
 the hill climber of :mod:`jaxslam.scan_matching` at the scan's trajectory pose and keep the

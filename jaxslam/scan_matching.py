@@ -28,7 +28,7 @@ from jaxslam.grid import GridSpec
 from jaxslam.laser import SensorSpec, within_usable_range
 from jaxslam.likelihood_field import LikelihoodParams
 from jaxslam.map_view import MapView
-from jaxslam.paged_map import PagedField, PagedGridSpec
+from jaxslam.maps import PagedField, PagedGridSpec
 from jaxslam.sensor_model import ENDPOINT, SensorModel
 
 # NumPy, not jnp: module-level jnp values created while a trace is active would leak tracers.

@@ -9,7 +9,7 @@ and the filter's log-evidence. A model reads the map through a :class:`~jaxslam.
 ``tests/test_sensor_model.py`` maps the office with a model defined in the test).
 
 The model scores the map's likelihood field (``hit_dist2``, the squared cell distance to the
-nearest registered endpoint, kept by :mod:`jaxslam.paged_map` at insertion); what the maps
+nearest registered endpoint, kept by :mod:`jaxslam.maps` at insertion); what the maps
 store does not change with the model.
 """
 

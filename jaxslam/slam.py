@@ -20,12 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import PRNGKeyArray
 
-from jaxslam import paged_map, particle_filter, rbpf
+from jaxslam import maps as paged
+from jaxslam import particle_filter, rbpf
 from jaxslam.config import RunSettings, SlamConfig, SlamParams
 from jaxslam.driver import pad_items, run_in_chunks
 from jaxslam.grid import GridSpec
-from jaxslam.laserlog import LaserLog, UpdateSelection
-from jaxslam.paged_map import PagedGridSpec, PagedMaps, PoolSize
+from jaxslam.laserlog import LaserLog, UpdateSelection, grid_to_world, local_log, to_local, to_world, trajectory_per_scan
+from jaxslam.maps import PagedGridSpec, PagedMaps, PoolSize
 from jaxslam.rbpf import SlamInfo, SlamState
 
 
@@ -48,7 +49,7 @@ class SlamResult(NamedTuple):
     """(S, 3) float64 poses at the processed scans along the ancestry of the final best particle
     (world frame)."""
     trajectory: np.ndarray
-    """(T, 3) a pose for every scan of the log (see ``io.trajectory.trajectory_per_scan``)."""
+    """(T, 3) a pose for every scan of the log (see ``laserlog.trajectory_per_scan``)."""
     timings: dict
     """Seconds: ``compile`` (first chunk, compile included), ``total`` wall time, and
     ``real_time_factor`` = log duration / total."""
@@ -59,7 +60,7 @@ class SlamResult(NamedTuple):
     and ``info`` are in that frame; ``best_path`` and ``trajectory`` are in the log's (world)
     frame. ``to_world`` converts."""
     map_pool: dict
-    """The maps' pools: their sizes at the end (the fields of :class:`~jaxslam.paged_map.PoolSize`),
+    """The maps' pools: their sizes at the end (the fields of :class:`~jaxslam.maps.PoolSize`),
     ``tiles_in_use`` and ``blocks_in_use``, ``peak_request`` and ``peak_block_request`` (the most
     new tiles and blocks one step asked for), ``bytes`` (pools and directories) and ``growths``:
     one entry per growth (``step`` and the new sizes), each a repeated chunk and a recompile."""
@@ -78,17 +79,17 @@ class SlamResult(NamedTuple):
     @property
     def world_grid(self) -> PagedGridSpec:
         """The virtual grid placed in the log's (world) frame."""
-        return rbpf.grid_to_world(self.config.grid, self.frame_offset)
+        return grid_to_world(self.config.grid, self.frame_offset)
 
     def dense_map(self, particle: int | None = None, local: bool = False) -> tuple[np.ndarray, np.ndarray, GridSpec]:
         """One particle's map (default the best) as dense host arrays over the tiles it wrote:
         ``(logodds (H, W) float16, hit_dist2 (H, W) uint8, grid)``, the grid in the world frame
         (``local``: in the filter's local frame, as ``state``'s poses are)."""
         particle = self.best_particle if particle is None else int(particle)
-        logodds, field, box = paged_map.to_dense(self.config.grid, self.state.maps, particle)
+        logodds, field, box = paged.to_dense(self.config.grid, self.state.maps, particle)
         if local:
             return logodds, field, box
-        return logodds, field, rbpf.grid_to_world(box, self.frame_offset)
+        return logodds, field, grid_to_world(box, self.frame_offset)
 
     def closed_map(self, log, params) -> tuple[np.ndarray, np.ndarray, GridSpec]:
         """The map drawn again at the loop closure's optimised poses, as :meth:`dense_map` returns
@@ -103,12 +104,12 @@ class SlamResult(NamedTuple):
     def to_world(self, poses) -> np.ndarray:
         """Poses (..., 3) or points (..., 2) of the local frame (``state.poses``,
         ``info.proposed_poses``, ``info.mean_pose``) in the world frame: float64, ``frame_offset`` added."""
-        return rbpf.to_world(poses, self.frame_offset)
+        return to_world(poses, self.frame_offset)
 
     def to_local(self, poses) -> np.ndarray:
         """World-frame poses (..., 3) or points (..., 2) (``trajectory``, the log's odometry) in the
         filter's local frame, as ``state`` and its maps are: float64, ``frame_offset`` subtracted."""
-        return rbpf.to_local(poses, self.frame_offset)
+        return to_local(poses, self.frame_offset)
 
 
 class RunInterrupted(Exception):
@@ -195,7 +196,7 @@ def run(
     world_log = log
     t_start = time.perf_counter()
     prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
-    log = rbpf.local_log(log, frame_offset)  # from here on, the local frame
+    log = local_log(log, frame_offset)  # from here on, the local frame
     sensor = log.sensor
     initial_pose = jnp.asarray(prepared.initial_pose)
     key_init, key_steps = jax.random.split(key)
@@ -303,7 +304,7 @@ def run_batch(
         default all of them).
       chunk_size: steps per compiled call, as :func:`run`'s.
       progress: a tqdm bar over the longest run's steps (and growth lines on stderr).
-      initial_pool: the maps' pool sizes at the start (a :class:`~jaxslam.paged_map.PoolSize`;
+      initial_pool: the maps' pool sizes at the start (a :class:`~jaxslam.maps.PoolSize`;
         default :func:`jaxslam.rbpf.pool_size` of the largest first-scan footprint).
       vectorize: vmap the runs a device holds rather than take them one after the other
         (``lax.map``). Faster where a device has room to spare for several runs at once (a GPU
@@ -338,7 +339,7 @@ def run_batch(
     for log in logs:
         if id(log) not in prepared_by_log:
             prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
-            prepared_by_log[id(log)] = (prepared, selection, frame_offset, rbpf.local_log(log, frame_offset))
+            prepared_by_log[id(log)] = (prepared, selection, frame_offset, local_log(log, frame_offset))
     runs = [prepared_by_log[id(log)] for log in logs]
     sensor = jax.tree.map(np.asarray, runs[0][0].sensor)  # host arrays: replicated on every process's devices
     params = jax.tree.map(np.asarray, params)
@@ -363,7 +364,7 @@ def run_batch(
         if id(prepared) not in starts:
             starts[id(prepared)] = _initial_state(k_init, prepared, params, config, initial_pool)
     pool = PoolSize(*np.max([s.maps.pool_size for s in starts.values()], axis=0).tolist())
-    starts = {k: s._replace(maps=paged_map.grow(config.grid, s.maps, pool)) if s.maps.pool_size != pool else s
+    starts = {k: s._replace(maps=paged.grow(config.grid, s.maps, pool)) if s.maps.pool_size != pool else s
               for k, s in starts.items()}
     growths = [] if initial_pool is None or pool == PoolSize(*initial_pool) else [{"step": 0, **pool._asdict()}]
 
@@ -422,9 +423,9 @@ def run_batch(
     for j, r in enumerate(local_order):
         if r >= num_runs:  # a padding copy
             continue
-        prepared, selection, frame_offset, local_log = runs[r]
+        prepared, selection, frame_offset, run_log = runs[r]
         results[r] = _finish(jax.tree.map(lambda d: d[r], final, is_leaf=is_runs),
-                             jax.tree.map(lambda a: a[:num_steps[r], j], chunked.outputs), prepared, local_log,
+                             jax.tree.map(lambda a: a[:num_steps[r], j], chunked.outputs), prepared, run_log,
                              selection, frame_offset, config, settings, list(growths), chunked.first_chunk_seconds,
                              total)
     return results
@@ -489,31 +490,30 @@ def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config
 
 @partial(jax.jit, static_argnames=("config", "pool", "mesh"))
 def _grow_batch(state, config, pool, mesh):
-    """Every run's maps in pools of ``pool``'s sizes (:func:`jaxslam.paged_map.grow`)."""
+    """Every run's maps in pools of ``pool``'s sizes (:func:`jaxslam.maps.grow`)."""
     from jax.sharding import PartitionSpec as P
 
     def local(state):
-        return jax.vmap(lambda s: s._replace(maps=paged_map.grow(config.grid, s.maps, pool)))(state)
+        return jax.vmap(lambda s: s._replace(maps=paged.grow(config.grid, s.maps, pool)))(state)
 
     return jax.shard_map(local, mesh=mesh, in_specs=P(RUNS_AXIS), out_specs=P(RUNS_AXIS),
                          check_vma=False)(state)
 
 
-def _finish(state: SlamState, info: SlamInfo, prepared: rbpf.PreparedLog, local_log: LaserLog,
+def _finish(state: SlamState, info: SlamInfo, prepared: rbpf.PreparedLog, run_log: LaserLog,
             selection: UpdateSelection, frame_offset, config: SlamConfig, settings: RunSettings, growths: list,
             first_chunk_seconds: float, total: float) -> SlamResult:
     """One run's :class:`SlamResult` from its final state and stacked infos (what :func:`run` and
     :func:`run_batch` share): the best particle's path and the per-scan trajectory, in the world frame."""
-    from jaxslam.io.trajectory import trajectory_per_scan  # the readers load only when a log is run
 
     best = rbpf.final_best_particle(info.ancestors, info.best_particle)  # SlamResult.best_particle
     best_path = np.concatenate([np.asarray(prepared.initial_pose)[None], rbpf.backtrack_path(info, best)])
-    trajectory = rbpf.to_world(trajectory_per_scan(local_log, selection.indices, best_path), frame_offset)
-    best_path = rbpf.to_world(best_path, frame_offset)
+    trajectory = to_world(trajectory_per_scan(run_log, selection.indices, best_path), frame_offset)
+    best_path = to_world(best_path, frame_offset)
     timings = {
         "compile": first_chunk_seconds,
         "total": total,
-        "real_time_factor": local_log.duration / total if total > 0 else float("inf"),
+        "real_time_factor": run_log.duration / total if total > 0 else float("inf"),
     }
     return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings, frame_offset,
                       _pool_report(state.maps, growths))
@@ -539,7 +539,7 @@ def _initial_state(key, prepared: rbpf.PreparedLog, params: SlamParams, config: 
     if initial_pool is None:
         sized = PoolSize(*np.maximum(pool, rbpf.pool_size(config, int(state.maps.peak_request))).tolist())
         if sized != pool:
-            state = state._replace(maps=paged_map.grow(config.grid, state.maps, sized))
+            state = state._replace(maps=paged.grow(config.grid, state.maps, sized))
     return state
 
 
@@ -577,7 +577,7 @@ def _chunk_fn_growing_pools(chunk_starts, chunk_size: int, sensor, params: SlamP
             s = int(stalled[0])
             done_infos.append(jax.tree.map(lambda a: a[:s], info))
             pool = _larger_pool(state.maps, config.grid)
-            state = state._replace(maps=paged_map.grow(config.grid, state.maps, pool))
+            state = state._replace(maps=paged.grow(config.grid, state.maps, pool))
             offset += s
             growths.append({"step": start + offset, **pool._asdict()})
             if progress:
@@ -594,8 +594,8 @@ def _pool_report(maps: PagedMaps, growths: list) -> dict:
     """:attr:`SlamResult.map_pool`."""
     return {
         **maps.pool_size._asdict(),
-        "tiles_in_use": int(paged_map.tiles_in_use(maps)), "peak_request": int(maps.peak_request),
-        "blocks_in_use": int(paged_map.blocks_in_use(maps)), "peak_block_request": int(maps.peak_block_request),
+        "tiles_in_use": int(paged.tiles_in_use(maps)), "peak_request": int(maps.peak_request),
+        "blocks_in_use": int(paged.blocks_in_use(maps)), "peak_block_request": int(maps.peak_block_request),
         "bytes": int(sum(np.asarray(a).nbytes for a in maps)), "growths": growths,
     }
 
@@ -630,7 +630,7 @@ class _PoolUse(NamedTuple):
 
 
 def _pool_use(maps: PagedMaps) -> _PoolUse:
-    return _PoolUse(paged_map.tiles_in_use(maps), maps.peak_request, paged_map.blocks_in_use(maps),
+    return _PoolUse(paged.tiles_in_use(maps), maps.peak_request, paged.blocks_in_use(maps),
                     maps.peak_block_request)
 
 
@@ -642,10 +642,10 @@ def _larger_pool(maps: PagedMaps, spec: PagedGridSpec) -> PoolSize:
 def _larger_pool_for(old: PoolSize, use: _PoolUse, spec: PagedGridSpec) -> PoolSize:
     """The pools' sizes after pools of ``old`` sizes overflowed: each at least twice the old, and
     room for what is in use plus two of the largest requests seen; the tile pool no larger than
-    int32 slot indices allow (:func:`jaxslam.paged_map.max_pool_tiles`). ``RuntimeError`` when the
+    int32 slot indices allow (:func:`jaxslam.maps.max_pool_tiles`). ``RuntimeError`` when the
     tile pool overflowed at that size."""
     tiles, peak, blocks, peak_blocks = (int(v) for v in use)
-    most = paged_map.max_pool_tiles(spec)
+    most = paged.max_pool_tiles(spec)
     max_new = min(max(2 * old.max_new_tiles, 2 * peak), most)
     capacity = min(max(2 * old.capacity, tiles + 2 * max_new), most)
     if capacity == old.capacity and tiles + peak > capacity:  # a larger allowance per step would not fit either

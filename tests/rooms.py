@@ -55,8 +55,8 @@ def paged_maps(grid_map, config, num_particles: int = 1, spare_tiles: int = 200)
     """The dense room map ``grid_map`` (on ``SPEC``) as ``num_particles`` particles' shared paged
     maps on ``config.grid`` (NumPy; every tile of the virtual grid gets a slot, and
     ``spare_tiles`` free slots follow): the maps a filter's particles would hold."""
+    from jaxslam.maps import empty, first_free
     from jaxslam.occupancy import FAR
-    from jaxslam.paged_map import empty, first_free
 
     spec = config.grid
     t = spec.tile_size
@@ -99,6 +99,6 @@ def paged_maps(grid_map, config, num_particles: int = 1, spare_tiles: int = 200)
 def paged_field(grid_map, config):
     """The dense room map ``grid_map`` (on ``SPEC``) as one particle's paged likelihood field on
     ``config.grid``: what a proposal reads in a filter."""
-    from jaxslam.paged_map import particle_field
+    from jaxslam.maps import particle_field
 
     return particle_field(paged_maps(grid_map, config, 1, spare_tiles=1), 0)

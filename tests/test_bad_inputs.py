@@ -21,7 +21,8 @@ import pytest
 
 from jaxslam.cli import main
 from jaxslam.config import ConfigError, build_setup
-from jaxslam.outputs import SLAM_OUTPUT_NAMES, publish_folder, strict_json_values
+from jaxslam.io.files import publish_folder
+from jaxslam.outputs import SLAM_OUTPUT_NAMES, strict_json_values
 from jaxslam.sim import office_scenario
 from logs import write_flaser_log
 
@@ -172,18 +173,19 @@ def _prepare(tmp_path, small_log):
 
 @pytest.fixture
 def no_work(monkeypatch):
-    """Traps: reading the log, running a filter or reading a trajectory fails the test."""
-    import jaxslam.io
+    """Traps: reading the log, running a filter or reading a trajectory fails the test (patched
+    where the commands read them: ``jaxslam.cli.map``, ``jaxslam.cli.evaluate``)."""
+    import jaxslam.cli.evaluate
+    import jaxslam.cli.map
     import jaxslam.localization.doors
     import jaxslam.localization.mcl
-    import jaxslam.slam
 
     def trap(*args, **kwargs):
         raise AssertionError("the work started before the input was refused")
 
-    monkeypatch.setattr(jaxslam.io, "read_log", trap)
-    monkeypatch.setattr(jaxslam.io, "read_trajectory", trap)
-    monkeypatch.setattr(jaxslam.slam, "run", trap)
+    monkeypatch.setattr(jaxslam.cli.map, "read_log", trap)
+    monkeypatch.setattr(jaxslam.cli.evaluate, "read_trajectory", trap)
+    monkeypatch.setattr(jaxslam.cli.map, "run", trap)
     monkeypatch.setattr(jaxslam.localization.doors, "filter", trap)
     monkeypatch.setattr(jaxslam.localization.mcl, "filter", trap)
 
@@ -321,7 +323,7 @@ def test_publish_folder_replaces_the_whole_folder(tmp_path):
         (folder / "map.pgm").write_text("new map\n")
         (folder / "summary.json").write_text("{}")
 
-    publish_folder(target, write)
+    publish_folder(target, write, SLAM_OUTPUT_NAMES)
     assert sorted(p.name for p in target.iterdir()) == ["extra", "map.pgm", "notes.txt", "summary.json"]
     assert (target / "map.pgm").read_text() == "new map\n"
     assert (target / "notes.txt").read_text() == "mine\n" and (target / "extra" / "x.txt").read_text() == "x\n"
@@ -340,14 +342,14 @@ def test_a_failed_write_leaves_the_old_folder_untouched(tmp_path):
         raise OSError("disk full")
 
     with pytest.raises(OSError, match="disk full"):
-        publish_folder(target, write)
+        publish_folder(target, write, SLAM_OUTPUT_NAMES)
     assert {p.name: p.read_text() for p in target.iterdir()} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
 def test_publish_folder_makes_a_new_folder_and_its_parents(tmp_path):
     target = tmp_path / "a" / "b" / "out"
-    publish_folder(target, lambda folder: (folder / "summary.json").write_text("{}"))
+    publish_folder(target, lambda folder: (folder / "summary.json").write_text("{}"), SLAM_OUTPUT_NAMES)
     assert [p.name for p in target.iterdir()] == ["summary.json"]
     assert oct(target.stat().st_mode & 0o777) == oct(0o777 & ~_umask())
 
@@ -359,7 +361,8 @@ def _umask():
 
 
 def test_a_second_run_removes_the_first_runs_stale_files(tmp_path, small_log):
-    """A run with --refine, then one without into the same folder: trajectory_refined.txt goes."""
+    """A run with --refine (the default), then one with --no-refine into the same folder:
+    trajectory_refined.txt goes."""
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=8)
     out = tmp_path / "out"
@@ -368,7 +371,7 @@ def test_a_second_run_removes_the_first_runs_stale_files(tmp_path, small_log):
     assert main([*common, "--refine"]) == 0
     assert (out / "trajectory_refined.txt").is_file()
     (out / "errors.json").write_text("{}")  # e.g. jaxslam eval's table: not a map output, kept
-    assert main(common) == 0
+    assert main([*common, "--no-refine"]) == 0
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(["map.pgm", "map.yaml", "map.png", "trajectory.txt", "trajectory_filter.txt", "graph.npz",
                             "summary.json", "slam.png", "steps.npz", "errors.json"])
@@ -421,12 +424,12 @@ def test_a_degenerate_run_writes_null_log_evidence_with_its_step(tmp_path, small
 
 
 def _trap_filter(monkeypatch):
-    import jaxslam.slam
+    import jaxslam.cli.map
 
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.slam, "run", trap)
+    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
 
 
 def test_the_memory_estimate_counts_page_tables_pool_insertion_lp_terms_and_xla():
@@ -477,11 +480,12 @@ def test_a_log_leaving_the_map_is_refused_before_the_filter(tmp_path, small_log,
 
 
 def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monkeypatch):
+    import jaxslam.cli.map
     import jaxslam.resources
 
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
-    monkeypatch.setattr(jaxslam.resources, "available_memory_bytes", lambda: 8 * 10**9)
+    monkeypatch.setattr(jaxslam.cli.map, "available_memory_bytes", lambda: 8 * 10**9)
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "30000", "--set", "linear_update=0.3",
             "--no-progress", "--out", str(tmp_path / "out")]
     from jaxslam.cli import MAP_DEFAULTS
@@ -499,6 +503,7 @@ def test_a_wide_first_scan_is_counted_by_the_memory_check(tmp_path, small_log, c
     size without a footprint). With the machine's memory between the estimate at that allowance
     and the estimate at the scan's footprint, the run is refused, and the message's figures are
     the footprint's: a check at Intel's allowance would have let it run out of memory."""
+    import jaxslam.cli.map
     import jaxslam.resources
     from jaxslam.cli import MAP_DEFAULTS
     from jaxslam.io import read_log
@@ -513,7 +518,7 @@ def test_a_wide_first_scan_is_counted_by_the_memory_check(tmp_path, small_log, c
     allowance, _ = jaxslam.resources.estimate_run_bytes(config, log.num_beams)
     need, how = jaxslam.resources.estimate_run_bytes(config, log.num_beams, tiles)
     assert need > allowance
-    monkeypatch.setattr(jaxslam.resources, "available_memory_bytes", lambda: (need + allowance) // 2)
+    monkeypatch.setattr(jaxslam.cli.map, "available_memory_bytes", lambda: (need + allowance) // 2)
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "2000", "--set", "tile_size=8",
             "--no-progress", "--out", str(tmp_path / "out")]
     expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"
@@ -522,12 +527,13 @@ def test_a_wide_first_scan_is_counted_by_the_memory_check(tmp_path, small_log, c
 
 
 def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(tmp_path, small_log, monkeypatch):
+    import jaxslam.cli.map
     import jaxslam.resources
 
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
     for available in (jaxslam.resources.available_memory_bytes, lambda: None):
-        monkeypatch.setattr(jaxslam.resources, "available_memory_bytes", available)
+        monkeypatch.setattr(jaxslam.cli.map, "available_memory_bytes", available)
         with pytest.raises(AssertionError, match="the filter ran"):  # the check let it through to the filter
             main(["map", str(tmp_path / "office.clf"), "--particles", "100000" if available() is None else "4",
                   "--no-progress", "--out", str(tmp_path / "out")])
@@ -544,12 +550,12 @@ def test_a_huge_insertion_reach_is_refused_by_the_memory_check(tmp_path, small_l
 def test_a_full_disk_is_refused_before_the_run(tmp_path, small_log, capsys, monkeypatch):
     import collections
 
-    import jaxslam.outputs
+    import jaxslam.io.files
 
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
     usage = collections.namedtuple("usage", "total used free")
-    monkeypatch.setattr(jaxslam.outputs.shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 10**6, 10**6))
+    monkeypatch.setattr(jaxslam.io.files.shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 10**6, 10**6))
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "3", "--no-progress", "--out", str(tmp_path / "out")]
     _run_refused(argv, ["a disk with 1 MB free", "need about", "free some space"], capsys)
 

@@ -15,6 +15,7 @@ import jax
 import numpy as np
 import pytest
 
+import jaxslam.cli.map
 import jaxslam.slam
 from jaxslam.cli import checkpoint_path, main
 from jaxslam.driver import run_in_chunks
@@ -131,7 +132,7 @@ def test_a_checkpoint_of_another_run_is_refused(log_path, tmp_path, monkeypatch,
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.slam, "run", trap)
+    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
     code = main(["map", str(log_path), *ARGS, *change, "--resume", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2, err

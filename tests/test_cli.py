@@ -86,7 +86,7 @@ def test_config_file_sets_what_no_flag_overrides(tmp_path, small_log):
 
 def _setup_of_a_run(monkeypatch, argv):
     """The (config, settings, params) ``main(argv)`` hands the filter (which is not run)."""
-    import jaxslam.slam
+    import jaxslam.cli.map
 
     seen = []
 
@@ -94,7 +94,7 @@ def _setup_of_a_run(monkeypatch, argv):
         seen.append((config, settings, params))
         raise KeyboardInterrupt  # main's own way out, exit code 130
 
-    monkeypatch.setattr(jaxslam.slam, "run", trap)
+    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
     assert main(argv) == 130
     return seen[0]
 
@@ -188,7 +188,7 @@ def test_ground_truth_error_is_of_the_processed_scans_and_printed_in_one_line():
     the best path 0.1 m beside the truth, the odometry 0 to 0.4 m; a real log has no entry."""
     from types import SimpleNamespace
 
-    from jaxslam.cli import _ground_truth_error_line
+    from jaxslam.cli.demo import _ground_truth_error_line
     from jaxslam.outputs import ground_truth_error
 
     truth = np.stack([np.arange(10.0), np.zeros(10), np.zeros(10)], axis=1)

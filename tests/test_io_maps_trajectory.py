@@ -11,14 +11,12 @@ import pytest
 from jaxslam.geometry import between, compose
 from jaxslam.grid import GridSpec
 from jaxslam.io import (
-    poses_at,
     read_map,
     read_trajectory,
-    trajectory_per_scan,
     write_map,
     write_trajectory,
 )
-from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.laserlog import LaserLog, LogError, poses_at, trajectory_per_scan
 from jaxslam.io.maps import DEFAULT_MARGIN_CELLS, crop_to_known
 from jaxslam.laser import make_sensor, uniform_beams
 

@@ -936,13 +936,13 @@ def test_an_upside_down_mounted_laser_maps_the_same(tmp_path, mounted_office, mo
 
 def _refused(argv, capsys, monkeypatch, *words):
     """``jaxslam map`` refuses on one line naming ``words``, exit code 2, before the filter runs."""
-    import jaxslam.slam
+    import jaxslam.cli.map
     from jaxslam.cli import main
 
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.slam, "run", trap)
+    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
     try:
         code = main(argv)
     except SystemExit as exit_:
@@ -958,12 +958,12 @@ def _refused(argv, capsys, monkeypatch, *words):
 
 @pytest.mark.parametrize("value", ["0.25,0", "0.25,0,0.1,0", "a,b,c", "0.25,0,nan", "0.25;0;0.1", "", "1,,2"])
 def test_malformed_laser_pose_is_refused_before_reading(tmp_path, capsys, monkeypatch, value):
-    import jaxslam.io
+    import jaxslam.cli.map
 
     def trap(*args, **kwargs):
         raise AssertionError("the log was read")
 
-    monkeypatch.setattr(jaxslam.io, "read_log", trap)
+    monkeypatch.setattr(jaxslam.cli.map, "read_log", trap)  # the name jaxslam map calls
     path = _write(tmp_path, "ros1", standard_messages(_store("ros1")))
     out = tmp_path / "out"
     line = _refused(["map", str(path), "--no-progress", "--out", str(out), f"--laser-pose={value}"], capsys,

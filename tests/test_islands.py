@@ -16,7 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import islands, paged_map, rbpf
+from jaxslam import islands, rbpf
+from jaxslam import maps as paged
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, default_params
 from jaxslam.sim import office_scenario
 
@@ -161,8 +162,8 @@ def test_an_exchange_copies_whole_maps(four_islands):
         np.testing.assert_array_equal(np.asarray(state.poses[island]), np.asarray(state.poses[source]))
         maps, source_maps = (jax.tree.map(lambda x, g=g: x[g], state.maps) for g in (island, source))
         for particle in range(CONFIG.num_particles // 4):
-            logodds, field, _ = paged_map.to_dense(spec, maps, particle)
-            source_logodds, source_field, _ = paged_map.to_dense(spec, source_maps, particle)
+            logodds, field, _ = paged.to_dense(spec, maps, particle)
+            source_logodds, source_field, _ = paged.to_dense(spec, source_maps, particle)
             np.testing.assert_array_equal(logodds, source_logodds)
             np.testing.assert_array_equal(field, source_field)
             assert np.abs(logodds).sum() > 0

@@ -1,4 +1,13 @@
-"""The package's import graph: no cycle, and the filters never load the simulator."""
+"""The package's import graph: no cycle, no import up a layer, and the filters never load the
+simulator, the readers or the host drivers.
+
+The layers, lowest first (docs/design.md, "Layout"): base (geometry, grids, the laser's
+description, resampling), data (the log in memory, the readers and writers ``io``, the metrics),
+models (motion and sensor models, the maps, the scan matcher), filters (the proposals, the
+configuration, the RBPF's step, MCL with doors), runs (the drivers of whole logs: ``slam``, the
+chunked host driver, checkpoints, refinement, the loop closure, islands, the simulators, the
+diagnosis), front (the outputs, the figures, the command line).
+"""
 
 from __future__ import annotations
 
@@ -6,6 +15,8 @@ import ast
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "jaxslam"
 
@@ -69,7 +80,7 @@ def test_the_import_graph_has_no_cycle():
 
 def test_filters_do_not_import_the_simulator_or_the_experiments():
     graph = import_graph()
-    core = [m for m in graph if not m.startswith("jaxslam.sim") and m not in ("jaxslam.cli",)]
+    core = [m for m in graph if not m.startswith(("jaxslam.sim", "jaxslam.cli.")) and m != "jaxslam.cli"]
     for module in core:
         assert not any(t.startswith("jaxslam.sim") for t in graph[module]), (module, graph[module])
 
@@ -113,3 +124,68 @@ def test_the_filter_layer_imports_no_reader_output_or_host_driver():
                      if m.startswith("jaxslam.io") or m in ("jaxslam.outputs", "jaxslam.slam", "jaxslam.cli",
                                                           "jaxslam.driver", "jaxslam.diagnose"))
         assert not bad, f"{module} reaches {bad}"
+
+
+LAYERS: dict[str, int] = {
+    # 0 base
+    "geometry": 0, "warn": 0, "computed_once": 0, "compile_cache": 0, "grid": 0, "laser": 0,
+    "binary_bayes": 0, "resampling": 0, "segment_map": 0, "proposals.base": 0, "sim.world": 0,
+    # 1 data
+    "laserlog": 1, "io": 1, "metrics": 1,
+    # 2 models
+    "motion": 2, "occupancy": 2, "maps": 2, "map_view": 2, "likelihood_field": 2, "sensor_model": 2,
+    "window_posterior": 2, "scan_matching": 2, "particle_filter": 2, "localization.beam_model": 2,
+    # 3 filters
+    "proposals": 3, "config": 3, "slip_search": 3, "rbpf": 3, "learning": 3, "localization.mcl": 3, "localization.doors": 3,
+    "localization": 3,
+    # 4 runs
+    "driver": 4, "slam": 4, "checkpoint": 4, "refine": 4, "islands": 4, "graph": 4, "resources": 4, "sim": 4,
+    "diagnose": 4,
+    # 5 front
+    "outputs": 5, "plotting": 5, "localization.plotting": 5, "cli": 5, "": 5,
+}
+"""Each module's layer, by the longest dotted prefix below ``jaxslam`` listed here ("" is the
+package's ``__init__``, which re-exports the API)."""
+
+LAYER_NAMES = ("base", "data", "models", "filters", "runs", "front")
+
+
+def layer_of(module: str) -> int:
+    """The layer of ``jaxslam.x.y`` by its longest listed prefix; KeyError for a module none
+    matches (a new module is given its layer here)."""
+    parts = module.split(".")[1:]
+    for n in range(len(parts), -1, -1):
+        prefix = ".".join(parts[:n])
+        if prefix in LAYERS and (n > 0 or not parts):
+            return LAYERS[prefix]
+    raise KeyError(f"{module} has no layer: add it to LAYERS in tests/test_layout.py")
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """``"a (layer) imports b (layer)"`` for every import to a higher layer; a package's
+    ``__init__`` re-exporting its own submodules is not one, nor ``from jaxslam import x`` (the
+    graph holds ``jaxslam.x`` for it)."""
+    wrong = []
+    for module, targets in sorted(graph.items()):
+        for target in sorted(targets):
+            if target == "jaxslam" or target.startswith(module + ".") or layer_of(target) <= layer_of(module):
+                continue
+            wrong.append(f"{module} ({LAYER_NAMES[layer_of(module)]}) imports {target} "
+                         f"({LAYER_NAMES[layer_of(target)]})")
+    return wrong
+
+
+def test_upward_imports_can_fail():
+    graph = {"jaxslam.io.bad": {"jaxslam.rbpf"}, "jaxslam.rbpf": {"jaxslam.io.trajectory"},
+             "jaxslam.io.trajectory": set(), "jaxslam.graph": {"jaxslam.graph.closure"}, "jaxslam.graph.closure": set()}
+    assert upward_imports(graph) == ["jaxslam.io.bad (data) imports jaxslam.rbpf (filters)"]
+    with pytest.raises(KeyError, match="has no layer"):
+        layer_of("jaxslam.brand_new_module")
+
+
+def test_every_module_has_a_layer_and_no_import_points_up():
+    graph = import_graph()
+    for module in graph:
+        layer_of(module)
+    wrong = upward_imports(graph)
+    assert not wrong, "imports that point up the layers:\n" + "\n".join(wrong)

@@ -10,7 +10,7 @@ import pytest
 
 from jaxslam import rbpf, slam
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, config_from_dict, default_params, params_from_dict, params_to_dict
-from jaxslam.laserlog import select_updates
+from jaxslam.laserlog import local_frame_offset, select_updates
 from jaxslam.sim import office_scenario
 
 
@@ -159,7 +159,7 @@ def test_map_leaving_the_grid_is_counted_not_wrapped(office_log):
     """Beams that reach past the virtual grid are dropped and reported; odometry that leaves it
     is refused before any work, naming the setting to change."""
     log = office_log.subset(np.arange(30))
-    reach = float(np.abs(log.odometry[:, :2] - rbpf.local_frame_offset(log)).max())
+    reach = float(np.abs(log.odometry[:, :2] - local_frame_offset(log)).max())
     config = small_config(proposal="op", map_extent=2 * reach + 0.5, tile_size=16)
     result = slam.run(jax.random.key(0), log, config, default_params(), SETTINGS, progress=False)
     assert result.info.outside_samples.sum() > 0
@@ -296,7 +296,8 @@ def test_a_pool_beyond_one_int32_index_is_indexed_by_pairs_and_sized_as_before()
     default pool (3 requests, 720,619 tiles of 64 x 64 cells) was refused before the run started.
     Beyond 2**31 cells a pool is now indexed by (slot, cell) pairs, so the default stands; only
     the slots' own int32 bounds it, and a pool at that bound that overflows is a clear error."""
-    from jaxslam.paged_map import PoolSize, _check_pool, flat_pool, max_pool_tiles
+    from jaxslam.maps import PoolSize, flat_pool, max_pool_tiles
+    from jaxslam.maps.pool import _check_pool
 
     config = SlamConfig(num_particles=10_000)
     pool = rbpf.pool_size(config)
@@ -318,15 +319,15 @@ def test_a_pool_beyond_one_int32_index_is_indexed_by_pairs_and_sized_as_before()
 def test_a_pool_indexed_by_pairs_gives_the_flat_pools_run_bit_for_bit(office_log, monkeypatch):
     """The (slot, cell) indexing of pools beyond one int32 index (reads in ``cell_values``, the
     insertion's scatters), forced on a small pool, maps and localises exactly as the flat index."""
-    from jaxslam import paged_map
+    from jaxslam import maps as paged
 
     log = office_log.subset(np.arange(50))
     config = small_config(num_particles=4)
     flat = slam.run(jax.random.key(4), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
-    monkeypatch.setattr(paged_map, "FLAT_INDEX_CELLS", 0)  # every pool through (slot, cell) pairs
+    monkeypatch.setattr(paged.pool, "FLAT_INDEX_CELLS", 0)  # every pool through (slot, cell) pairs
     jax.clear_caches()  # the compiled chunk of the flat run must not be reused
     try:
-        assert not paged_map.flat_pool(config.grid, flat.map_pool["capacity"])
+        assert not paged.flat_pool(config.grid, flat.map_pool["capacity"])
         pairs = slam.run(jax.random.key(4), log, config, default_params(), SETTINGS, chunk_size=8, progress=False)
         maps = [pairs.dense_map(particle) for particle in range(config.num_particles)]
     finally:

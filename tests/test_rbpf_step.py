@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 from rooms import ROOM_EXTENT, SENSOR, build_room_map, paged_field, paged_maps, room_path, scan_at
 
-from jaxslam import rbpf
+from jaxslam import rbpf, slip_search
 from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between, compose
 from jaxslam.laser import within_usable_range
 from jaxslam.laserlog import LaserLog, select_updates
 from jaxslam.proposals import odometry, scan_match
 from jaxslam.proposals.base import ProposalOutput, StepInputs
-from jaxslam.paged_map import FIELD_AXES, fields
+from jaxslam.maps import FIELD_AXES, fields
 from jaxslam import window_posterior
 
 N = 6
@@ -220,3 +220,35 @@ def test_a_step_in_blocks_of_particles_is_the_same_bit_for_bit(room_map):
                                                                                               particle_block=block))
         for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(blocked)):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("slip_odds, slips", [(10.0, True), (-10.0, False)])
+def test_the_slip_search_proposes_again_under_the_slip_component_when_it_triggers(room_map, monkeypatch, slip_odds,
+                                                                                   slips):
+    """``with_slip_search(propose_fn)``: slip odds of the heaviest particle (here fixed) whose
+    probability is over ``scan_match.slip_trigger`` run ``propose_fn`` a second time, under the
+    slip component with the key ``fold_in(key, _TAG_SLIP)``, and the particles draw from the
+    mixture (here every one keeps its slip draw); under it, the proposal is ``propose_fn``'s
+    alone and no particle slipped."""
+    inputs, pose = _inputs()
+    monkeypatch.setattr(slip_search, "slip_log_odds", lambda *args: jnp.float32(slip_odds))
+
+    def propose_fn(key, state, inputs, sensor, params, config, step_motion=None):
+        slipped = step_motion is not None
+        # The slip component's draws explain the scan far better than the usual ones.
+        return ProposalOutput(jax.random.uniform(key, (N, 3)) + (10.0 if slipped else 0.0),
+                              jnp.full((N,), 0.0 if slipped else -1e3), jnp.zeros((N,), bool))
+
+    key = jax.random.key(5)
+    state = _state(room_map, pose, np.full(N, -math.log(N)))
+    out, num_slipped = slip_search.with_slip_search(propose_fn)(key, state, inputs, SENSOR, default_params(), CONFIG)
+    if slips:
+        expected = jax.random.uniform(jax.random.fold_in(key, slip_search._TAG_SLIP), (N, 3)) + 10.0
+        assert int(num_slipped) == N
+    else:
+        expected = jax.random.uniform(key, (N, 3))
+        assert int(num_slipped) == 0
+        np.testing.assert_array_equal(np.asarray(out.log_weight_increment), -1e3)
+    np.testing.assert_array_equal(np.asarray(out.pose), np.asarray(expected))
+    _, none = slip_search.without_slip_search(propose_fn)(key, state, inputs, SENSOR, default_params(), CONFIG)
+    assert int(none) == 0

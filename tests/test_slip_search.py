@@ -17,7 +17,7 @@ import pytest
 from jaxslam import slam
 from jaxslam.config import RunSettings, SlamConfig, default_params
 from jaxslam.proposals.base import ProposalOutput
-from jaxslam.rbpf import slip_mixture, slip_motion
+from jaxslam.slip_search import slip_mixture, slip_motion
 from jaxslam.sim import office_scenario
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))

@@ -43,6 +43,7 @@ import numpy as np
 
 from jaxslam.geometry import between_np, compose_np, wrap_angle_np
 from jaxslam.grid import GridSpec
+from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
 from jaxslam.graph import pose_graph
 from jaxslam.graph.loop_search import SearchResult, SearchWindow, search_pairs
 from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
@@ -506,10 +507,6 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
         config: the closure's settings.
         progress: show a tqdm bar over the search's pairs.
     """
-    from jaxslam.io.trajectory import trajectory_per_scan
-
-    from jaxslam.rbpf import to_local, to_world
-
     t0 = time.perf_counter()
     node_scans = np.asarray(node_scans)
     filter_poses = np.asarray(node_poses, np.float64)

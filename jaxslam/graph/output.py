@@ -13,6 +13,7 @@ import numpy as np
 from jaxslam.graph import pose_graph
 from jaxslam.graph.closure import LoopClosure
 from jaxslam.grid import GridSpec
+from jaxslam.laserlog import grid_to_world, to_local
 from jaxslam.occupancy import GridMap, empty_map, insert_scan
 
 
@@ -30,7 +31,6 @@ def draw_map(closure: LoopClosure, log, params, slam_config, frame_offset) -> tu
     """The map drawn again at the optimised poses: every node's scan inserted into one dense grid
     with the filter's insertion. Returns ``(logodds (H, W) float16, hit_dist2 (H, W) uint8,
     grid)``, the grid in the world frame (as :meth:`jaxslam.slam.SlamResult.dense_map`)."""
-    from jaxslam.rbpf import grid_to_world, to_local
 
     local = to_local(closure.poses, frame_offset)
     reach = slam_config.max_insert_range + 1.0

@@ -17,21 +17,18 @@ from jaxslam.io.carmen import ONLY_COMMENTS, read_carmen, text_problem, write_ca
 from jaxslam.io.maps import read_map, write_map
 from jaxslam.io.relations import Relations, read_relations
 from jaxslam.io.rosbag import read_rosbag
-from jaxslam.io.trajectory import PosesAt, poses_at, read_trajectory, trajectory_per_scan, write_trajectory
+from jaxslam.io.trajectory import read_trajectory, write_trajectory
 from jaxslam.laserlog import LaserLog, LogError
 
 __all__ = [
     "LogError",
-    "PosesAt",
     "Relations",
-    "poses_at",
     "read_carmen",
     "read_log",
     "read_map",
     "read_relations",
     "read_rosbag",
     "read_trajectory",
-    "trajectory_per_scan",
     "write_carmen",
     "write_map",
     "write_trajectory",

@@ -35,8 +35,7 @@ import numpy as np
 
 from jaxslam.geometry import between, compose_np
 from jaxslam.io.rosbag import BeamLayout, check_laser_pose, pad_beam_layouts
-from jaxslam.io.trajectory import poses_at
-from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp
+from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp, poses_at
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.warn import warn
 

@@ -13,7 +13,7 @@ and ``laser_pose`` (``jaxslam map --scan-topic --odom-topic --odom-frame --base-
 :class:`rosbags.highlevel.AnyReader`.
 
 Each scan is paired with the odometry interpolated at its header timestamp
-(:func:`jaxslam.io.trajectory.poses_at`); scans outside the odometry's time span
+(:func:`jaxslam.laserlog.poses_at`); scans outside the odometry's time span
 are dropped with a warning. Every malformed message raises
 :class:`~jaxslam.laserlog.LogError` naming the bag, the topic, the message index
 and its timestamp.
@@ -34,9 +34,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxslam.io.trajectory import poses_at
 from jaxslam.laser import make_sensor
-from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.laserlog import LaserLog, LogError, poses_at
 from jaxslam.warn import warn
 
 __all__ = ["read_rosbag"]

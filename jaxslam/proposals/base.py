@@ -6,9 +6,9 @@ m_{t-1}, and returns the log-weight increment. All proposals share the signature
     propose(key, pose, field, inputs, sensor, params, config, step_motion=None) -> ProposalOutput
 
 for ONE particle; ``step_motion`` is the motion model of step t (None: ``params.motion``; the
-filter's slip search passes the slip component, :func:`jaxslam.rbpf.slip_motion`), while the
+filter's slip search passes the slip component, :func:`jaxslam.slip_search.slip_motion`), while the
 look-ahead's horizon keeps ``params.motion``; the RBPF vmaps it over particles. ``field`` is the particle's likelihood
-field m_{t-1} (a :class:`~jaxslam.paged_map.PagedField`: its directory and the shared pools; a
+field m_{t-1} (a :class:`~jaxslam.maps.PagedField`: its directory and the shared pools; a
 dense (H, W) field also works where ``config.grid`` is a dense :class:`~jaxslam.grid.GridSpec`). ``inputs.ranges`` and
 ``inputs.future_ranges`` are already beam-subsampled (``config.beam_stride``),
 and ``sensor`` matches them.

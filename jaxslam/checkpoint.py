@@ -8,8 +8,8 @@ import zipfile
 
 import numpy as np
 
-from jaxslam.outputs import write_file_atomic
-from jaxslam.paged_map import PagedMaps
+from jaxslam.io.files import write_file_atomic
+from jaxslam.maps import PagedMaps
 from jaxslam.rbpf import SlamInfo, SlamState
 from jaxslam.slam import RunProgress
 

@@ -1,0 +1,117 @@
+"""The ``jaxslam`` command: ``map``, ``demo``, ``eval``, ``diagnose`` and ``doors``.
+
+Every field of :class:`~jaxslam.config.SlamConfig` and :class:`~jaxslam.config.RunSettings`
+and every parameter of :class:`~jaxslam.config.SlamParams` can be set with
+``--set NAME=VALUE`` (dotted names for parameters: ``--set motion.srr=0.05 --set
+linear_update=0.5``) or from a JSON config file (``--config FILE`` holding ``{"config":
+{...}, "params": {...}}``); the common ones also have their own flags. Precedence, lowest
+first: the command's defaults, the config file, the dedicated flags (only when given),
+``--set``.
+
+The filter commands keep JAX's compiled code in a persistent cache (:mod:`jaxslam.compile_cache`:
+``$JAXSLAM_CACHE_DIR``, by default ``~/.cache/jaxslam/jax``; ``off`` or ``--no-cache`` turns it
+off), so that a second run skips most of the compilation.
+
+Every refusal is one line on stderr, ``jaxslam <command>: error: ...``, naming the input, the
+value and what would be accepted, with exit code 2 and no traceback; inputs (flags, config
+values, parameters, the output folder) are checked before any work, and output folders are
+written atomically (:func:`jaxslam.io.files.publish_folder`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from jaxslam import compile_cache
+from jaxslam.cli.checkpoints import checkpoint_path
+from jaxslam.cli.common import (SEED_LIMIT, _add_filter_options, _Parser, build_setup_from_args, check_seed,
+                                parse_assignments, read_config_file)
+from jaxslam.cli.demo import DEMO_DEFAULTS, DEMO_PROPOSAL_NOTE, _cmd_demo
+from jaxslam.cli.doors import _cmd_doors
+from jaxslam.cli.evaluate import _cmd_diagnose, _cmd_eval
+from jaxslam.cli.map import MAP_DEFAULTS, _cmd_map, parse_laser_pose, read_map_log, write_map_outputs
+from jaxslam.config import ConfigError
+from jaxslam.laserlog import LogError
+
+__all__ = [
+    "DEMO_DEFAULTS", "DEMO_PROPOSAL_NOTE", "MAP_DEFAULTS", "SEED_LIMIT", "build_setup_from_args", "check_seed",
+    "checkpoint_path", "main", "make_parser", "parse_assignments", "parse_laser_pose", "read_config_file",
+    "read_map_log", "write_map_outputs",
+]
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="jaxslam", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p_map = sub.add_parser("map", help="build a map from a log (ROS 1/2 bag or CARMEN log)")
+    p_map.add_argument("log", help="path of the log; the format is read from the file")
+    p_map.add_argument("--scan-topic", help="bag topic of sensor_msgs/LaserScan (default /scan)")
+    p_map.add_argument("--odom-topic", help="bag topic of nav_msgs/Odometry, or of transforms read as /tf is "
+                                            "(default /odom); where the bag has none, the odometry is the "
+                                            "--odom-frame -> --base-frame transform in /tf")
+    p_map.add_argument("--odom-frame", help="bags: the odometry's frame in /tf, used where the bag has no odometry "
+                                            "topic (default odom)")
+    p_map.add_argument("--base-frame", help="bags: the robot's frame (default base_link): its pose in --odom-frame "
+                                            "is the /tf odometry, and the laser's mounting is read from the "
+                                            "transform base frame -> the scans' frame in /tf_static")
+    p_map.add_argument("--laser-pose", metavar="X,Y,THETA",
+                       help="the laser's mounting on the robot (m, m, rad), instead of the log's (bags: /tf_static; "
+                            "CARMEN: ROBOTLASER1 lines), e.g. 0.25,0,0.1; a negative first value as "
+                            "--laser-pose=-0.25,0,0")
+    p_map.add_argument("--odometry", choices=("laser", "odom"),
+                       help="CARMEN logs: the odometry inside the laser lines (default) or the ODOM lines "
+                            "(interpolated at the laser timestamps); the two are compared and a disagreement warned of")
+    p_map.add_argument("--max-scans", type=int, help="use only the first N scans of the log")
+    _add_filter_options(p_map, MAP_DEFAULTS)
+    p_map.set_defaults(func=_cmd_map)
+
+    p_demo = sub.add_parser("demo", help="map a simulated office (no download needed)")
+    p_demo.add_argument("--scans", type=int, default=500, help="scans along the simulated path (88 m)")
+    _add_filter_options(p_demo, DEMO_DEFAULTS, DEMO_PROPOSAL_NOTE)
+    p_demo.set_defaults(func=_cmd_demo, out="out/demo")
+
+    p_eval = sub.add_parser("eval", help="relation error (Kuemmerle et al. 2009) of a trajectory")
+    p_eval.add_argument("trajectory", help="trajectory text file: 'timestamp x y theta' per line")
+    p_eval.add_argument("relations", help="relations file: 't1 t2 x y z roll pitch yaw' per line")
+    p_eval.add_argument("--out", help="write the table as JSON to this file (not a folder)")
+    p_eval.set_defaults(func=_cmd_eval)
+
+    p_diag = sub.add_parser("diagnose", help="what happened in a map run, step by step (ESS, lineages, "
+                                             "corrections, relation error over time)")
+    p_diag.add_argument("run_dir", help="the output folder of `jaxslam map` (it holds steps.npz)")
+    p_diag.add_argument("relations", nargs="?", help="relations file of the log, for the error over time")
+    p_diag.add_argument("--out", help="folder for diagnosis.json and diagnosis.png (default: RUN_DIR)")
+    p_diag.set_defaults(func=_cmd_diagnose)
+
+    p_doors = sub.add_parser("doors", help="localization with door-state estimation (Avots et al. 2002)")
+    p_doors.add_argument("--scenario", choices=("corridors", "office", "patrol"), default="corridors",
+                         help="corridors: two corridors told apart only by their doors (Fig. 2); "
+                              "office: doors closed on the way out, opened, then the return pass (Fig. 1); "
+                              "patrol: ten round trips while the doors open and close at random")
+    p_doors.add_argument("--particles", type=int, default=1000)
+    p_doors.add_argument("--seed", type=int, default=0, help="seed of the simulated log and of the filter")
+    p_doors.add_argument("--filter", dest="filter_kind", choices=("hybrid", "static", "memoryless"),
+                         default="hybrid")
+    p_doors.add_argument("--out", default="out/doors", help="folder for summary.json and the figures")
+    p_doors.add_argument("--no-cache", action="store_true",
+                         help="do not use the persistent compilation cache (as JAXSLAM_CACHE_DIR=off)")
+    p_doors.set_defaults(func=_cmd_doors)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = make_parser()
+    args = parser.parse_args(argv)
+    try:
+        if hasattr(args, "no_cache"):  # the commands that compile: the cache on before the first compilation
+            _, args.cache_warning = compile_cache.enable(disabled=args.no_cache)
+        return args.func(args)
+    except KeyboardInterrupt:  # Ctrl-C outside a filter run (which stops at a chunk boundary instead)
+        print(f"jaxslam {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except (ConfigError, LogError, ValueError, OSError) as err:  # OSError: FileNotFoundError, PermissionError, ...
+        message = " ".join(str(err).split()) or type(err).__name__
+        print(f"jaxslam {args.command}: error: {message}", file=sys.stderr)
+        return 2

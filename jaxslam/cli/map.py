@@ -1,0 +1,192 @@
+"""``jaxslam map``: the log read and checked, the memory and disk checks, the run (checkpointed,
+resumable, stopped at a chunk boundary by Ctrl-C or SIGTERM) and its outputs
+(:func:`write_map_outputs`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import jax
+import numpy as np
+
+from jaxslam.checkpoint import save_checkpoint
+from jaxslam.cli.checkpoints import _load_resume, _run_identity, _StopRequest, checkpoint_path
+from jaxslam.cli.common import (_check_at_least, _check_filter_args, _check_out_folder, _warn_of_the_cache,
+                                build_setup_from_args)
+from jaxslam.config import ConfigError
+from jaxslam.io import read_log
+from jaxslam.io.files import OutputError, check_free_space
+from jaxslam.io.rosbag import check_laser_pose
+from jaxslam.laserlog import check_log
+from jaxslam.outputs import expected_output_bytes, write_slam_outputs
+from jaxslam.laserlog import grid_to_world
+from jaxslam.rbpf import check_config_for_log, first_scan_tiles, prepare
+from jaxslam.refine import refine_trajectory
+from jaxslam.resources import available_memory_bytes, estimate_run_bytes, map_cells, state_bytes
+from jaxslam.slam import RunInterrupted, run
+
+
+def _cmd_map(args: argparse.Namespace) -> int:
+    _log_reader_kwargs(args)  # a bad --laser-pose is refused first
+    _check_filter_args(args)
+    _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
+    setup = build_setup_from_args(args, MAP_DEFAULTS)
+    _check_out_folder(args.out)
+    return _map_and_write(read_map_log(args), setup, args, source=str(args.log))
+
+
+def _log_reader_kwargs(args: argparse.Namespace) -> dict:
+    """``read_log``'s keyword arguments from ``jaxslam map``'s flags."""
+    kwargs = {}
+    if args.scan_topic:
+        kwargs["scan_topic"] = args.scan_topic
+    if args.odom_topic:
+        kwargs["odom_topic"] = args.odom_topic
+    if args.odometry:
+        kwargs["odometry_source"] = args.odometry
+    if args.odom_frame:
+        kwargs["odom_frame"] = args.odom_frame
+    if args.base_frame:
+        kwargs["base_frame"] = args.base_frame
+    if args.laser_pose is not None:
+        kwargs["laser_pose"] = parse_laser_pose(args.laser_pose)
+    return kwargs
+
+
+def read_map_log(args: argparse.Namespace):
+    """The log ``jaxslam map`` maps, from its parsed arguments (``make_parser``): read, cut to
+    ``--max-scans`` and checked (:func:`jaxslam.laserlog.check_log`)."""
+    kwargs = _log_reader_kwargs(args)
+    if not args.no_progress:
+        print(f"reading {args.log} ...", file=sys.stderr, flush=True)
+    log = read_log(args.log, **kwargs)
+    if args.max_scans is not None:
+        log = log.subset(np.arange(min(args.max_scans, log.num_scans)))
+    return check_log(log)  # repeated timestamps (the last kept), dead scans, gaps: log.warnings
+
+
+def parse_laser_pose(text: str) -> tuple[float, float, float]:
+    """``"x,y,theta"`` (``--laser-pose``) -> three floats (:func:`jaxslam.io.rosbag.check_laser_pose`);
+    anything else raises ``ConfigError``."""
+    try:
+        return check_laser_pose(text.split(","))
+    except ValueError:
+        raise ConfigError(f"--laser-pose expects x,y,theta: three finite numbers (m, m, rad) separated by commas, "
+                          f"e.g. 0.25,0,0.1 (a negative first one as --laser-pose=-0.25,0,0), got {text!r}") from None
+
+
+MAP_DEFAULTS = {"proposal": "lp", "num_particles": 30}
+"""``jaxslam map``'s defaults beyond the library's: the LP, which failed least in the 10-seed
+robustness table (docs/results.md)."""
+
+
+def _format_gb(nbytes: float) -> str:
+    gb = nbytes / 1e9
+    return f"{gb:.0f}" if gb >= 10 else f"{gb:.1f}"
+
+
+def _check_memory(log, config, settings, params) -> None:
+    """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.resources.estimate_run_bytes`)
+    exceeds the machine's available memory; skipped where that cannot be read. The first pools
+    grow with the first scan's footprint (:func:`jaxslam.rbpf.pool_size`): where even the widest
+    footprint (the insertion's whole window) fits, that is enough; otherwise this log's first scan
+    is measured (one particle's insertion), so that a wide first scan at large N is refused here
+    rather than running out of memory in the run."""
+    available = available_memory_bytes()
+    if available is None:
+        return
+    widest = config.grid.window_tiles(config.max_insert_range, config.field_radius) ** 2
+    need, how = estimate_run_bytes(config, log.num_beams, widest)
+    if need > available:
+        prepared, _, _ = prepare(log, config, settings)
+        need, how = estimate_run_bytes(config, log.num_beams, first_scan_tiles(prepared, params, config))
+    if need > available:
+        lp = ", --localizers" if config.lookahead_steps else ""
+        raise ConfigError(f"the run needs about {_format_gb(need)} GB ({how}) but {_format_gb(available)} GB are "
+                          f"available; lower --particles{lp}, or a smaller --set map_extent=... (m), or a "
+                          f"coarser --set resolution=... (m)")
+
+
+def _check_disk(log, config, settings, out, checkpoints: bool) -> None:
+    """Refuse (``ConfigError``) a run whose outputs (and checkpoints) would not fit on the disk."""
+    need = expected_output_bytes(map_cells(log.odometry, config), log.num_scans,
+                                 state_bytes(config) if checkpoints else 0)
+    try:
+        check_free_space(out, need)
+    except OutputError as err:
+        raise ConfigError(f"--out {err}") from None
+
+
+def _map_and_write(log, setup, args, source: str, world=None) -> int:
+    config, settings, params = setup
+
+    check_config_for_log(log, config)
+    _check_memory(log, config, settings, params)
+    _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
+    ckpt = checkpoint_path(args.out)
+    identity = _run_identity(args, log, setup, source)
+    resume = _load_resume(ckpt, identity) if getattr(args, "resume", False) else None
+    every = getattr(args, "checkpoint_every", None)
+    _warn_of_the_cache(args)
+
+    with _StopRequest() as stop:
+        chunks = [0]
+
+        def on_chunk(progress) -> bool:
+            chunks[0] += 1
+            if stop.signum is not None or (every and chunks[0] % every == 0):
+                save_checkpoint(ckpt, progress, identity)
+            return stop.signum is not None
+
+        try:
+            # lazy: jaxslam.graph (scipy.sparse) adds 0.7 s to every command's start (measured)
+            from jaxslam.graph import ClosureConfig
+
+            close = None if getattr(args, "no_close_loops", False) else ClosureConfig()
+            result = run(jax.random.key(args.seed), log, config, params, settings, chunk_size=args.chunk_size,
+                         progress=not args.no_progress, on_chunk=on_chunk, resume=resume, close_loops=close)
+        except RunInterrupted as err:
+            print(f"jaxslam {args.command}: interrupted at step {err.steps_done} of {err.num_steps} "
+                  f"(checkpoint {ckpt}); resume with --resume", file=sys.stderr)
+            return 128 + int(stop.signum)
+        summary = write_map_outputs(args.out, log, result, params, args.seed, source,
+                                    refine=getattr(args, "refine", True), world=world)
+        if ckpt.exists():
+            ckpt.unlink()
+    t = summary["timings"]
+    print(f"processed {summary['scans_processed']} of {summary['scans_in_log']} scans in {_fmt(t['total'])} s "
+          f"(compile {_fmt(t['compile'])} s, real-time factor {_fmt(t['real_time_factor'])}); "
+          f"outputs in {args.out}/")
+    for warning in summary["warnings"]:
+        print(f"warning: {warning}", file=sys.stderr)
+    return 0
+
+
+def write_map_outputs(out, log, result, params, seed: int, source: str, refine: bool = False, world=None) -> dict:
+    """``jaxslam map``'s outputs of one finished run (:func:`jaxslam.outputs.write_slam_outputs`);
+    with ``refine``, every scan first localised in the final map (``trajectory_refined.txt``,
+    :mod:`jaxslam.refine`). Returns the summary as written."""
+    refined, refine_seconds = None, None
+    if refine:
+        # In the filter's local frame (result.frame_offset subtracted), as the map was built; on
+        # the closed map from the closed trajectory where loops were closed.
+        closure = result.closure
+        if closure is not None and closure.num_loops:
+            _, field, grid = result.closed_map(log, params)
+            grid, start = grid_to_world(grid, -result.frame_offset), closure.trajectory
+        else:
+            (_, field, grid), start = result.dense_map(local=True), result.trajectory
+        t0 = time.perf_counter()
+        refined = refine_trajectory(grid, field, result.to_local(start), log.ranges, log.sensor,
+                                    params, result.config, odometry=result.to_local(log.odometry))
+        refined = refined._replace(poses=result.to_world(refined.poses),
+                                   matched_poses=result.to_world(refined.matched_poses))
+        refine_seconds = time.perf_counter() - t0
+    return write_slam_outputs(out, log, result, params, seed=seed, source=source, world=world, refined=refined,
+                              refine_seconds=refine_seconds)
+
+
+def _fmt(value) -> str:
+    return "n/a" if value is None else f"{value:.1f}"
