@@ -48,7 +48,7 @@ from jaxslam.config import CONFIG_FIELDS, SETTINGS_FIELDS, ConfigError, build_se
 from jaxslam.metrics import checkpoint_passages, normalized_weights, passage_errors, revisiting_accuracy
 from jaxslam.rbpf import particle_paths
 from jaxslam.sim import box_world_scenario
-from jaxslam.sim.scenarios import BOX_WORLD_MOTION
+from jaxslam.sim.box_world import BOX_WORLD_MOTION
 
 DEFAULT_CONFIG = Path(__file__).resolve().parent / "box_world.json"
 WORLD_KEYS = ("success_ra", "rotation_weight", "motion_scale", "grid_margin", "grid_resolution",

@@ -39,8 +39,8 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
   right, to the proposal.
 
 ``events`` lists the largest corrections and the worst relations with their step, time and
-place, ranked (no threshold): where to look in the map first. :func:`plot_diagnosis` draws it
-all; ``jaxslam diagnose RUN_DIR [RELATIONS]`` writes ``diagnosis.json`` and ``diagnosis.png``.
+place, ranked (no threshold): where to look in the map first.
+:func:`jaxslam.plotting.plot_diagnosis` draws it all; ``jaxslam diagnose RUN_DIR [RELATIONS]`` writes ``diagnosis.json`` and ``diagnosis.png``.
 """
 
 from __future__ import annotations
@@ -422,6 +422,20 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         needed with ``relations``.
       relations: a :class:`~jaxslam.io.relations.Relations`, or None.
     """
+    series, persistence = _step_series(record)
+    place = _placer(record)
+    events = _ranked_events(series, place)
+    summary = _run_summary(record, series, persistence)
+    out = {"summary": summary, "series": {k: np.asarray(v).tolist() for k, v in series.items()}, "events": events}
+    if relations is not None:
+        _add_relation_errors(out, record, trajectory, relations, series["surviving_lineages"], place)
+    return out
+
+
+def _step_series(record: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict]:
+    """The per-step series of :func:`diagnose` (each (S,) for the record's S steps; see the
+    module's docstring for their meaning and units), and :func:`weight_persistence`'s result
+    (a stand-in without weights for records that have none)."""
     n = int(record["num_particles"])
     ancestors = np.asarray(record["ancestors"])
     steps = ancestors.shape[0]
@@ -434,9 +448,6 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
     spread = np.sqrt(np.var(proposed[..., 0], axis=1) + np.var(proposed[..., 1], axis=1))
     lineages = surviving_lineages(ancestors)
     distinct = (np.count_nonzero(np.diff(np.sort(ancestors, axis=1), axis=1), axis=1) + 1).astype(np.int64)
-    single = np.flatnonzero(lineages == 1)
-    neutral = neutral_coalescence_lags(ancestors) if steps else None
-    lag = coalescence_lag(ancestors) if steps else None
     # Records written before the weights were kept have none to judge.
     persistence = (weight_persistence(record["log_weights"], ancestors, record["resampled"]) if "log_weights" in record
                    else {"increment_spread": np.full(steps, np.nan), "stretches": [], "median_correlation": None,
@@ -452,19 +463,43 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
         "slipped": np.asarray(record["num_slipped"]) if "num_slipped" in record else np.zeros(steps, np.int64),
         "increment_spread": persistence["increment_spread"],
     }
+    return series, persistence
 
+
+def _placer(record: dict[str, np.ndarray]):
+    """A function of a step's index (0-based) to where on the best path it was (x, y in m) and
+    when (``elapsed_s``: seconds since the first scan), for the events."""
+    best = np.asarray(record["best_path"])
+    step_times = np.asarray(record["timestamp"])[1:]
     start = float(np.asarray(record["timestamp"])[0])
 
     def place(step_index: int) -> dict:  # where on the best path, and when (seconds since the first scan)
         return {"step": int(step_index + 1), "elapsed_s": float(step_times[step_index] - start),
                 "x": float(best[step_index + 1, 0]), "y": float(best[step_index + 1, 1])}
 
+    return place
+
+
+def _ranked_events(series: dict[str, np.ndarray], place) -> dict:
+    """The :data:`NUM_EVENTS` largest corrections (m, rad) and every slip, each with its place."""
+    correction_trans, correction_rot = series["correction_trans"], series["correction_rot"]
     order = np.argsort(-correction_trans, kind="stable")[:NUM_EVENTS]
-    events = {"largest_corrections": [dict(place(i), trans=float(correction_trans[i]), rot=float(correction_rot[i]))
-                                      for i in order],
-              "slips": [dict(place(int(i)), particles=int(series["slipped"][i]), trans=float(correction_trans[i]),
-                             rot=float(correction_rot[i])) for i in np.flatnonzero(series["slipped"])]}
-    summary = {
+    return {"largest_corrections": [dict(place(i), trans=float(correction_trans[i]), rot=float(correction_rot[i]))
+                                    for i in order],
+            "slips": [dict(place(int(i)), particles=int(series["slipped"][i]), trans=float(correction_trans[i]),
+                           rot=float(correction_rot[i])) for i in np.flatnonzero(series["slipped"])]}
+
+
+def _run_summary(record: dict[str, np.ndarray], series: dict[str, np.ndarray], persistence: dict) -> dict:
+    """The run's summary (see the module's docstring) from its record and per-step series."""
+    n = int(record["num_particles"])
+    ancestors = np.asarray(record["ancestors"])
+    steps = ancestors.shape[0]
+    distinct, lineages = series["distinct_ancestors"], series["surviving_lineages"]
+    single = np.flatnonzero(lineages == 1)
+    neutral = neutral_coalescence_lags(ancestors) if steps else None
+    lag = coalescence_lag(ancestors) if steps else None
+    return {
         "steps": steps, "num_particles": n,
         "resampling_steps": int(np.sum(series["resampled"])),
         "mean_ess_fraction": float(np.mean(series["ess_fraction"])) if steps else None,
@@ -482,106 +517,56 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
                                "median_increment_spread": persistence["median_increment_spread"],
                                "stretches": len(persistence["stretches"])},
     }
-    out = {"summary": summary, "series": {k: np.asarray(v).tolist() for k, v in series.items()}, "events": events}
-    if relations is not None:
-        from jaxslam.metrics import relation_error
-        from jaxslam.rbpf import final_best_particle
-
-        if trajectory is None:
-            raise ValueError("diagnose: relations need the run's trajectory (a pose per scan)")
-        # A run of part of a log (--max-scans) is judged on the relations inside its time span.
-        times = np.asarray(trajectory[0])
-        inside = ((np.minimum(relations.t1, relations.t2) >= times[0] - 1e-4)
-                  & (np.maximum(relations.t1, relations.t2) <= times[-1] + 1e-4))
-        if not np.any(inside):
-            raise ValueError(f"diagnose: none of the {relations.count} relations lies within the run's time span "
-                             f"({times[0]:.3f} to {times[-1]:.3f} s): are they the log's?")
-        relations = type(relations)(relations.t1[inside], relations.t2[inside], relations.motion[inside])
-        err = relation_error(trajectory[0], trajectory[1], relations)
-        later = np.maximum(relations.t1, relations.t2)
-        at_step = np.clip(np.searchsorted(step_times, later), 0, max(steps - 1, 0))
-        out["relations"] = {"time": later.tolist(), "trans": err.trans.tolist(), "rot": err.rot.tolist(),
-                            "step": (at_step + 1).tolist()}
-        summary["relation_error"] = {"trans_mean": err.trans_mean, "rot_mean": err.rot_mean, "count": err.count,
-                                     "relations_outside_the_run": int(np.sum(~inside))}
-        errors = errors_then(record, trajectory, relations)
-        then, weighted = errors.min(axis=1), weighted_then(record, trajectory, relations, errors)
-        out["relations"]["closest_then"] = then.tolist()
-        summary["relation_error"]["closest_then_mean"] = float(np.mean(then))
-        if weighted is not None:
-            out["relations"]["weighted_then"] = weighted.tolist()
-            summary["relation_error"]["weighted_then_mean"] = float(np.mean(weighted))
-        worst = np.argsort(-err.trans, kind="stable")[:NUM_EVENTS]
-        events["worst_relations"] = [dict(place(int(at_step[i])), relation_elapsed_s=float(later[i] - start),
-                                          trans=float(err.trans[i]), rot=float(err.rot[i]),
-                                          closest_then=float(then[i]),
-                                          **({} if weighted is None else {"weighted_then": float(weighted[i])}))
-                                     for i in worst]
-        own = final_particle_errors(record, trajectory, relations)
-        closest = int(np.argmin(own["trans_mean"]))
-        best_final = final_best_particle(record["ancestors"], record["best_particle"])
-        out["final_particles"] = {k: v.tolist() for k, v in own.items()}
-        summary["final_particles"] = {
-            "best_particle": best_final, "best_trans_mean": float(own["trans_mean"][best_final]),
-            "closest_particle": closest, "closest_trans_mean": float(own["trans_mean"][closest]),
-            "median_trans_mean": float(np.median(own["trans_mean"])),
-            "distinct_histories": int(lineages[-1]) if steps else n}
-    return out
 
 
-def plot_diagnosis(diagnosis: dict, record: dict[str, np.ndarray], title: str = ""):
-    """A figure of :func:`diagnose`'s series against time, and the best path with the events."""
-    import matplotlib.pyplot as plt
+def _add_relation_errors(out: dict, record: dict[str, np.ndarray], trajectory, relations, lineages: np.ndarray,
+                         place) -> None:
+    """Add to ``out`` (:func:`diagnose`'s result, in place) the relations' errors (m, rad) at their
+    later scans, the closest and weighted particles' errors then, the worst relations as events and
+    the final particles' own errors; ``lineages`` is the (S,) ``surviving_lineages`` series."""
+    from jaxslam.metrics import relation_error
+    from jaxslam.rbpf import final_best_particle
 
-    s = {k: np.asarray(v) for k, v in diagnosis["series"].items()}
-    t = s["time"] - (s["time"][0] if s["time"].size else 0.0)
-    fig = plt.figure(figsize=(13, 11), constrained_layout=True)
-    grid = fig.add_gridspec(5, 2, width_ratios=(2.2, 1))
-    axes = [fig.add_subplot(grid[i, 0]) for i in range(5)]
-    axes[0].plot(t, s["ess_fraction"], lw=0.8)
-    axes[0].plot(t[s["resampled"]], s["ess_fraction"][s["resampled"]], "r.", ms=2, label="resampled")
-    axes[0].set_ylabel("ESS / N")
-    axes[0].legend(loc="upper right", fontsize=8)
-    panels = (  # (y label, ((series, legend label), ...))
-        ("particles", ((s["distinct_ancestors"], "particles kept by the step's resampling"),
-                       (s["surviving_lineages"], "the step's particles with final descendants"))),
-        ("correction of odometry", ((s["correction_trans"], "translation (m)"),
-                                    (np.degrees(s["correction_rot"]) / 10.0, "rotation (10 deg)"))),
-        ("spread, fallbacks", ((s["spread"], "particle spread (m)"), (s["fallbacks"], "fallbacks"),
-                               (s["slipped"], "particles drawn from the slip component"))),
-    )
-    for ax, (ylabel, lines) in zip(axes[1:4], panels):
-        for values, label in lines:
-            ax.plot(t, values, lw=0.8, label=label)
-        ax.set_ylabel(ylabel)
-        ax.legend(loc="upper left", fontsize=8)
-    relations = diagnosis.get("relations")
-    if relations:
-        relation_times = np.asarray(relations["time"]) - (s["time"][0] if s["time"].size else 0.0)
-        axes[4].plot(relation_times, relations["trans"], ".", ms=2, label="the run's")
-        if "weighted_then" in relations:
-            axes[4].plot(relation_times, relations["weighted_then"], ".", ms=2, alpha=0.5,
-                         label="the particles' weighted mean at its later scan")
-        if "closest_then" in relations:
-            axes[4].plot(relation_times, relations["closest_then"], ".", ms=2, alpha=0.5,
-                         label="the best particle's at its later scan")
-        axes[4].legend(loc="upper left", fontsize=8)
-        axes[4].set_ylabel("relation error (m)")
-        axes[4].set_yscale("log")
-    else:
-        axes[4].plot(t, s["log_evidence"], lw=0.8)
-        axes[4].set_ylabel("log evidence")
-    axes[4].set_xlabel("time since the first scan (s)")
-    path_ax = fig.add_subplot(grid[:, 1])
-    best = np.asarray(record["best_path"])
-    path_ax.plot(best[:, 0], best[:, 1], lw=0.6, color="k")
-    for name, marker, color in (("largest_corrections", "o", "tab:red"), ("worst_relations", "s", "tab:blue")):
-        for rank, event in enumerate(diagnosis["events"].get(name, ())):
-            path_ax.plot(event["x"], event["y"], marker, mfc="none", color=color, ms=8,
-                         label=name.replace("_", " ") if rank == 0 else None)
-            path_ax.annotate(str(rank + 1), (event["x"], event["y"]), color=color, fontsize=8)
-    path_ax.set_aspect("equal")
-    path_ax.set_title("best path (m)")
-    path_ax.legend(loc="best", fontsize=8)
-    fig.suptitle(title)
-    return fig
+    summary, events = out["summary"], out["events"]
+    n, steps = summary["num_particles"], summary["steps"]
+    step_times = np.asarray(record["timestamp"])[1:]
+    start = float(np.asarray(record["timestamp"])[0])
+    if trajectory is None:
+        raise ValueError("diagnose: relations need the run's trajectory (a pose per scan)")
+    # A run of part of a log (--max-scans) is judged on the relations inside its time span.
+    times = np.asarray(trajectory[0])
+    inside = ((np.minimum(relations.t1, relations.t2) >= times[0] - 1e-4)
+              & (np.maximum(relations.t1, relations.t2) <= times[-1] + 1e-4))
+    if not np.any(inside):
+        raise ValueError(f"diagnose: none of the {relations.count} relations lies within the run's time span "
+                         f"({times[0]:.3f} to {times[-1]:.3f} s): are they the log's?")
+    relations = type(relations)(relations.t1[inside], relations.t2[inside], relations.motion[inside])
+    err = relation_error(trajectory[0], trajectory[1], relations)
+    later = np.maximum(relations.t1, relations.t2)
+    at_step = np.clip(np.searchsorted(step_times, later), 0, max(steps - 1, 0))
+    out["relations"] = {"time": later.tolist(), "trans": err.trans.tolist(), "rot": err.rot.tolist(),
+                        "step": (at_step + 1).tolist()}
+    summary["relation_error"] = {"trans_mean": err.trans_mean, "rot_mean": err.rot_mean, "count": err.count,
+                                 "relations_outside_the_run": int(np.sum(~inside))}
+    errors = errors_then(record, trajectory, relations)
+    then, weighted = errors.min(axis=1), weighted_then(record, trajectory, relations, errors)
+    out["relations"]["closest_then"] = then.tolist()
+    summary["relation_error"]["closest_then_mean"] = float(np.mean(then))
+    if weighted is not None:
+        out["relations"]["weighted_then"] = weighted.tolist()
+        summary["relation_error"]["weighted_then_mean"] = float(np.mean(weighted))
+    worst = np.argsort(-err.trans, kind="stable")[:NUM_EVENTS]
+    events["worst_relations"] = [dict(place(int(at_step[i])), relation_elapsed_s=float(later[i] - start),
+                                      trans=float(err.trans[i]), rot=float(err.rot[i]),
+                                      closest_then=float(then[i]),
+                                      **({} if weighted is None else {"weighted_then": float(weighted[i])}))
+                                 for i in worst]
+    own = final_particle_errors(record, trajectory, relations)
+    closest = int(np.argmin(own["trans_mean"]))
+    best_final = final_best_particle(record["ancestors"], record["best_particle"])
+    out["final_particles"] = {k: v.tolist() for k, v in own.items()}
+    summary["final_particles"] = {
+        "best_particle": best_final, "best_trans_mean": float(own["trans_mean"][best_final]),
+        "closest_particle": closest, "closest_trans_mean": float(own["trans_mean"][closest]),
+        "median_trans_mean": float(np.median(own["trans_mean"])),
+        "distinct_histories": int(lineages[-1]) if steps else n}

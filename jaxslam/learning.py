@@ -159,6 +159,37 @@ def fit(
     """
     if isinstance(num_steps, bool) or not isinstance(num_steps, (int, np.integer)) or num_steps < 1:
         raise ValueError(f"num_steps must be a positive integer, got {num_steps!r}")
+    trainable, transforms, to_params, coords = _unconstrained_start(params, trainable, transforms)
+    if check_gradients:
+        dead = structurally_zero(lambda c: objective_fn(key, to_params(c)), coords)
+        if dead:
+            raise ValueError(f"the objective's gradient is zero by construction in {dead}: nothing can be learned "
+                             f"for them (they act through comparisons or a non-differentiable step, such as the "
+                             f"map insertion or a resampling threshold); leave them out of trainable")
+    optimizer = adam(learning_rate)
+    state = optimizer.init(coords) if initial_state is None else initial_state
+
+    @jax.jit
+    def update(step_key, coords, state):
+        value, grads = jax.value_and_grad(lambda c: objective_fn(step_key, to_params(c)))(coords)
+        new_coords, new_state = optimizer.step(state, coords, grads)
+        return value, {name: jnp.isfinite(g) for name, g in grads.items()}, new_coords, new_state
+
+    return _run_fit(key, num_steps, update, to_params, coords, state, trainable, transforms, progress)
+
+
+def _unconstrained_start(params, trainable: Sequence[str] | None, transforms: dict[str, Transform] | None):
+    """Check :func:`fit`'s names and starting values and set up its unconstrained coordinates.
+
+    Returns:
+      ``(trainable, transforms, to_params, coords)``: the trained names (a list); each one's
+      :class:`Transform` (POSITIVE where none was given); ``to_params(coords)``, the parameters
+      (``params``' pytree, frozen leaves as given) at unconstrained coordinates ``coords``; and
+      the starting ``coords``, name -> float32 scalar.
+
+    Raises:
+      ValueError: an unknown name, or a starting value outside its transform's domain.
+    """
     names = param_names(params)
     leaves, treedef = jax.tree.flatten(params)
     trainable = list(names) if trainable is None else list(trainable)
@@ -181,21 +212,14 @@ def fit(
 
     coords = {name: transforms[name].to_unconstrained_fn(jnp.asarray(leaves[i], jnp.float32))
               for name, i in index.items()}
-    if check_gradients:
-        dead = structurally_zero(lambda c: objective_fn(key, to_params(c)), coords)
-        if dead:
-            raise ValueError(f"the objective's gradient is zero by construction in {dead}: nothing can be learned "
-                             f"for them (they act through comparisons or a non-differentiable step, such as the "
-                             f"map insertion or a resampling threshold); leave them out of trainable")
-    optimizer = adam(learning_rate)
-    state = optimizer.init(coords) if initial_state is None else initial_state
+    return trainable, transforms, to_params, coords
 
-    @jax.jit
-    def update(step_key, coords, state):
-        value, grads = jax.value_and_grad(lambda c: objective_fn(step_key, to_params(c)))(coords)
-        new_coords, new_state = optimizer.step(state, coords, grads)
-        return value, {name: jnp.isfinite(g) for name, g in grads.items()}, new_coords, new_state
 
+def _run_fit(key: PRNGKeyArray, num_steps: int, update, to_params, coords: dict, state: AdamState,
+             trainable: list[str], transforms: dict[str, Transform], progress: bool) -> FitResult:
+    """:func:`fit`'s steps: ``update(step_key, coords, state) -> (objective, finite gradient per
+    name, new coords, new state)`` once per step key, the constrained values and objective
+    recorded before each update; a :class:`FitError` at the first non-finite step."""
     from tqdm.auto import tqdm
 
     history: dict[str, list] = {"objective": [], **{name: [] for name in trainable}}

@@ -111,7 +111,7 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     has one pose per scan of the log.
     With ``refined`` (a :class:`jaxslam.refine.RefinedTrajectory`) also ``trajectory_refined.txt``,
     and the summary's ``refinement`` gives the fraction of scans whose match held (and, when
-    given, ``refine_seconds``: the refinement's wall time). For a log with ground truth (a
+    given, ``refine_seconds``, the refinement's wall time, goes under ``timings.refinement``). For a log with ground truth (a
     simulated one) the summary's ``ground_truth_error`` holds :func:`ground_truth_error`.
     The figure is drawn without pyplot, so a notebook's plotting backend is left as it is.
 
@@ -137,20 +137,7 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     closure = getattr(result, "closure", None)
     logodds, _, grid = result.dense_map() if closure is None else result.closed_map(log, params)
     cropped, spec = crop_to_known(logodds, grid)
-    summary = summarize(log, result, params, seed, source)
-    if closure is not None:
-        summary["closure"] = closure.summary()
-        summary["timings"]["closure"] = dict(closure.timings)  # seconds vary run to run: beside the filter's
-        if getattr(log, "ground_truth", None) is not None:
-            truth = np.asarray(log.ground_truth, np.float64)[closure.node_scans, :2]
-            summary["closure"]["ground_truth_mean_m"] = float(np.mean(np.hypot(*(closure.poses[:, :2] - truth).T)))
-    if refined is not None:
-        summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
-                                 "median_score": float(np.median(refined.scores))}
-        if refine_seconds is not None:
-            summary["refinement"]["seconds"] = float(refine_seconds)
-    summary, null_reasons = strict_json_values(summary, _known_null_reasons(summary, result))
-    summary["null_reasons"] = null_reasons
+    summary = _slam_summary(log, result, params, seed, source, refined, refine_seconds)
     text = json.dumps(summary, indent=2, allow_nan=False, default=_json_default)
 
     def write(out: Path) -> None:
@@ -175,6 +162,29 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
         write_step_record(out / STEPS_FILE, step_record(log, result))
 
     publish_folder(out_dir, write, replaces=SLAM_OUTPUT_NAMES)
+    return summary
+
+
+def _slam_summary(log, result, params, seed: int, source: str, refined=None,
+                  refine_seconds: float | None = None) -> dict:
+    """:func:`write_slam_outputs`' summary: :func:`summarize`'s, with the loop closure's counts and
+    timings (s; its poses' mean distance to the ground truth, m, where the log has one), the
+    refinement's, and non-finite numbers nulled with their ``null_reasons``."""
+    closure = getattr(result, "closure", None)
+    summary = summarize(log, result, params, seed, source)
+    if closure is not None:
+        summary["closure"] = closure.summary()
+        summary["timings"]["closure"] = dict(closure.timings)  # seconds vary run to run: beside the filter's
+        if getattr(log, "ground_truth", None) is not None:
+            truth = np.asarray(log.ground_truth, np.float64)[closure.node_scans, :2]
+            summary["closure"]["ground_truth_mean_m"] = float(np.mean(np.hypot(*(closure.poses[:, :2] - truth).T)))
+    if refined is not None:
+        summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
+                                 "median_score": float(np.median(refined.scores))}
+        if refine_seconds is not None:  # seconds vary run to run: beside the filter's
+            summary["timings"]["refinement"] = float(refine_seconds)
+    summary, null_reasons = strict_json_values(summary, _known_null_reasons(summary, result))
+    summary["null_reasons"] = null_reasons
     return summary
 
 

@@ -1,4 +1,4 @@
-"""Matplotlib figures: maps, particles, paths."""
+"""Matplotlib figures: maps, particles, paths, a run's diagnosis."""
 
 from __future__ import annotations
 
@@ -70,3 +70,61 @@ def plot_slam_result(result, log=None, world=None, ax=None):
     ax.set_title(f"{result.config.proposal.upper()}, N = {result.config.num_particles}, "
                  f"{idx.size} scans processed")
     return fig if fig is not None else ax.figure
+
+
+def plot_diagnosis(diagnosis: dict, record: dict[str, np.ndarray], title: str = ""):
+    """A figure of :func:`jaxslam.diagnose.diagnose`'s series against time, and the best path with the events."""
+    import matplotlib.pyplot as plt
+
+    s = {k: np.asarray(v) for k, v in diagnosis["series"].items()}
+    t = s["time"] - (s["time"][0] if s["time"].size else 0.0)
+    fig = plt.figure(figsize=(13, 11), constrained_layout=True)
+    grid = fig.add_gridspec(5, 2, width_ratios=(2.2, 1))
+    axes = [fig.add_subplot(grid[i, 0]) for i in range(5)]
+    axes[0].plot(t, s["ess_fraction"], lw=0.8)
+    axes[0].plot(t[s["resampled"]], s["ess_fraction"][s["resampled"]], "r.", ms=2, label="resampled")
+    axes[0].set_ylabel("ESS / N")
+    axes[0].legend(loc="upper right", fontsize=8)
+    panels = (  # (y label, ((series, legend label), ...))
+        ("particles", ((s["distinct_ancestors"], "particles kept by the step's resampling"),
+                       (s["surviving_lineages"], "the step's particles with final descendants"))),
+        ("correction of odometry", ((s["correction_trans"], "translation (m)"),
+                                    (np.degrees(s["correction_rot"]) / 10.0, "rotation (10 deg)"))),
+        ("spread, fallbacks", ((s["spread"], "particle spread (m)"), (s["fallbacks"], "fallbacks"),
+                               (s["slipped"], "particles drawn from the slip component"))),
+    )
+    for ax, (ylabel, lines) in zip(axes[1:4], panels):
+        for values, label in lines:
+            ax.plot(t, values, lw=0.8, label=label)
+        ax.set_ylabel(ylabel)
+        ax.legend(loc="upper left", fontsize=8)
+    relations = diagnosis.get("relations")
+    if relations:
+        relation_times = np.asarray(relations["time"]) - (s["time"][0] if s["time"].size else 0.0)
+        axes[4].plot(relation_times, relations["trans"], ".", ms=2, label="the run's")
+        if "weighted_then" in relations:
+            axes[4].plot(relation_times, relations["weighted_then"], ".", ms=2, alpha=0.5,
+                         label="the particles' weighted mean at its later scan")
+        if "closest_then" in relations:
+            axes[4].plot(relation_times, relations["closest_then"], ".", ms=2, alpha=0.5,
+                         label="the best particle's at its later scan")
+        axes[4].legend(loc="upper left", fontsize=8)
+        axes[4].set_ylabel("relation error (m)")
+        axes[4].set_yscale("log")
+    else:
+        axes[4].plot(t, s["log_evidence"], lw=0.8)
+        axes[4].set_ylabel("log evidence")
+    axes[4].set_xlabel("time since the first scan (s)")
+    path_ax = fig.add_subplot(grid[:, 1])
+    best = np.asarray(record["best_path"])
+    path_ax.plot(best[:, 0], best[:, 1], lw=0.6, color="k")
+    for name, marker, color in (("largest_corrections", "o", "tab:red"), ("worst_relations", "s", "tab:blue")):
+        for rank, event in enumerate(diagnosis["events"].get(name, ())):
+            path_ax.plot(event["x"], event["y"], marker, mfc="none", color=color, ms=8,
+                         label=name.replace("_", " ") if rank == 0 else None)
+            path_ax.annotate(str(rank + 1), (event["x"], event["y"]), color=color, fontsize=8)
+    path_ax.set_aspect("equal")
+    path_ax.set_title("best path (m)")
+    path_ax.legend(loc="best", fontsize=8)
+    fig.suptitle(title)
+    return fig

@@ -10,7 +10,6 @@ run's key as ``filter`` derives them, so both give the same particles.
 
 from __future__ import annotations
 
-import sys
 import time
 from functools import partial
 from typing import NamedTuple, Sequence
@@ -23,12 +22,15 @@ from jaxtyping import PRNGKeyArray
 from jaxslam import maps as paged
 from jaxslam import particle_filter, rbpf
 from jaxslam.config import RunSettings, SlamConfig, SlamParams
-from jaxslam.driver import pad_items, run_in_chunks
+from jaxslam.driver import ChunkedRun, pad_items, run_in_chunks
 from jaxslam.grid import GridSpec
+from jaxslam.growth import PoolUse, Runs, growing_chunks, initial_state, pool_report, pool_use
+from jaxslam.growth import PoolUse as _PoolUse  # noqa: F401 (tests and benchmarks use these names)
+from jaxslam.growth import larger_pool as _larger_pool  # noqa: F401
+from jaxslam.growth import larger_pool_for as _larger_pool_for  # noqa: F401
 from jaxslam.laserlog import LaserLog, UpdateSelection, grid_to_world, local_log, to_local, to_world, trajectory_per_scan
-from jaxslam.maps import PagedGridSpec, PagedMaps, PoolSize
+from jaxslam.maps import PagedGridSpec, PoolSize
 from jaxslam.rbpf import SlamInfo, SlamState
-
 
 
 class SlamResult(NamedTuple):
@@ -164,9 +166,9 @@ def run(
     the local origin, so every log compiles the same step.
 
     The maps' pool starts at :func:`jaxslam.rbpf.pool_size`, sized from the first scan's footprint
-    (before the step compiles); a chunk in which a step needed more tiles than
-    the pool had is repeated from its start with a grown pool (one recompile; reported on
-    stderr and in ``result.map_pool``). A log whose odometry leaves the virtual grid is refused
+    (before the step compiles); a chunk in which a step needed more tiles than the pool had is
+    taken again from that step with a grown pool (:mod:`jaxslam.growth`; one recompile; reported
+    on stderr and in ``result.map_pool``). A log whose odometry leaves the virtual grid is refused
     first (:func:`jaxslam.rbpf.check_config_for_log`).
 
     Args:
@@ -193,35 +195,43 @@ def run(
         ``result.closed_map``); None (the default): the filter alone.
     """
     _check_chunk_size(chunk_size)
-    world_log = log
     t_start = time.perf_counter()
     prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
-    log = local_log(log, frame_offset)  # from here on, the local frame
-    sensor = log.sensor
-    initial_pose = jnp.asarray(prepared.initial_pose)
-    key_init, key_steps = jax.random.split(key)
+    local = local_log(log, frame_offset)  # from here on, the local frame
+    state, info, growths, first_chunk_seconds = _filter_one(
+        key, prepared, selection.indices.size - 1, local.sensor, params, config, chunk_size, progress, on_chunk,
+        resume, initial_pool)
+    result = _finish(state, info, prepared, local, selection, frame_offset, config, settings, growths,
+                     first_chunk_seconds, time.perf_counter() - t_start)
+    if close_loops is not None:
+        from jaxslam.graph import close_loops as close
 
-    inputs = prepared.inputs
-    num_steps = selection.indices.size - 1
+        result = result._replace(closure=close(log, result, params, close_loops, progress=progress))
+    return result
+
+
+def _filter_one(key, prepared: rbpf.PreparedLog, num_steps: int, sensor, params: SlamParams, config: SlamConfig,
+                chunk_size: int, progress: bool, on_chunk, resume: RunProgress | None, initial_pool):
+    """:func:`run`'s filter: the runs' driver (:func:`jaxslam.growth.growing_chunks`) with one run, from
+    the start or from ``resume``. Returns the final state, the infos of all ``num_steps`` steps
+    (NumPy), the pools' growths and the first chunk's seconds; :class:`RunInterrupted` where
+    ``on_chunk`` stopped the run."""
+    key_init, key_steps = jax.random.split(key)
     step_keys = jax.random.split(key_steps, max(num_steps, 1))
-    done = 0
-    prior_info = None
+    done, prior_info = 0, None
     if resume is None:
-        state = _initial_state(key_init, prepared, params, config, initial_pool)
+        state = initial_state(key_init, prepared, params, config, initial_pool)
     else:
         _check_resume(resume, num_steps, chunk_size, config)
-        done = int(resume.steps_done)
+        done, prior_info = int(resume.steps_done), resume.info
         state = jax.tree.map(jnp.asarray, resume.state)
-        prior_info = resume.info
-        step_keys = step_keys[done:]
-        inputs = jax.tree.map(lambda a: a[done:], inputs)
-
     growths = [] if initial_pool is None or state.maps.pool_size == tuple(initial_pool) else [
         {"step": 0, **state.maps.pool_size._asdict()}]
-    chunk_fn = _chunk_fn_growing_pools(iter(range(done, max(num_steps, 1), chunk_size)), chunk_size, sensor, params,
-                                       config, growths, progress)
+    if resume is not None and done == num_steps and num_steps > 0:  # saved after the last chunk
+        return state, jax.tree.map(np.asarray, prior_info), growths, 0.0
 
-    def with_prior(info):
+    def with_prior(outputs):  # the driver's (S, 1, ...) infos of this run, after those of the resumed steps
+        info = jax.tree.map(lambda a: a[:, 0], outputs)
         if prior_info is None:
             return info
         return jax.tree.map(lambda a, b: np.concatenate([np.asarray(a), b]), prior_info, info)
@@ -230,23 +240,34 @@ def run(
         steps = min(done + (index + 1) * chunk_size, num_steps)
         return on_chunk(RunProgress(steps, num_steps, carry, lambda: with_prior(outputs_so_far())))
 
-    if resume is not None and done == num_steps and num_steps > 0:  # saved after the last chunk
-        state, info, first_chunk_seconds = state, jax.tree.map(np.asarray, prior_info), 0.0
-    else:
-        chunked = run_in_chunks(chunk_fn, (step_keys, inputs), num_steps - done, chunk_size, state,
-                                progress=progress, desc=f"RBPF {config.proposal.upper()} N={config.num_particles}",
-                                unit="scan", on_chunk=None if on_chunk is None else callback)
-        if done + chunked.num_done < num_steps:
-            raise RunInterrupted(done + chunked.num_done, num_steps)
-        state, info, first_chunk_seconds = chunked.carry, with_prior(chunked.outputs), chunked.first_chunk_seconds
+    one_run = lambda a: np.asarray(a)[done:, None]  # noqa: E731 (the steps to take, with a run axis)
+    xs = (one_run(jax.random.key_data(step_keys)), jax.tree.map(one_run, prepared.inputs),
+          np.ones((max(num_steps - done, 0), 1), bool))
+    chunk_fn = growing_chunks(_one_run(sensor, params, config, jax.random.key_impl(key)), state.maps.pool_size,
+                              config.grid, growths, first_step=done, progress=progress)
+    chunked = run_in_chunks(chunk_fn, xs, num_steps - done, chunk_size, state, progress=progress, unit="scan",
+                            desc=f"RBPF {config.proposal.upper()} N={config.num_particles}",
+                            on_chunk=None if on_chunk is None else callback)
+    if done + chunked.num_done < num_steps:
+        raise RunInterrupted(done + chunked.num_done, num_steps)
+    return chunked.carry, with_prior(chunked.outputs), growths, chunked.first_chunk_seconds
 
-    result = _finish(state, info, prepared, log, selection, frame_offset, config, settings, growths,
-                     first_chunk_seconds, time.perf_counter() - t_start)
-    if close_loops is not None:
-        from jaxslam.graph import close_loops as close
 
-        result = result._replace(closure=close(world_log, result, params, close_loops, progress=progress))
-    return result
+def _one_run(sensor, params: SlamParams, config: SlamConfig, impl) -> Runs:
+    """:func:`run`'s :class:`~jaxslam.growth.Runs`: :func:`_run_chunk` on the one run (the run
+    axis of the driver's arrays dropped; ``impl`` the run's PRNG implementation)."""
+
+    def chunk(state, key_data, inputs, valid):
+        keys = jax.random.wrap_key_data(key_data[:, 0], impl=impl)
+        state, info = _run_chunk(state, keys, jax.tree.map(lambda a: a[:, 0], inputs), valid[:, 0], sensor, params,
+                                 config)
+        info = jax.tree.map(lambda a: np.asarray(a)[:, None], info)
+        return state, info, bool(np.any(info.pool_overflow & valid)), lambda: pool_use(state.maps)
+
+    def grow(state, pool):
+        return state._replace(maps=paged.grow(config.grid, state.maps, pool))
+
+    return Runs(chunk, grow, np.zeros(1, int))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -289,10 +310,10 @@ def run_batch(
     arguments; ``devices`` defaults to ``jax.devices()``, every process's. Each process gets back
     the results of the runs its own devices held (the others' are None in the list).
 
-    Pool growth: the runs share their pools' sizes (one program). When a step of any run needs
-    more room than its pools have, every run's pools grow and the chunk is taken again for all
-    runs from the chunk's start state (kept for that: the batch holds two states at the chunk's
-    boundary, where :func:`run` donates its one). Checkpoints and ``resume`` are :func:`run`'s alone.
+    Pool growth: the runs share their pools' sizes (one program). When a step of some run needs
+    more room than its pools have, every run's pools grow and each run takes its chunk again from
+    its own stalled step, as :func:`run` does (:mod:`jaxslam.growth`; both go through its driver).
+    Checkpoints and ``resume`` are :func:`run`'s alone.
 
     Args:
       keys: (R,) the runs' keys.
@@ -318,9 +339,28 @@ def run_batch(
       A list of R :class:`SlamResult` (None for a run held by another process). ``timings`` are
       the batch's: ``total`` is the whole batch's wall time, ``compile`` its first chunk's.
     """
-    from jax.sharding import Mesh, NamedSharding
-    from jax.sharding import PartitionSpec as P
+    from jax.sharding import Mesh
 
+    keys, logs = _check_batch(keys, logs, chunk_size)
+    devices = batch_devices(devices)
+    t_start = time.perf_counter()
+    runs, sensor, params = _prepare_runs(logs, config, settings, params)
+    split = [jax.random.split(k) for k in keys]  # (init, steps) keys of each run, as run splits them
+    mesh = Mesh(np.array(devices), (RUNS_AXIS,))
+    source = np.minimum(np.arange(-(-len(runs) // len(devices)) * len(devices)), len(runs) - 1)  # the run a slot copies
+    state, pool, growths = _batch_start(split, runs, source, mesh, params, config, initial_pool)
+    xs, num_steps = _batch_steps(split, runs, source)
+    batch = _batch_runs(mesh, sensor, params, config, vectorize, state)
+    chunked = run_in_chunks(growing_chunks(batch, pool, config.grid, growths, progress=progress), xs,
+                            max(int(num_steps.max()), 1), chunk_size, state, progress=progress, unit="scan",
+                            desc=f"RBPF {config.proposal.upper()} N={config.num_particles}, {len(runs)} runs on "
+                                 f"{len(devices)} devices")
+    return _batch_results(chunked, batch.local, runs, num_steps, config, settings, growths,
+                          time.perf_counter() - t_start)
+
+
+def _check_batch(keys, logs, chunk_size) -> tuple[PRNGKeyArray, list[LaserLog]]:
+    """:func:`run_batch`'s keys as a key array, and one log for each (``ValueError`` where not)."""
     _check_chunk_size(chunk_size)
     keys = jnp.asarray(keys) if not isinstance(keys, jax.Array) else keys
     if keys.ndim != 1 or not jnp.issubdtype(keys.dtype, jax.dtypes.prng_key):
@@ -331,104 +371,114 @@ def run_batch(
     if num_runs < 1 or len(logs) != num_runs:
         raise ValueError(f"run_batch: {num_runs} keys and {len(logs)} logs; give one log, or one per key, and a key "
                          "at least")
-    devices = batch_devices(devices)
-    t_start = time.perf_counter()
+    return keys, logs
 
-    # The host side of each distinct log, once (the runs of one log share it).
+
+def _prepare_runs(logs: list[LaserLog], config: SlamConfig, settings: RunSettings, params: SlamParams):
+    """The host side of each distinct log, once (the runs of one log share it): per run
+    ``(prepared, selection, frame_offset, local log)``; the laser and ``params`` as host arrays
+    (replicated on every process's devices). ``ValueError`` where the logs' lasers differ."""
     prepared_by_log = {}
     for log in logs:
         if id(log) not in prepared_by_log:
             prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
             prepared_by_log[id(log)] = (prepared, selection, frame_offset, local_log(log, frame_offset))
     runs = [prepared_by_log[id(log)] for log in logs]
-    sensor = jax.tree.map(np.asarray, runs[0][0].sensor)  # host arrays: replicated on every process's devices
-    params = jax.tree.map(np.asarray, params)
+    sensor = jax.tree.map(np.asarray, runs[0][0].sensor)
     for prepared, *_ in runs[1:]:
         if not all(np.array_equal(a, b) for a, b in zip(prepared.sensor, sensor)):
             raise ValueError("run_batch: the logs' lasers differ (beam angles, range limits or mounting); a batch "
                              "maps logs of one laser")
-    num_steps = np.array([selection.indices.size - 1 for _, selection, _, _ in runs])
-    total_steps = max(int(num_steps.max()), 1)
+    return runs, sensor, jax.tree.map(np.asarray, params)
 
-    # Per run: its step keys (as run derives them) and inputs, padded to the longest run.
-    split = [jax.random.split(k) for k in keys]
-    step_keys = np.stack([jax.random.key_data(pad_items(jax.random.split(k_steps, max(int(n), 1)), total_steps))
-                          for (_, k_steps), n in zip(split, num_steps)], axis=1)  # (S, R, ...) key data
-    inputs = jax.tree.map(lambda *a: np.stack(a, axis=1),
-                          *(pad_items(prepared.inputs, total_steps) for prepared, *_ in runs))  # (S, R, ...)
-    run_valid = np.arange(total_steps)[:, None] < num_steps[None, :]  # (S, R)
 
-    # Initial states: one per distinct log, in pools of one size.
+def _global_runs(mesh, leaf_of_slot, shape: tuple, slots: int) -> jax.Array:
+    """A global array (slots, *shape) split over the runs, each process building its own slots
+    (``leaf_of_slot(slot)``)."""
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    return jax.make_array_from_callback((slots,) + tuple(shape), NamedSharding(mesh, P(RUNS_AXIS)),
+                                        lambda index: np.stack([leaf_of_slot(r) for r in range(slots)[index[0]]]))
+
+
+def _batch_start(split, runs, source: np.ndarray, mesh, params, config: SlamConfig, initial_pool):
+    """The batch's first state: one initial state per distinct log, in pools of one size, as a
+    global state over the slots (``source``: the run each copies). Returns it, the pools' sizes
+    and the growths list (a growth at step 0 where ``initial_pool`` had to grow)."""
     starts = {}
     for (prepared, *_), (k_init, _) in zip(runs, split):
         if id(prepared) not in starts:
-            starts[id(prepared)] = _initial_state(k_init, prepared, params, config, initial_pool)
+            starts[id(prepared)] = initial_state(k_init, prepared, params, config, initial_pool)
     pool = PoolSize(*np.max([s.maps.pool_size for s in starts.values()], axis=0).tolist())
     starts = {k: s._replace(maps=paged.grow(config.grid, s.maps, pool)) if s.maps.pool_size != pool else s
               for k, s in starts.items()}
     growths = [] if initial_pool is None or pool == PoolSize(*initial_pool) else [{"step": 0, **pool._asdict()}]
-
-    # The mesh, and the runs padded to a multiple of its devices (copies of the last run).
-    mesh = Mesh(np.array(devices), (RUNS_AXIS,))
-    padded = -(-num_runs // len(devices)) * len(devices)
-    source = np.minimum(np.arange(padded), num_runs - 1)  # the run each batch slot copies
-    by_runs = NamedSharding(mesh, P(RUNS_AXIS))
-
-    def global_runs(leaf_of_run, shape_of_leaf):
-        """A global array (padded, ...) split over the runs, each process building its own runs."""
-        return jax.make_array_from_callback((padded,) + shape_of_leaf, by_runs, lambda index: np.stack(
-            [leaf_of_run(int(source[r])) for r in range(padded)[index[0]]]))
-
     start_leaves = {k: jax.tree.leaves(s) for k, s in starts.items()}
     first = next(iter(starts.values()))
     state = jax.tree.unflatten(jax.tree.structure(first), [
-        global_runs(lambda r, i=i: np.asarray(start_leaves[id(runs[r][0])][i]), np.shape(leaf))
+        _global_runs(mesh, lambda r, i=i: np.asarray(start_leaves[id(runs[source[r]][0])][i]), np.shape(leaf),
+                     source.size)
         for i, leaf in enumerate(jax.tree.leaves(first))])
+    return state, pool, growths
+
+
+def _batch_steps(split, runs, source: np.ndarray):
+    """The driver's steps of the batch: ``(key_data, inputs, valid)`` (S, slots, ...) on the host,
+    each slot its run's per-step keys (as :func:`run` derives them) and inputs, padded to the
+    longest run (``valid`` False past a run's end); and each run's number of steps."""
+    num_steps = np.array([selection.indices.size - 1 for _, selection, _, _ in runs])
+    total_steps = max(int(num_steps.max()), 1)
+    step_keys = np.stack([jax.random.key_data(pad_items(jax.random.split(k_steps, max(int(n), 1)), total_steps))
+                          for (_, k_steps), n in zip(split, num_steps)], axis=1)  # (S, R, ...) key data
+    inputs = jax.tree.map(lambda *a: np.stack(a, axis=1)[:, source],
+                          *(pad_items(prepared.inputs, total_steps) for prepared, *_ in runs))
+    run_valid = np.arange(total_steps)[:, None] < num_steps[None, :]  # (S, R)
+    return (step_keys[:, source], inputs, run_valid[:, source]), num_steps
+
+
+def _batch_runs(mesh, sensor, params, config: SlamConfig, vectorize: bool, state) -> Runs:
+    """:func:`run_batch`'s :class:`~jaxslam.growth.Runs`: :func:`_run_chunk_batch` over the
+    slots of ``state`` on ``mesh``, the host's chunks turned into global arrays and back."""
+    slots = state.step.shape[0]
 
     def to_runs(chunk):
-        """A chunk (C, R, ...) on the host as a global array (padded, C, ...) split over the runs."""
-        chunk = np.moveaxis(np.asarray(chunk), 1, 0)
-        return global_runs(lambda r: chunk[r], chunk.shape[1:])
+        """A chunk (C, slots, ...) on the host as a global array (slots, C, ...) split over the runs."""
+        return _global_runs(mesh, lambda r: chunk[:, r], (chunk.shape[0],) + chunk.shape[2:], slots)
 
-    chunk_starts = iter(range(0, total_steps, chunk_size))
-    is_runs = lambda x: isinstance(x, dict)  # noqa: E731 (a leaf's {run: its slice}, from _local_runs)
-    label = f"RBPF {config.proposal.upper()} N={config.num_particles}, {num_runs} runs on {len(devices)} devices"
+    def chunk(state, key_data, inputs, valid):
+        state, info, overflow, use = _run_chunk_batch(state, to_runs(key_data), jax.tree.map(to_runs, inputs),
+                                                      to_runs(valid), sensor, params, config, mesh, vectorize)
+        local = jax.tree.map(_local_runs, info)  # {slot: (C, ...)} of this process's slots
+        info = jax.tree.map(lambda d: np.stack([d[r] for r in sorted(d)], axis=1), local, is_leaf=_is_runs)
+        return state, info, bool(overflow.addressable_data(0)), lambda: PoolUse(
+            *(int(u.addressable_data(0)) for u in use))
 
-    def chunk_fn(state, xs, valid):
-        nonlocal pool
-        step_key_data, chunk_inputs, chunk_run_valid = xs
-        start = next(chunk_starts)
-        args = [to_runs(step_key_data), jax.tree.map(to_runs, chunk_inputs), to_runs(chunk_run_valid & valid[:, None])]
-        while True:
-            new_state, info, overflow, use = _run_chunk_batch(state, *args, sensor, params, config, mesh, vectorize)
-            if not bool(overflow.addressable_data(0)):
-                break
-            # A step of some run did not fit the pools: grow every run's and take the chunk again
-            # for all runs from its start (a step not taken was a no-op, the keys are fixed).
-            pool = _larger_pool_for(pool, _PoolUse(*(int(u.addressable_data(0)) for u in use)), config.grid)
-            del new_state, info  # the chunk's stalled end: no third state while the start grows
-            state = _grow_batch(state, config, pool, mesh)
-            growths.append({"step": start, **pool._asdict()})
-            if progress:
-                _report_growth(pool, f"in the chunk from step {start}; every run takes it again")
-        local = jax.tree.map(_local_runs, info)  # {run: (C, ...)} of this process's runs
-        return new_state, jax.tree.map(lambda d: np.stack([d[r] for r in sorted(d)], axis=1), local, is_leaf=is_runs)
+    def grow(state, pool):
+        return _grow_batch(state, config, pool, mesh)
 
-    chunked = run_in_chunks(chunk_fn, (step_keys, inputs, run_valid), total_steps, chunk_size, state,
-                            progress=progress, desc=label, unit="scan")
-    total = time.perf_counter() - t_start
+    return Runs(chunk, grow, np.array(sorted(_local_runs(state.step))))
+
+
+def _batch_results(chunked: ChunkedRun, local: np.ndarray, runs, num_steps: np.ndarray, config: SlamConfig,
+                   settings: RunSettings, growths: list, total: float) -> list[SlamResult | None]:
+    """Each run's :class:`SlamResult` from the driver's result (None for a run another process holds)."""
     final = jax.tree.map(_local_runs, chunked.carry)
-    local_order = sorted(_local_runs(chunked.carry.step))  # the order of the runs in chunked.outputs' axis 1
-    results: list[SlamResult | None] = [None] * num_runs
-    for j, r in enumerate(local_order):
-        if r >= num_runs:  # a padding copy
+    results: list[SlamResult | None] = [None] * len(runs)
+    for j, r in enumerate(local.tolist()):
+        if r >= len(runs):  # a padding copy
             continue
         prepared, selection, frame_offset, run_log = runs[r]
-        results[r] = _finish(jax.tree.map(lambda d: d[r], final, is_leaf=is_runs),
+        results[r] = _finish(jax.tree.map(lambda d: d[r], final, is_leaf=_is_runs),
                              jax.tree.map(lambda a: a[:num_steps[r], j], chunked.outputs), prepared, run_log,
                              selection, frame_offset, config, settings, list(growths), chunked.first_chunk_seconds,
                              total)
     return results
+
+
+def _is_runs(x) -> bool:
+    """A leaf's ``{slot: its slice}`` (from :func:`_local_runs`)."""
+    return isinstance(x, dict)
 
 
 def batch_devices(devices: int | Sequence[jax.Device] | None = None) -> list[jax.Device]:
@@ -461,12 +511,12 @@ def _local_runs(array: jax.Array) -> dict[int, np.ndarray]:
     return out
 
 
-@partial(jax.jit, static_argnames=("config", "mesh", "vectorize"))
+@partial(jax.jit, static_argnames=("config", "mesh", "vectorize"), donate_argnames=("state",))
 def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config, mesh, vectorize):
     """:func:`_chunk_steps` over the runs (``vectorize``: vmapped; else ``lax.map``: one after the
-    other on each device), the runs split over ``mesh``. Also returns,
+    other on each device), the runs split over ``mesh`` (the state donated). Also returns,
     the same on every device, whether a valid step of some run overflowed its pools, and the
-    largest pool use of any run (a :class:`_PoolUse` that sizes the grown pools)."""
+    largest pool use of any run (a :class:`~jaxslam.growth.PoolUse` that sizes the grown pools)."""
     from jax.sharding import PartitionSpec as P
 
     def local(state, step_key_data, inputs, valid, sensor, params):
@@ -478,8 +528,8 @@ def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config
             state, info = jax.lax.map(lambda run: _chunk_steps(*run, sensor, params, config),
                                       (state, keys, inputs, valid))
         overflow = jax.lax.pmax(jnp.any(info.pool_overflow & valid).astype(jnp.int32), RUNS_AXIS)
-        use = _PoolUse(*(jax.lax.pmax(jnp.max(u).astype(jnp.int32), RUNS_AXIS)
-                         for u in jax.vmap(_pool_use)(state.maps)))
+        use = PoolUse(*(jax.lax.pmax(jnp.max(u).astype(jnp.int32), RUNS_AXIS)
+                         for u in jax.vmap(pool_use)(state.maps)))
         return state, info, overflow > 0, use
 
     runs = P(RUNS_AXIS)
@@ -516,31 +566,12 @@ def _finish(state: SlamState, info: SlamInfo, prepared: rbpf.PreparedLog, run_lo
         "real_time_factor": run_log.duration / total if total > 0 else float("inf"),
     }
     return SlamResult(state, info, selection, config, settings, best_path, trajectory, timings, frame_offset,
-                      _pool_report(state.maps, growths))
+                      pool_report(state.maps, growths))
 
 
 def _check_chunk_size(chunk_size) -> None:
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
-
-
-def _initial_state(key, prepared: rbpf.PreparedLog, params: SlamParams, config: SlamConfig,
-                   initial_pool) -> SlamState:
-    """:func:`jaxslam.rbpf.init` in pools of ``initial_pool``, grown until the first scan alone
-    fits; by default in pools of :func:`jaxslam.rbpf.pool_size` sized from the first scan's
-    footprint (before anything compiles the step, so a wide scan costs no recompile)."""
-    pool = rbpf.pool_size(config) if initial_pool is None else PoolSize(*(int(v) for v in initial_pool))
-    while True:
-        state = rbpf.init(key, jnp.asarray(prepared.first_ranges), prepared.sensor, params, config,
-                          jnp.asarray(prepared.initial_pose), pool=pool)
-        if not bool(state.maps.overflow):
-            break
-        pool = _larger_pool(state.maps, config.grid)
-    if initial_pool is None:
-        sized = PoolSize(*np.maximum(pool, rbpf.pool_size(config, int(state.maps.peak_request))).tolist())
-        if sized != pool:
-            state = state._replace(maps=paged.grow(config.grid, state.maps, sized))
-    return state
 
 
 def _check_resume(resume: RunProgress, num_steps: int, chunk_size: int, config: SlamConfig) -> None:
@@ -556,50 +587,6 @@ def _check_resume(resume: RunProgress, num_steps: int, chunk_size: int, config: 
                          f"run's are {expected} (particles, blocks)")
 
 
-def _chunk_fn_growing_pools(chunk_starts, chunk_size: int, sensor, params: SlamParams, config: SlamConfig,
-                            growths: list, progress: bool):
-    """The chunk function of :func:`run`: :func:`_run_chunk`, and when a step did not fit the
-    pools, the steps before it kept, the pools grown (each growth appended to ``growths``) and
-    the chunk taken again from that step."""
-
-    def chunk_fn(state, xs, valid):
-        keys, chunk_inputs = xs
-        start = next(chunk_starts)
-        done_infos, offset = [], 0
-        while True:
-            state, info = _run_chunk(state, keys, chunk_inputs, valid, sensor, params, config)
-            stalled = np.flatnonzero(np.asarray(info.pool_overflow) & valid)
-            if stalled.size == 0:
-                done_infos.append(info)
-                break
-            # Step s did not fit the pool: its state is the one before it. Keep the steps before
-            # it, grow the pool from what s asked for, and take the chunk's rest again from s.
-            s = int(stalled[0])
-            done_infos.append(jax.tree.map(lambda a: a[:s], info))
-            pool = _larger_pool(state.maps, config.grid)
-            state = state._replace(maps=paged.grow(config.grid, state.maps, pool))
-            offset += s
-            growths.append({"step": start + offset, **pool._asdict()})
-            if progress:
-                _report_growth(pool, f"at step {start + offset}; that step and the chunk's rest are taken again")
-            keys, chunk_inputs = (jax.tree.map(lambda a: pad_items(a[s:], chunk_size), t) for t in (keys, chunk_inputs))
-            valid = np.concatenate([valid[s:], np.zeros(s, bool)])
-        info = jax.tree.map(lambda *parts: np.concatenate([np.asarray(p) for p in parts])[:chunk_size], *done_infos)
-        return state, info
-
-    return chunk_fn
-
-
-def _pool_report(maps: PagedMaps, growths: list) -> dict:
-    """:attr:`SlamResult.map_pool`."""
-    return {
-        **maps.pool_size._asdict(),
-        "tiles_in_use": int(paged.tiles_in_use(maps)), "peak_request": int(maps.peak_request),
-        "blocks_in_use": int(paged.blocks_in_use(maps)), "peak_block_request": int(maps.peak_block_request),
-        "bytes": int(sum(np.asarray(a).nbytes for a in maps)), "growths": growths,
-    }
-
-
 
 def _chunk_steps(state, keys, inputs, valid, sensor, params, config):
     """:func:`jaxslam.rbpf.step` over one chunk; ``valid`` False on the padding steps past the
@@ -610,48 +597,3 @@ def _chunk_steps(state, keys, inputs, valid, sensor, params, config):
 
 _run_chunk = jax.jit(_chunk_steps, static_argnames=("config",), donate_argnames=("state",))
 """One run's chunk, compiled (the state donated)."""
-
-
-def _report_growth(pool: PoolSize, where: str) -> None:
-    """The stderr line of a growth of the map pools."""
-    print(f"jaxslam: the map pools grew to {pool.capacity} tiles ({pool.max_new_tiles} new per step) "
-          f"and {pool.block_capacity} blocks ({pool.max_new_blocks} new per step) {where} (one recompile)",
-          file=sys.stderr)
-
-
-class _PoolUse(NamedTuple):
-    """What sizes the grown pools: tiles and blocks in use, and the largest requests seen (of
-    one map set, or the largest over a batch's runs)."""
-
-    tiles_in_use: int
-    peak_request: int
-    blocks_in_use: int
-    peak_block_request: int
-
-
-def _pool_use(maps: PagedMaps) -> _PoolUse:
-    return _PoolUse(paged.tiles_in_use(maps), maps.peak_request, paged.blocks_in_use(maps),
-                    maps.peak_block_request)
-
-
-def _larger_pool(maps: PagedMaps, spec: PagedGridSpec) -> PoolSize:
-    """The pools' sizes after ``maps``' pools overflowed (:func:`_larger_pool_for`)."""
-    return _larger_pool_for(maps.pool_size, _pool_use(maps), spec)
-
-
-def _larger_pool_for(old: PoolSize, use: _PoolUse, spec: PagedGridSpec) -> PoolSize:
-    """The pools' sizes after pools of ``old`` sizes overflowed: each at least twice the old, and
-    room for what is in use plus two of the largest requests seen; the tile pool no larger than
-    int32 slot indices allow (:func:`jaxslam.maps.max_pool_tiles`). ``RuntimeError`` when the
-    tile pool overflowed at that size."""
-    tiles, peak, blocks, peak_blocks = (int(v) for v in use)
-    most = paged.max_pool_tiles(spec)
-    max_new = min(max(2 * old.max_new_tiles, 2 * peak), most)
-    capacity = min(max(2 * old.capacity, tiles + 2 * max_new), most)
-    if capacity == old.capacity and tiles + peak > capacity:  # a larger allowance per step would not fit either
-        raise RuntimeError(
-            f"the maps need more than {capacity} tiles of {spec.tile_size} x {spec.tile_size} cells ({tiles} in use, "
-            f"a step asking for {peak} more), the most a pool can index with int32; use fewer particles, "
-            "a smaller max_insert_range or a coarser resolution")
-    max_new_blocks = max(2 * old.max_new_blocks, 2 * peak_blocks)
-    return PoolSize(capacity, max_new, max(2 * old.block_capacity, blocks + 2 * max_new_blocks), max_new_blocks)

@@ -376,7 +376,7 @@ def test_padded_beams_neither_clear_nor_mark_cells():
 
     from jaxslam import grid as G
     from jaxslam import occupancy as O
-    from jaxslam.io.rosbag import BeamLayout, pad_beam_layouts
+    from jaxslam.io.beam_layouts import BeamLayout, pad_beam_layouts
     from jaxslam.laser import make_sensor
 
     angles = ANGLE_MIN + INCREMENT * np.arange(181)

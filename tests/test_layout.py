@@ -140,7 +140,7 @@ LAYERS: dict[str, int] = {
     "localization": 3,
     # 4 runs
     "driver": 4, "slam": 4, "checkpoint": 4, "refine": 4, "islands": 4, "graph": 4, "resources": 4, "sim": 4,
-    "diagnose": 4,
+    "diagnose": 4, "growth": 4,
     # 5 front
     "outputs": 5, "plotting": 5, "localization.plotting": 5, "cli": 5, "": 5,
 }

@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from jaxslam.config import ConfigError
-from jaxslam.diagnose import diagnose, plot_diagnosis, read_step_record
+from jaxslam.diagnose import diagnose, read_step_record
 from jaxslam.io import read_relations, read_trajectory
 from jaxslam.io.files import OutputError, check_output_file, write_file_atomic
 from jaxslam.io.maps import read_map
 from jaxslam.metrics import relation_error
 from jaxslam.outputs import strict_json_values
-from jaxslam.plotting import plot_map
+from jaxslam.plotting import plot_diagnosis, plot_map
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:

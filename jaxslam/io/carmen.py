@@ -20,7 +20,7 @@ and the (1-based) line number.
 
 Lines whose beam count (or, for ROBOTLASER1, start_angle / angular_res) changes
 within a log are padded to one common beam layout by the rule of
-:func:`jaxslam.io.rosbag.pad_beam_layouts`; FLASER lines of n readings span
+:func:`jaxslam.io.beam_layouts.pad_beam_layouts`; FLASER lines of n readings span
 -90..+90 degrees with both ends included, so FLASER lines of 180 and 181 readings
 lie on different grids and are refused, while 181 and 361 readings interleave.
 """
@@ -34,7 +34,8 @@ import os
 import numpy as np
 
 from jaxslam.geometry import between, compose_np
-from jaxslam.io.rosbag import BeamLayout, check_laser_pose, pad_beam_layouts
+from jaxslam.io.beam_layouts import BeamLayout, pad_beam_layouts
+from jaxslam.io.rosbag import check_laser_pose
 from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp, poses_at
 from jaxslam.laser import make_sensor, uniform_beams
 from jaxslam.warn import warn
@@ -84,7 +85,7 @@ def read_carmen(path, range_max: float | None = None, odometry_source: str = "la
         first line. Ground truth comes from TRUEPOS lines (interpolated) when they cover
         every scan, else it is None (with a warning if TRUEPOS lines exist). Lines of
         different beam layouts are padded to a common one
-        (:func:`jaxslam.io.rosbag.pad_beam_layouts`; a line's missing beams read 0 m, an
+        (:func:`jaxslam.io.beam_layouts.pad_beam_layouts`; a line's missing beams read 0 m, an
         invalid reading, and range_min becomes 1 mm) with one ``UserWarning``, and the
         log's ``notes`` say so.
 

@@ -19,7 +19,7 @@ are dropped with a warning. Every malformed message raises
 and its timestamp.
 
 Scans whose beam count or beam angles change within a log are padded to one
-common layout by :func:`pad_beam_layouts` (shared with the CARMEN reader) when
+common layout by :func:`jaxslam.io.beam_layouts.pad_beam_layouts` (shared with the CARMEN reader) when
 every scan's beams lie on the widest scan's angular grid within its angular
 range; any other change is a LogError.
 """
@@ -28,12 +28,13 @@ from __future__ import annotations
 
 import math
 import os
-from collections import Counter
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
+from jaxslam.io.beam_layouts import BeamLayout, pad_beam_layouts
+from jaxslam.io.ros_tf import TF_STATIC_TOPIC, TF_TOPIC, _check_pose, _frame, _Rigid, _stamp, _TfTree
 from jaxslam.laser import make_sensor
 from jaxslam.laserlog import LaserLog, LogError, poses_at
 from jaxslam.warn import warn
@@ -44,32 +45,11 @@ SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 """Message types of transform topics (ROS 2 and ROS 1's tf2; ROS 1's older tf, same fields)."""
-TF_TOPIC = "/tf"
-TF_STATIC_TOPIC = "/tf_static"
 
 # Tolerance (rad) when telling whether two scans have the same beam layout: the fields are
 # float32 in the message, so identical settings compare exactly; this only forgives a
 # re-serialisation through float64.
 _ANGLE_TOLERANCE = 1e-7
-
-PAD_RANGE = 0.0
-"""Range (m) of a padded beam (one a scan lacks): below ``range_min``, so invalid: it
-neither clears nor marks a cell and never counts in a likelihood. (A no-return reading,
-``>= range_max``, would not do: insertion clears free space along it.)"""
-PAD_RANGE_MIN = 1e-3
-"""``range_min`` (m) of a padded log whose sensor says 0, so that :data:`PAD_RANGE` lies
-below it; readings under 1 mm are no real return."""
-# Most a beam's angle may miss the common grid (rad): 1e-4 rad is 1 mm at 10 m, far below a
-# laser beam's width; it forgives increments printed with few digits.
-_GRID_TOLERANCE = 1e-4
-# Finest subdivision of the widest scan's increment that interleaved scans may sit on
-# (a SICK LMS interlaces 4 scans 0.25 degrees apart in its 0.25-degree mode).
-_MAX_SUBDIVISION = 4
-# A transform whose later values differ from its first by more than this (m, or quaternion
-# component) moves; a link of the odometry chain or of the laser's mounting must not, but one.
-_TF_CONSTANT_TOLERANCE = 1e-6
-# At most this many of a bag's transforms are listed in an error message.
-_TF_LISTED = 12
 
 
 def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_scans: int | None = None,
@@ -123,10 +103,10 @@ def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_
         how many.
 
         Scans whose beam count, angle_min or angle_increment change within the log are
-        padded to a common beam layout (:func:`pad_beam_layouts`: B is then the widest
-        scan's beam count, or more for interleaved scans; a scan's missing beams read
-        :data:`PAD_RANGE`, an invalid reading) with one ``UserWarning``, and the log's
-        ``notes`` say so.
+        padded to a common beam layout (:func:`jaxslam.io.beam_layouts.pad_beam_layouts`: B is
+        then the widest scan's beam count, or more for interleaved scans; a scan's missing beams
+        read :data:`jaxslam.io.beam_layouts.PAD_RANGE`, an invalid reading) with one
+        ``UserWarning``, and the log's ``notes`` say so.
 
     Raises:
         LogError: the bag cannot be opened; the scan topic is missing or has the wrong type
@@ -135,9 +115,10 @@ def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_
             the options that set them and the transforms there are); more than one link of
             that chain moves; there are no scans or no odometry; a message cannot be
             deserialised; a range is NaN or negative; a scan has no beams; a scan's beams
-            leave the widest scan's angular grid or range (see :func:`pad_beam_layouts`);
-            range_min or range_max change mid-log; header timestamps go backwards; a pose or
-            transform is not finite or has a zero quaternion.
+            leave the widest scan's angular grid or range (see
+            :func:`~jaxslam.io.beam_layouts.pad_beam_layouts`); range_min or range_max change
+            mid-log; header timestamps go backwards; a pose or transform is not finite or has a
+            zero quaternion.
         ValueError: ``max_scans``, ``odom_frame``, ``base_frame`` or ``laser_pose`` is malformed.
     """
     src = os.fspath(path)
@@ -145,6 +126,13 @@ def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_
         raise ValueError(f"max_scans must be a positive int or None, got {max_scans!r}")
     frames = (_frame_option("odom_frame", odom_frame), _frame_option("base_frame", base_frame))
     mount = None if laser_pose is None else _Mount(check_laser_pose(laser_pose), False, None)
+    reader = _open_bag(src)
+    return _read_bag(reader, src, scan_topic, odom_topic, max_scans, frames, mount)
+
+
+def _open_bag(src: str):
+    """An opened :class:`rosbags.highlevel.AnyReader` on the bag at ``src`` (a ROS 1 ``.bag`` file
+    or a ROS 2 bag folder); a LogError where there is none or it cannot be opened."""
     bag_path = Path(src)
     if not bag_path.exists():
         raise LogError(f"{src}: no such bag file or folder")
@@ -164,6 +152,14 @@ def read_rosbag(path, scan_topic: str = "/scan", odom_topic: str = "/odom", max_
         reader.open()
     except Exception as err:  # rosbags raises several error types for unreadable bags
         raise LogError(f"{src}: cannot open the bag ({type(err).__name__}: {err})") from None
+    return reader
+
+
+def _read_bag(reader, src: str, scan_topic: str, odom_topic: str, max_scans: int | None, frames: tuple[str, str],
+              mount: _Mount | None) -> LaserLog:
+    """Read the scans, odometry and transforms from the opened ``reader`` (closed here) and build the
+    log (:func:`read_rosbag`); ``frames`` is (odom_frame, base_frame) without leading ``/``, ``mount``
+    the given mounting or None to read it from the transforms."""
     try:
         plan = _plan(reader.topics, src, scan_topic, odom_topic, frames, read_mount=mount is None)
         scans, odometry, tree = _read_messages(reader, src, plan, max_scans)
@@ -198,11 +194,6 @@ def _frame_option(name: str, value) -> str:
     if not isinstance(value, str) or not _frame(value):
         raise ValueError(f"{name} must be a frame name (a non-empty string), got {value!r}")
     return _frame(value)
-
-
-def _frame(name: str) -> str:
-    """A tf frame name without its leading ``/`` (ROS 1 style ``/base_link`` is ``base_link``)."""
-    return name.strip().lstrip("/")
 
 
 class _Plan(NamedTuple):
@@ -335,12 +326,6 @@ def _read_messages(reader, src, plan: _Plan, max_scans):
     return scans, (np.asarray(odom_times), np.asarray(odom_poses, dtype=np.float64)), tree
 
 
-def _stamp(stamp, bag_time_ns: int) -> float:
-    """A header stamp in seconds; the bag time where the stamp is 0."""
-    seconds = stamp.sec + stamp.nanosec * 1e-9
-    return seconds if seconds != 0 else bag_time_ns * 1e-9
-
-
 def _add_scan(scans: _Scans, msg, stamp: float, where: str) -> None:
     """Validate one LaserScan message and append it (its beam layout is checked at the end)."""
     ranges = np.asarray(msg.ranges, dtype=np.float32)
@@ -392,15 +377,6 @@ def _layout_index(layouts, angle_min: float, increment: float, num_beams: int) -
     return None
 
 
-def _check_pose(values: tuple, where: str, what: str) -> None:
-    """A LogError for non-finite ``values`` (position fields, then quaternion x, y, z, w) or a
-    zero quaternion."""
-    if not all(math.isfinite(v) for v in values):
-        raise LogError(f"{where}: non-finite {what} pose {values}")
-    if sum(v * v for v in values[-4:]) < 1e-12:
-        raise LogError(f"{where}: the {what} orientation is a zero quaternion")
-
-
 def _add_odometry(times: list, poses: list, msg, stamp: float, where: str) -> None:
     """Validate one Odometry message and append its planar pose (x, y, yaw)."""
     position = msg.pose.pose.position
@@ -412,129 +388,6 @@ def _add_odometry(times: list, poses: list, msg, stamp: float, where: str) -> No
     yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
     times.append(stamp)
     poses.append((float(position.x), float(position.y), yaw))
-
-
-# --------------------------------------------------------------------------- transforms
-
-
-def _rotation(q) -> np.ndarray:
-    """(..., 3, 3) rotation matrices of (..., 4) quaternions [x, y, z, w] (normalised here)."""
-    q = np.asarray(q, dtype=np.float64)
-    x, y, z, w = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
-    ], axis=-2)
-
-
-class _Rigid(NamedTuple):
-    """A 3-D rigid transform (the pose of a child frame in its parent), possibly a stack of them."""
-
-    rotation: np.ndarray  # (..., 3, 3)
-    translation: np.ndarray  # (..., 3)
-
-    @staticmethod
-    def identity() -> _Rigid:
-        return _Rigid(np.eye(3), np.zeros(3))
-
-    @staticmethod
-    def of(values) -> _Rigid:
-        """From (..., 7) [tx, ty, tz, qx, qy, qz, qw]."""
-        values = np.asarray(values, dtype=np.float64)
-        return _Rigid(_rotation(values[..., 3:]), values[..., :3])
-
-    def then(self, other: _Rigid) -> _Rigid:
-        """``self`` followed by ``other`` (the pose of other's child in self's parent)."""
-        rotation = self.rotation @ other.rotation
-        translation = (self.rotation @ other.translation[..., None])[..., 0] + self.translation
-        return _Rigid(rotation, translation)
-
-    def inverse(self) -> _Rigid:
-        rotation = np.swapaxes(self.rotation, -1, -2)
-        return _Rigid(rotation, -(rotation @ self.translation[..., None])[..., 0])
-
-    def planar(self) -> np.ndarray:
-        """(..., 3) [x, y, yaw]: the translation's x, y and the heading of the child's x axis."""
-        yaw = np.arctan2(self.rotation[..., 1, 0], self.rotation[..., 0, 0])
-        return np.stack([self.translation[..., 0], self.translation[..., 1], yaw], axis=-1)
-
-    def upside_down(self) -> bool:
-        """Whether the child's z axis points down in the parent."""
-        return bool(self.rotation[..., 2, 2] < 0)
-
-
-class _TfTree:
-    """The transforms of a bag: each frame's parent (the first seen), each link's first value,
-    and, for the odometry, every value of the links that leave ``odom_frame`` or reach
-    ``base_frame``."""
-
-    def __init__(self, odom_frame: str, base_frame: str, series: bool):
-        self.odom_frame, self.base_frame, self.collect_series = odom_frame, base_frame, series
-        self.parent: dict[str, str] = {}
-        self.first: dict[tuple[str, str], np.ndarray] = {}  # (parent, child) -> (7,)
-        self.source: dict[tuple[str, str], str] = {}  # (parent, child) -> topic of its first value
-        self.moves: set[tuple[str, str]] = set()
-        self.series: dict[tuple[str, str], tuple[list, list]] = {}  # (parent, child) -> (stamps, values)
-        self.latest: dict[tuple[str, str], float] = {}  # (parent, child) -> latest stamp of its series
-        self.topics: set[str] = set()
-
-    def add_message(self, msg, topic: str, bag_time_ns: int, where: str) -> None:
-        static = topic == TF_STATIC_TOPIC
-        self.topics.add(topic)
-        for j, transform in enumerate(msg.transforms):
-            parent, child = _frame(transform.header.frame_id), _frame(transform.child_frame_id)
-            stamp = _stamp(transform.header.stamp, bag_time_ns)
-            t, q = transform.transform.translation, transform.transform.rotation
-            values = (t.x, t.y, t.z, q.x, q.y, q.z, q.w)
-            _check_pose(values, f"{where}, transform {j} ({parent} -> {child}), stamp {stamp:.9f} s", "transform")
-            values = np.array(values, dtype=np.float64)
-            link = (parent, child)
-            if link not in self.first:
-                self.parent.setdefault(child, parent)
-                self.first[link] = values
-                self.source[link] = TF_STATIC_TOPIC if static else TF_TOPIC
-            elif np.max(np.abs(values - self.first[link])) > _TF_CONSTANT_TOLERANCE:
-                self.moves.add(link)
-            if self.collect_series and not static and (parent == self.odom_frame or child == self.base_frame):
-                stamps, series = self.series.setdefault(link, ([], []))
-                stamps.append(stamp)
-                series.append(values)
-                self.latest[link] = max(stamp, self.latest.get(link, stamp))
-
-    def series_reach(self) -> float | None:
-        """The earliest of the odometry links' latest stamps (None before any)."""
-        return min(self.latest.values()) if self.latest else None
-
-    def path(self, a: str, b: str) -> list[tuple[tuple[str, str], bool]] | None:
-        """The links from frame ``a`` to frame ``b`` as ``[(link, inverted)]`` (up from ``a`` to
-        their nearest common ancestor, then down to ``b``), or None where they do not connect."""
-        up_a, up_b = self._ancestors(a), self._ancestors(b)
-        common = next((f for f in up_a if f in up_b), None)
-        if common is None:
-            return None
-        ups = [((self.parent[f], f), True) for f in up_a[:up_a.index(common)]]
-        downs = [((self.parent[f], f), False) for f in reversed(up_b[:up_b.index(common)])]
-        return ups + downs
-
-    def _ancestors(self, frame: str) -> list[str]:
-        chain = [frame]
-        while chain[-1] in self.parent and self.parent[chain[-1]] not in chain:
-            chain.append(self.parent[chain[-1]])
-        return chain
-
-    def constant(self, links) -> _Rigid:
-        """The composition of ``links`` (``[(link, inverted)]``) at their first values."""
-        total = _Rigid.identity()
-        for link, inverted in links:
-            step = _Rigid.of(self.first[link])
-            total = total.then(step.inverse() if inverted else step)
-        return total
-
-    def listing(self) -> str:
-        links = [f"{p} -> {c} ({self.source[(p, c)]})" for p, c in self.first]
-        more = f", ... ({len(links)} in all)" if len(links) > _TF_LISTED else ""
-        return ", ".join(links[:_TF_LISTED]) + more if links else "none"
 
 
 def _tf_odometry(src: str, plan: _Plan, tree: _TfTree):
@@ -662,138 +515,3 @@ def _assemble(src, scan_topic, odom_what, scans: _Scans, odometry, mount: _Mount
                      "angles are mirrored (angle a is -a, the beams reversed)")
     sensor = make_sensor(beam_angles, range_min=range_min, range_max=range_max, laser_pose=mount.pose)
     return LaserLog(times[keep], paired.poses[keep], ranges, sensor, None, src, tuple(notes), tuple(found))
-
-
-class BeamLayout(NamedTuple):
-    """The beams of the scans that share one layout (angle_min, increment, beam count)."""
-
-    angles: np.ndarray
-    """(B_i,) float64 beam angles (rad), in the scan's order."""
-    increment: float
-    """Angle between consecutive beams (rad), signed."""
-    where: str
-    """The first scan with this layout (file, index, time), for messages."""
-
-    @property
-    def num_beams(self) -> int:
-        return int(self.angles.shape[0])
-
-    @property
-    def angle_min(self) -> float:
-        return float(self.angles[0])
-
-    def brief(self) -> str:
-        return (f"{self.num_beams} beams from {math.degrees(self.angles[0]):.3f} deg, "
-                f"{math.degrees(self.increment):.3f} deg apart")
-
-    def describe(self) -> str:
-        a, b = math.degrees(self.angles[0]), math.degrees(self.angles[-1])
-        return (f"{self.num_beams} beams, angle_min {self.angles[0]:.7f} rad, increment {self.increment:.7f} rad "
-                f"({a:.3f}..{b:.3f} deg)")
-
-
-def pad_beam_layouts(src: str, layouts, layout_of, ranges, range_min: float):
-    """Put scans of different beam layouts into one (T, B) array with one set of beam angles.
-
-    The rule: the widest layout (most beams; the first seen among equals) is the
-    reference. Every other layout's beam angles must lie on the reference's angular grid
-    (``angle_min + j * increment``) or, for interleaved scans, on a grid of 1/2, 1/3 or
-    1/4 of its increment (the smallest subdivision that fits every layout), each angle
-    within 1e-4 rad; and within the reference's angular range, widened by less than one
-    increment at either end. The common beam angles are the reference's, then the other
-    layouts' beams that are not among them (layouts with more beams first, then in order
-    of appearance; each in its own order, so that a beam stride still samples every
-    scan evenly). A scan's beams it does not have read :data:`PAD_RANGE`, below
-    ``range_min``: invalid readings, which neither clear nor mark a cell and never count
-    in a likelihood. Where ``range_min`` is not above :data:`PAD_RANGE`, it becomes
-    :data:`PAD_RANGE_MIN`.
-
-    Args:
-        src: the file, for the note.
-        layouts: the :class:`BeamLayout` of the log, in order of first appearance.
-        layout_of: (T,) int: each scan's layout (index into ``layouts``).
-        ranges: T (B_i,) float32 arrays: each scan's ranges, in its layout's order
-            (an empty list only validates the layouts).
-        range_min: the sensor's range_min (m).
-
-    Returns:
-        ``(beam_angles (B,) float64, ranges (T, B) float32, range_min, note)``: ``note`` is
-        None where every scan has the same layout (nothing is padded), else one sentence
-        saying what was padded (for a ``UserWarning`` and the log's ``notes``).
-
-    Raises:
-        LogError: a layout leaves the reference's grid or range (or its beams run the other
-            way); the message names the first scan with that layout and both layouts.
-    """
-    layout_of = np.asarray(layout_of, dtype=np.int64)
-    used = [int(k) for k in np.unique(layout_of)] if ranges else list(range(len(layouts)))
-    if len(used) <= 1:
-        if not ranges:
-            return None, None, range_min, None
-        return layouts[used[0]].angles, np.stack(ranges).astype(np.float32), range_min, None
-    widest = max(used, key=lambda k: (layouts[k].num_beams, -k))
-    ref = layouts[widest]
-    step = abs(ref.increment)
-    lo, hi = float(ref.angles.min()) - step, float(ref.angles.max()) + step
-    subdivisions = list(range(1, _MAX_SUBDIVISION + 1))
-    for k in used:  # in order of first appearance
-        layout = layouts[k]
-        angles = layout.angles
-        reason = None
-        if layout.num_beams > 1 and ref.num_beams > 1 and (layout.increment > 0) != (ref.increment > 0):
-            reason = "its beams run the other way"
-        elif angles.min() <= lo + _GRID_TOLERANCE or angles.max() >= hi - _GRID_TOLERANCE:
-            reason = "the angular range changes (beams beyond the widest scan's range)"
-        else:
-            offsets = (angles - ref.angles[0]) / step
-            fits = [d for d in subdivisions
-                    if np.max(np.abs(offsets * d - np.round(offsets * d))) * step / d <= _GRID_TOLERANCE]
-            if not fits:
-                reason = (f"its beams are not on the widest scan's angular grid, nor on one of 1/2..1/"
-                          f"{_MAX_SUBDIVISION} of its increment shared with the layouts before it")
-            else:
-                subdivisions = fits
-        if reason:
-            raise LogError(
-                f"{layout.where}: the beam layout changes from {ref.describe()} (the widest scan's, first at "
-                f"{ref.where}) to {layout.describe()}: {reason}; scans may differ in their beam count only "
-                "where every scan's beams lie on the widest scan's angular grid (or interleave with it) "
-                "within its angular range"
-            )
-    if not ranges:
-        return None, None, range_min, None
-    division = subdivisions[0]
-    grid_step = step / division
-    # Common beams: the reference's, then the others' new ones; slot = grid index of an angle.
-    order = [widest] + sorted((k for k in used if k != widest), key=lambda k: (-layouts[k].num_beams, k))
-    position: dict[int, int] = {}
-    beam_angles: list[float] = []
-    columns: dict[int, np.ndarray] = {}
-    for k in order:
-        slots = np.round((layouts[k].angles - ref.angles[0]) / grid_step).astype(np.int64)
-        cols = []
-        for slot, angle in zip(slots.tolist(), layouts[k].angles.tolist()):
-            if slot not in position:
-                position[slot] = len(beam_angles)
-                beam_angles.append(angle)
-            cols.append(position[slot])
-        columns[k] = np.asarray(cols, dtype=np.int64)
-    num_beams = len(beam_angles)
-    out = np.full((len(ranges), num_beams), PAD_RANGE, dtype=np.float32)
-    for k in used:
-        rows = np.nonzero(layout_of == k)[0]
-        if rows.size:
-            out[np.ix_(rows, columns[k])] = np.stack([ranges[i] for i in rows])
-    new_range_min = range_min if np.float32(range_min) > np.float32(PAD_RANGE) else PAD_RANGE_MIN
-    counts = Counter(layout_of.tolist())
-    padded = sum(n for k, n in counts.items() if layouts[k].num_beams < num_beams)
-    seen = "; ".join(f"{counts[k]} scans of {layouts[k].brief()}" for k in order)
-    target = (f"the widest scan's {num_beams} beam angles" if num_beams == ref.num_beams else
-              f"{num_beams} beam angles (the widest scan's {ref.num_beams} and the others' beams interleaved "
-              f"1/{division} of its increment apart: {num_beams / ref.num_beams:.1f} times the beams per scan)")
-    note = (f"{src}: the beam layout changes within the log ({seen}); {padded} of {len(ranges)} scans were "
-            f"padded to {target}. A padded beam reads {PAD_RANGE:g} m, below range_min {new_range_min:g} m: "
-            "invalid, it neither clears nor marks a cell nor counts in a likelihood")
-    if new_range_min != range_min:
-        note += f" (range_min raised from {range_min:g} m to {PAD_RANGE_MIN:g} m for this)"
-    return np.asarray(beam_angles, dtype=np.float64), out, new_range_min, note + "."

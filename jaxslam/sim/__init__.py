@@ -2,11 +2,9 @@
 
 from jaxslam.sim.paths import circle_path, concat_paths, passage_indices, waypoint_path, waypoint_path_length
 from jaxslam.segment_map import raycast
+from jaxslam.sim.box_world import box_world, box_world_path, box_world_scenario
 from jaxslam.sim.scenarios import (
     Scenario,
-    box_world,
-    box_world_path,
-    box_world_scenario,
     hall_scenario,
     hall_waypoints,
     hall_world,

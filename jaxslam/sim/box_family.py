@@ -1,6 +1,6 @@
 """A family of box worlds, one per integer seed: the paper's claim over worlds, not one world.
 
-:func:`~jaxslam.sim.scenarios.box_world_scenario` is one world, and the library's defaults were
+:func:`~jaxslam.sim.box_world.box_world_scenario` is one world, and the library's defaults were
 tuned on it. This module draws worlds of the same plan (Grzonka et al., Figs. 1 and 4): a robot
 starts at a checkpoint X whose surroundings it maps, drives to a box, circles it for laps with
 nothing else in view, drives back over X now and then, and at the end comes back to X: a loop
@@ -15,7 +15,7 @@ to close. What varies, drawn by :func:`draw_world` from ``np.random.default_rng(
   counter-clockwise), the laps between visits to X (3-5), how far X lies from the circle
   (2.5-3.5 m) and how far beyond X the robot turns back (1.5-2.5 m);
 * the laser's range (3-5 m) and the odometry's noise (0.5 to 1.5 times the default robot's
-  proportional terms, :data:`~jaxslam.sim.scenarios.BOX_WORLD_MOTION`; the floors stay).
+  proportional terms, :data:`~jaxslam.sim.box_world.BOX_WORLD_MOTION`; the floors stay).
 
 Every world keeps the box world's two properties that make the test: the landmarks are seen
 from X (at least 0.75 m of each within the laser's range less 0.3 m, on the side the robot faces
@@ -26,7 +26,7 @@ origin, the circle's centre east of it on the x axis, the turnaround point west;
 virtual grid, sized from the bounds, is the same for every world and compiles once.
 
 :func:`family_scenario` builds a world's :class:`~jaxslam.sim.scenarios.Scenario` with
-:func:`~jaxslam.sim.scenarios.box_world_scenario` itself (its path, laser and simulation), so a
+:func:`~jaxslam.sim.box_world.box_world_scenario` itself (its path, laser and simulation), so a
 family world is the box world with other numbers.
 
 The two families are kept apart: seeds from :data:`TUNING_FIRST_SEED` on are the *tuning*
@@ -46,7 +46,8 @@ from jaxtyping import PRNGKeyArray
 from jaxslam.geometry import between_np
 from jaxslam.motion import MotionParams, motion_params, noise_std
 from jaxslam.sim.paths import circle_path
-from jaxslam.sim.scenarios import BOX_WORLD_MOTION, Scenario, box_world_path, box_world_scenario
+from jaxslam.sim.box_world import BOX_WORLD_MOTION, box_world_path, box_world_scenario
+from jaxslam.sim.scenarios import Scenario
 from jaxslam.sim.world import (
     SegmentWorld,
     box_segments,
@@ -456,7 +457,7 @@ def family_path(draw: BoxWorldDraw) -> tuple[np.ndarray, dict]:
 
 
 def family_scenario(draw: BoxWorldDraw, key: PRNGKeyArray) -> Scenario:
-    """The draw's dataset: :func:`~jaxslam.sim.scenarios.box_world_scenario` on the draw's world,
+    """The draw's dataset: :func:`~jaxslam.sim.box_world.box_world_scenario` on the draw's world,
     circle, checkpoint, turnaround point, laps, direction, laser range and odometry noise; the
     rest as the box world's (0.1 m steps at 10 Hz, 180 beams over 180 degrees, 0.02 m range noise).
 
