@@ -161,7 +161,7 @@ def main(argv=None):
     import numpy as np
 
     from jaxslam import maps as paged
-    from jaxslam import particle_filter, rbpf, slam
+    from jaxslam import growth, particle_filter, rbpf, slam
     from jaxslam.config import build_setup
     from jaxslam.io import read_log
     from jaxslam.laserlog import check_log
@@ -194,7 +194,7 @@ def main(argv=None):
         state, info = compiled(state, jax.random.split(jax.random.fold_in(key_steps, i), chunk), chunk_inputs(i),
                                valid, sensor, params)
         if bool(info.pool_overflow.any()):
-            pool = slam._larger_pool(state.maps, config.grid)
+            pool = growth.larger_pool(state.maps, config.grid)
             state = state._replace(maps=paged.grow(config.grid, state.maps, pool))
     report["tiles_in_use"] = int(paged.tiles_in_use(state.maps))
     report["top_buffers"] = _top_buffers(dump, "_run_chunk", args.top)

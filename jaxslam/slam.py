@@ -25,9 +25,6 @@ from jaxslam.config import RunSettings, SlamConfig, SlamParams
 from jaxslam.driver import ChunkedRun, pad_items, run_in_chunks
 from jaxslam.grid import GridSpec
 from jaxslam.growth import PoolUse, Runs, growing_chunks, initial_state, pool_report, pool_use
-from jaxslam.growth import PoolUse as _PoolUse  # noqa: F401 (tests and benchmarks use these names)
-from jaxslam.growth import larger_pool as _larger_pool  # noqa: F401
-from jaxslam.growth import larger_pool_for as _larger_pool_for  # noqa: F401
 from jaxslam.laserlog import LaserLog, UpdateSelection, grid_to_world, local_log, to_local, to_world, trajectory_per_scan
 from jaxslam.maps import PagedGridSpec, PoolSize
 from jaxslam.rbpf import SlamInfo, SlamState

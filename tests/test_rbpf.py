@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import rbpf, slam
+from jaxslam import growth, rbpf, slam
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, config_from_dict, default_params, params_from_dict, params_to_dict
 from jaxslam.laserlog import local_frame_offset, select_updates
 from jaxslam.sim import office_scenario
@@ -307,13 +307,13 @@ def test_a_pool_beyond_one_int32_index_is_indexed_by_pairs_and_sized_as_before()
     assert flat_pool(config.grid, 524_287) and not flat_pool(config.grid, 524_288)  # 2**31 cells of 64 x 64
     most = max_pool_tiles(config.grid)
     near = PoolSize(most - 1000, 100_000, 1000, 100)
-    grown = slam._larger_pool_for(near, slam._PoolUse(most - 300_000, 60_000, 10, 5), config.grid)
+    grown = growth.larger_pool_for(near, growth.PoolUse(most - 300_000, 60_000, 10, 5), config.grid)
     assert grown.capacity == most and grown.max_new_tiles == 200_000 and grown.block_capacity == 2000
     full = PoolSize(most, 120_000, 1000, 100)
     with pytest.raises(RuntimeError, match="int32"):
-        slam._larger_pool_for(full, slam._PoolUse(most - 50_000, 100_000, 10, 5), config.grid)
+        growth.larger_pool_for(full, growth.PoolUse(most - 50_000, 100_000, 10, 5), config.grid)
     # a pool at the bound that overflowed on blocks alone still grows its blocks
-    assert slam._larger_pool_for(full, slam._PoolUse(100_000, 50_000, 1000, 100), config.grid).block_capacity == 2000
+    assert growth.larger_pool_for(full, growth.PoolUse(100_000, 50_000, 1000, 100), config.grid).block_capacity == 2000
 
 
 def test_a_pool_indexed_by_pairs_gives_the_flat_pools_run_bit_for_bit(office_log, monkeypatch):
