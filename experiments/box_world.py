@@ -44,7 +44,7 @@ from _runs import ResultStore, SettingsMismatch  # experiments/_runs.py: the sha
 from jaxslam import slam
 from jaxslam.laserlog import local_frame_offset
 from jaxslam.cli import parse_assignments
-from jaxslam.config import CONFIG_FIELDS, SETTINGS_FIELDS, ConfigError, build_setup
+from jaxslam.config import SETTINGS_FIELDS, ConfigError, build_setup, config_names
 from jaxslam.metrics import checkpoint_passages, normalized_weights, passage_errors, revisiting_accuracy
 from jaxslam.rbpf import particle_paths
 from jaxslam.sim import box_world_scenario
@@ -85,7 +85,7 @@ def method_settings(exp: dict, name: str, overrides: dict | None = None) -> dict
         raise ConfigError("map_extent, resolution and num_particles are the experiment's (grid_margin, "
                           "grid_resolution, a table's particles)")
     config, settings, _ = build_setup(flat)
-    typed = {k: getattr(config, k) if k in CONFIG_FIELDS else getattr(settings, k) if k in SETTINGS_FIELDS
+    typed = {k: getattr(config, k) if k in config_names() else getattr(settings, k) if k in SETTINGS_FIELDS
              else float(v) for k, v in flat.items()}
     return dict(sorted(typed.items()))
 

@@ -35,7 +35,8 @@ from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
 from jaxslam.maps import PagedGridSpec
 from jaxslam.motion import MotionParams, motion_params
 from jaxslam.occupancy import InsertionParams
-from jaxslam.proposals import PROPOSALS
+from jaxslam.proposals import PROPOSALS, Proposal, add_proposal, proposal_param_groups, proposal_settings
+from jaxslam.proposals.lookahead import LookaheadParams  # noqa: F401  (the LP's numbers, once defined here)
 from jaxslam.resampling import RESAMPLERS
 from jaxslam.sensor_model import SENSOR_MODELS
 
@@ -44,9 +45,16 @@ class ConfigError(ValueError):
     """A configuration or parameter value is invalid; the message names it."""
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, init=False)
 class SlamConfig:
-    """Static settings of the jitted RBPF step (shapes and code paths). Hashable; changing it recompiles."""
+    """Static settings of the jitted RBPF step (shapes and code paths). Hashable; changing it recompiles.
+
+    Besides its own fields, it takes the settings the proposals own by name
+    (:data:`jaxslam.proposals.PROPOSALS`: the LP's ``num_localizers``, ``horizon`` and
+    ``lookahead_initial``, the SMP's ``smp_weight``), checked as its own are and read as
+    attributes (``config.num_localizers``); :attr:`proposal_settings` holds those that differ from
+    their defaults. ``SlamConfig(num_particles=50, num_localizers=20)`` and
+    ``dataclasses.replace(config, horizon=3)`` work as for its own fields."""
 
     num_particles: int = 30
     """N, the number of SLAM particles (each with its own map)."""
@@ -104,34 +112,40 @@ class SlamConfig:
     samples) then cost this many particles' worth, not N's. It changes no value; larger blocks
     give a GPU more parallel work, smaller ones less memory (the figures:
     docs/notes/2026-11-26-memory-per-particle.md)."""
-    num_localizers: int = 100
-    """L, localizer particles per SLAM particle in the look-ahead proposal."""
-    horizon: int = 5
-    """k, the look-ahead horizon in processed scans (0: the LP's weights reduce to an average)."""
-    lookahead_initial: str = "scan_match"
-    """Where the LP draws its L time-t localizers: "scan_match" (the default: a Gaussian fitted
-    around each SLAM particle's scan-matched pose, importance-corrected; "LP-SM" in the docs) or
-    "odometry" (the motion model, as in the paper). Along a featureless corridor the paper's
-    localizers spread with the odometry and the particles inherit the spread; started from the
-    match they stay pinned to the map (the figures:
-    docs/notes/2026-11-25-robustness-table-and-the-library-lp.md)."""
-    smp_weight: str = "quadrature"
-    """The SMP's log-weight increment. "quadrature" (the default, the published tables'): the log
-    of the window posterior's summed stencil masses, a Rao-Blackwellised estimate of
-    p(z_t | x_{t-1}, m, u_t) with little spread between particles, but a Riemann sum on the
-    stencil's spacing (``scan_match.linear_step``, ``angular_step``): where the posterior is much
-    narrower than that (accurate odometry, every scan an update) it overstates the evidence by
-    nats a step, and its gradient is not a score. "importance": the proper importance weight of
-    the drawn pose, log p(z_t | x_t, m)^gain + log p(x_t | x_{t-1}, u_t) - log q(x_t) with q the
-    window posterior's mixture, an unbiased estimate of the same quantity whose gradient is the
-    score of the drawn pose; what ``learning.slam_learning_setup`` sets (the figures:
-    docs/notes/2026-11-26-smp-weights-for-learning.md)."""
     score_lag: int | None = None
     """Which score estimate the gradient of ``rbpf.filter``'s ``marginal_loglik`` is (its value
     is the same): None, the path-space score over the final particles' ancestral paths; an int L
     >= 0, the fixed-lag smoothed score, each step's term averaged over the particles L steps
     later (:func:`jaxslam.particle_filter.fixed_lag_score`; less biased by path degeneracy:
     docs/notes/2026-11-26-fixed-lag-score.md). Mapping computes no gradient and ignores it."""
+    proposal_settings: tuple[tuple[str, Any], ...] = ()
+    """The proposals' own settings that differ from their defaults, as (name, value) pairs sorted
+    by name (read them as attributes: ``config.num_localizers``)."""
+
+    def __init__(self, **values):
+        owned = proposal_settings()
+        unknown = sorted(set(values) - {field.name for field in dataclasses.fields(self)} - set(owned))
+        if unknown:
+            raise ConfigError(f"SlamConfig: unknown field(s) {unknown}; known: {sorted(config_names())}")
+        for field in dataclasses.fields(self):
+            object.__setattr__(self, field.name, values.get(field.name, field.default))
+        given = {**dict(self.proposal_settings), **{k: v for k, v in values.items() if k in owned}}
+        kept = {}
+        for name, value in given.items():
+            if name not in owned:
+                raise ConfigError(f"SlamConfig: {name!r} is no registered proposal's setting")
+            value = _normalize_setting(owned[name], value)
+            if value != owned[name].default:
+                kept[name] = value
+        object.__setattr__(self, "proposal_settings", tuple(sorted(kept.items())))
+        self.__post_init__()
+
+    def __getattr__(self, name):
+        # Only called when the usual lookup fails: a proposal's setting, or its default.
+        owned = proposal_settings()
+        if name not in owned:
+            raise AttributeError(f"'SlamConfig' object has no attribute {name!r}")
+        return dict(self.__dict__.get("proposal_settings", ())).get(name, owned[name].default)
 
     def __post_init__(self):
         _normalize_fields(self, "SlamConfig")
@@ -160,13 +174,7 @@ class SlamConfig:
              f"window_modes must be in 1..window_cells^3, got {self.window_modes}"),
             (self.window_keep >= 1, f"window_keep must be >= 1, got {self.window_keep}"),
             (self.particle_block >= 1, f"particle_block must be >= 1, got {self.particle_block}"),
-            (self.num_localizers >= 1, f"num_localizers must be >= 1, got {self.num_localizers}"),
-            (self.horizon >= 0, f"horizon must be >= 0, got {self.horizon}"),
             (self.score_lag is None or self.score_lag >= 0, f"score_lag must be None or >= 0, got {self.score_lag}"),
-            (self.smp_weight in ("quadrature", "importance"),
-             f"smp_weight must be 'quadrature' or 'importance', got {self.smp_weight!r}"),
-            (self.lookahead_initial in ("odometry", "scan_match"),
-             f"lookahead_initial must be 'odometry' or 'scan_match', got {self.lookahead_initial!r}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -184,8 +192,8 @@ class SlamConfig:
 
     @property
     def lookahead_steps(self) -> int:
-        """Future scans each step carries: the horizon for a proposal that looks ahead, else none."""
-        return self.horizon if PROPOSALS[self.proposal].looks_ahead else 0
+        """Future scans each step carries (the proposal's ``future_scans_fn``: the LP's horizon)."""
+        return PROPOSALS[self.proposal].future_scans_fn(self)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -248,20 +256,38 @@ def _normalize_fields(obj, where: str) -> None:
     (an int field refuses 2.9 and True rather than truncating them; a float field refuses NaN and
     inf) and store it as the plain Python type (NumPy scalars become int / float)."""
     for field in dataclasses.fields(obj):
-        value = getattr(obj, field.name)
-        kind = type(field.default)
+        if field.name == "proposal_settings":
+            continue
         try:
-            if field.default is None and value is not None:  # an optional int (score_lag)
-                value = check_int(field.name, value)
-            elif kind is int:
-                value = check_int(field.name, value)
-            elif kind is float:
-                value = check_float(field.name, value)
-            elif kind is str and not isinstance(value, str):
-                raise ConfigError(f"{field.name} must be a string, got {value!r}")
+            value = _typed(field.name, getattr(obj, field.name), field.default)
         except ConfigError as err:
             raise ConfigError(f"{where}: {err}") from None
         object.__setattr__(obj, field.name, value)
+
+
+def _typed(name: str, value, default):
+    """``value`` as the plain type of ``default`` (int, float, str; None: an optional int); else
+    ``ConfigError`` naming ``name``."""
+    kind = type(default)
+    if (default is None and value is not None) or kind is int:
+        return check_int(name, value)
+    if kind is float:
+        return check_float(name, value)
+    if kind is str and not isinstance(value, str):
+        raise ConfigError(f"{name} must be a string, got {value!r}")
+    return value
+
+
+def _normalize_setting(setting, value):
+    """A proposal's setting (:class:`jaxslam.proposals.Setting`) as its default's plain type, in
+    its range; else ``ConfigError`` naming it."""
+    try:
+        value = _typed(setting.name, value, setting.default)
+    except ConfigError as err:
+        raise ConfigError(f"SlamConfig: {err}") from None
+    if not setting.check(value):
+        raise ConfigError(f"SlamConfig: {setting.name} must be {setting.accepted}, got {value!r}")
+    return value
 
 
 class ScanMatchParams(NamedTuple):
@@ -299,27 +325,6 @@ class ScanMatchParams(NamedTuple):
     """... and in heading (rad)."""
 
 
-class LookaheadParams(NamedTuple):
-    """Traced numbers of the look-ahead proposal."""
-
-    alpha: Float[Array, ""]
-    """Defensive share in [0, 1): 0 is the paper's Eq. 10; > 0 makes the weights unbiased."""
-    resample_threshold: Float[Array, ""]
-    """Localizers are resampled inside the horizon when their ESS < this * L."""
-    localizer_gain: Float[Array, ""]
-    """Likelihood gain inside the localizer filter (its weights a, g and so the selection).
-    1 uses each scan's own sharpness, as the SMP's fit does. The SLAM weight increment is
-    then scaled by ``likelihood.gain / localizer_gain`` (the tempered evidence), so setting
-    it equal to ``likelihood.gain`` tempers the localizers and leaves the increment as is."""
-    selection_correction: Float[Array, ""]
-    """Whether the SLAM weight keeps the selection correction: 1 or 0 (a switch, traced so that
-    changing it never recompiles). 1 (default) is the design's increment g_J - log L - log p_J,
-    unbiased for alpha > 0 but noisy, since it depends on which sample was drawn; 0 weighs every
-    SLAM particle by its evidence estimate log mean_i exp(g_i) alone, unbiased for every alpha
-    (the paper's 0 included) and independent of the draw, so the look-ahead then only chooses
-    the pose."""
-
-
 class SlamParams(NamedTuple):
     """Traced numbers of the RBPF. Changing them never recompiles; differentiable."""
 
@@ -331,10 +336,25 @@ class SlamParams(NamedTuple):
     """Occupancy log-odds increments and clamps."""
     scan_match: ScanMatchParams
     """Scan matcher and SMP."""
-    lookahead: LookaheadParams
-    """Look-ahead proposal."""
     resample_threshold: Float[Array, ""]
     """SLAM particles are resampled when ESS < this * N (GMapping: 0.5)."""
+    proposals: dict[str, Any]
+    """The numbers the proposals own, by group (:data:`jaxslam.proposals.PROPOSALS`; the LP's
+    ``LookaheadParams`` under "lookahead"), read as attributes: ``params.lookahead.alpha``."""
+
+    def __getattr__(self, name):
+        # Only called when the usual lookup fails: a proposal's group.
+        groups = self.proposals
+        if name in groups:
+            return groups[name]
+        raise AttributeError(f"'SlamParams' object has no attribute {name!r}")
+
+    def with_group(self, name: str, numbers) -> "SlamParams":
+        """These parameters with a proposal's group replaced (``params.with_group("lookahead",
+        params.lookahead._replace(alpha=a))``); ``_replace`` for the groups."""
+        if name not in self.proposals:
+            raise KeyError(f"SlamParams has no proposal group {name!r}; groups: {sorted(self.proposals)}")
+        return self._replace(proposals={**self.proposals, name: numbers})
 
 
 _DEFAULTS: dict[str, float] = {
@@ -351,10 +371,9 @@ _DEFAULTS: dict[str, float] = {
     "scan_match.window_sigmas": 3.0, "scan_match.window_min_xy": 0.1, "scan_match.window_min_theta": 0.1,
     "scan_match.slip_trigger": 0.5, "scan_match.slip_probability": 0.01, "scan_match.slip_std_xy": 0.3,
     "scan_match.slip_std_theta": 0.35,
-    "lookahead.alpha": 0.5, "lookahead.resample_threshold": 0.5, "lookahead.localizer_gain": 1.0,
-    "lookahead.selection_correction": 1.0,
     "resample_threshold": 0.5,
 }
+"""The defaults of ``SlamParams``' own numbers (:func:`param_defaults` adds the proposals')."""
 
 
 def default_params(**overrides: float) -> SlamParams:
@@ -396,15 +415,23 @@ _PARAM_RANGES: dict[str, tuple[Any, str]] = {
     "scan_match.slip_probability": (lambda v: 0.0 <= v < 1.0, "in [0, 1) (0: a slip is never drawn)"),
     "scan_match.slip_std_xy": (_above(0.0), "> 0 (m)"),
     "scan_match.slip_std_theta": (_above(0.0), "> 0 (rad)"),
-    "lookahead.alpha": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
-    # Above 1 is allowed (ESS <= L): the localizers are then resampled at every step of the horizon.
-    "lookahead.resample_threshold": (_at_least(0.0), ">= 0 (a fraction of L: 0 never resamples, above 1 always)"),
-    "lookahead.localizer_gain": (_above(0.0), "> 0"),
-    "lookahead.selection_correction": (lambda v: v in (0.0, 1.0), "0 or 1 (keep the selection correction or not)"),
     # Above 1 is allowed and used (tests, "above 1 always does"): ESS <= N, so every step resamples.
     "resample_threshold": (_at_least(0.0), ">= 0 (a fraction of N: 0 never resamples, above 1 always)"),
 }
-"""The physical range of every parameter, checked by :func:`params_from_dict`."""
+"""The physical range of ``SlamParams``' own numbers, checked by :func:`params_from_dict`
+(:func:`param_ranges` adds the proposals')."""
+
+
+def param_defaults() -> dict[str, float]:
+    """Every dotted parameter with its default: ``SlamParams``' own and the registered proposals'."""
+    return {**_DEFAULTS, **{f"{group.name}.{f}": v for group in proposal_param_groups().values()
+                            for f, v in group.defaults.items()}}
+
+
+def param_ranges() -> dict[str, tuple[Any, str]]:
+    """Every dotted parameter's physical range: (predicate, what is accepted)."""
+    return {**_PARAM_RANGES, **{f"{group.name}.{f}": r for group in proposal_param_groups().values()
+                                for f, r in group.ranges.items()}}
 
 
 def params_from_dict(values: dict[str, Any]) -> SlamParams:
@@ -417,10 +444,11 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
     """
     if not isinstance(values, dict):
         raise ConfigError(f"parameters must be a dict of dotted names and numbers, got {values!r}")
-    unknown = sorted(set(values) - set(_DEFAULTS), key=str)
+    defaults = param_defaults()
+    unknown = sorted(set(values) - set(defaults), key=str)
     if unknown:
-        raise ConfigError(f"unknown parameter(s) {unknown}; known: {sorted(_DEFAULTS)}")
-    merged = {**_DEFAULTS, **values}
+        raise ConfigError(f"unknown parameter(s) {unknown}; known: {sorted(defaults)}")
+    merged = {**defaults, **values}
     for name, value in merged.items():
         if isinstance(value, str):
             try:
@@ -428,7 +456,7 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
             except ValueError:
                 raise ConfigError(f"parameter {name} must be a number, got {value!r}") from None
         merged[name] = check_float(f"parameter {name}", value)
-    for name, (ok, accepted) in _PARAM_RANGES.items():
+    for name, (ok, accepted) in param_ranges().items():
         if not ok(merged[name]):
             raise ConfigError(f"parameter {name} must be {accepted}, got {merged[name]!r}")
 
@@ -440,16 +468,16 @@ def params_from_dict(values: dict[str, Any]) -> SlamParams:
         likelihood=group(LikelihoodParams, "likelihood"),
         insertion=group(InsertionParams, "insertion"),
         scan_match=group(ScanMatchParams, "scan_match"),
-        lookahead=group(LookaheadParams, "lookahead"),
         resample_threshold=jnp.float32(merged["resample_threshold"]),
+        proposals={name: group(g.numbers, name) for name, g in proposal_param_groups().items()},
     )
 
 
 def params_to_dict(params: SlamParams) -> dict[str, float]:
     """Flat dotted-name view of ``SlamParams`` (for summaries and config files)."""
     out = {}
-    for name in SlamParams._fields:
-        value = getattr(params, name)
+    groups = {name: getattr(params, name) for name in SlamParams._fields if name != "proposals"}
+    for name, value in {**groups, **params.proposals}.items():
         if hasattr(value, "_fields"):
             out.update({f"{name}.{f}": float(getattr(value, f)) for f in value._fields})
         else:
@@ -458,8 +486,13 @@ def params_to_dict(params: SlamParams) -> dict[str, float]:
 
 
 def config_to_dict(config) -> dict[str, Any]:
-    """Plain-data view of a ``SlamConfig`` or ``RunSettings`` (JSON-ready)."""
-    return dataclasses.asdict(config)
+    """Plain-data view of a ``SlamConfig`` (its fields and every registered proposal's setting, by
+    name) or a ``RunSettings`` (JSON-ready)."""
+    out = dataclasses.asdict(config)
+    if isinstance(config, SlamConfig):
+        del out["proposal_settings"]
+        out.update({name: getattr(config, name) for name in proposal_settings()})
+    return out
 
 
 def _dataclass_from_dict(cls, values: dict[str, Any]):
@@ -469,11 +502,13 @@ def _dataclass_from_dict(cls, values: dict[str, Any]):
     if not isinstance(values, dict):
         raise ConfigError(f"{cls.__name__} fields must be a dict of names and values, got {values!r}")
     kwargs = {}
+    owned = proposal_settings() if cls is SlamConfig else {}
     for name, value in values.items():
-        kind = type(getattr(cls, name))
+        default = owned[name].default if name in owned else getattr(cls, name)
+        kind = type(default)
         if isinstance(value, str) and kind is not str:
             text = value.strip()
-            if getattr(cls, name) is None:  # an optional int: "none" or an integer
+            if default is None:  # an optional int: "none" or an integer
                 kind = int
                 if text.lower() == "none":
                     kwargs[name] = None
@@ -488,17 +523,34 @@ def _dataclass_from_dict(cls, values: dict[str, Any]):
     return cls(**kwargs)
 
 
-CONFIG_FIELDS = tuple(f.name for f in dataclasses.fields(SlamConfig))
-"""Names that set a :class:`SlamConfig` field."""
+_OWN_CONFIG_FIELDS = tuple(f.name for f in dataclasses.fields(SlamConfig) if f.name != "proposal_settings")
 SETTINGS_FIELDS = tuple(f.name for f in dataclasses.fields(RunSettings))
 """Names that set a :class:`RunSettings` field."""
+OWN_NAMES = frozenset({*_OWN_CONFIG_FIELDS, *SETTINGS_FIELDS, *SlamParams._fields, "proposal_settings",
+                       *(name.split(".")[0] for name in _DEFAULTS)})
+"""The names a proposal may not own: ``SlamConfig``'s, ``RunSettings``' and ``SlamParams``' own."""
+
+
+def register_proposal(name: str, proposal: Proposal) -> None:
+    """Make ``proposal`` available as ``SlamConfig(proposal=name)``, ``--proposal name`` (in a
+    parser built afterwards) and in ``build_setup``, with its settings, numbers and flags. Refuses
+    (``ValueError``) a name taken by another proposal (registering the same row again is a
+    no-op), and a setting, group or flag that another proposal owns or that names one of
+    :data:`OWN_NAMES`."""
+    add_proposal(name, proposal, OWN_NAMES)
+
+
+def config_names() -> tuple[str, ...]:
+    """Names that set a :class:`SlamConfig` field or a registered proposal's setting."""
+    return (*_OWN_CONFIG_FIELDS, *proposal_settings())
 
 
 def config_from_dict(values: dict[str, Any]) -> SlamConfig:
     """Build a ``SlamConfig`` from field names; unknown names or bad types raise ``ConfigError``."""
-    unknown = sorted(set(values) - set(CONFIG_FIELDS))
+    names = config_names()
+    unknown = sorted(set(values) - set(names))
     if unknown:
-        raise ConfigError(f"unknown config field(s) {unknown}; known: {sorted(CONFIG_FIELDS)}")
+        raise ConfigError(f"unknown config field(s) {unknown}; known: {sorted(names)}")
     return _dataclass_from_dict(SlamConfig, values)
 
 
@@ -507,33 +559,36 @@ def unknown_names_message(unknown: list[str]) -> str:
     known names, and the closest ones."""
     import difflib
 
-    fields = sorted(CONFIG_FIELDS + SETTINGS_FIELDS)
-    close = {name: difflib.get_close_matches(str(name), [*fields, *_DEFAULTS], n=1, cutoff=0.8) for name in unknown}
+    fields = sorted(config_names() + SETTINGS_FIELDS)
+    dotted = sorted(param_defaults())
+    close = {name: difflib.get_close_matches(str(name), [*fields, *dotted], n=1, cutoff=0.8) for name in unknown}
     hints = "; ".join(f"{name!r}: did you mean {found[0]!r}?" for name, found in close.items() if found)
     return (f"unknown name(s) {unknown}{' (' + hints + ')' if hints else ''}: a name is either a config or run "
-            f"settings field {fields} or a dotted parameter {sorted(_DEFAULTS)}")
+            f"settings field {fields} or a dotted parameter {dotted}")
 
 
 def default_values() -> dict[str, Any]:
     """Every name :func:`build_setup` takes with its default: config and run-settings fields,
     dotted parameters."""
     fields = [*dataclasses.fields(SlamConfig), *dataclasses.fields(RunSettings)]
-    return {**{f.name: f.default for f in fields}, **_DEFAULTS}
+    return {**{f.name: f.default for f in fields if f.name != "proposal_settings"},
+            **{name: setting.default for name, setting in proposal_settings().items()}, **param_defaults()}
 
 
 def build_setup(values: dict[str, Any]) -> tuple[SlamConfig, RunSettings, SlamParams]:
     """The config, run settings and parameters of one flat dictionary of names.
 
-    ``values`` maps :data:`CONFIG_FIELDS` names to ``SlamConfig`` fields, :data:`SETTINGS_FIELDS`
+    ``values`` maps :func:`config_names` to ``SlamConfig`` fields and proposals' settings, :data:`SETTINGS_FIELDS`
     names to ``RunSettings`` fields and dotted names (``motion.srr``) to parameters; anything
     missing keeps its default. This is the one builder behind ``--set``, config files and the
     experiments' method tables. Unknown names and bad values raise ``ConfigError``.
     """
-    unknown = sorted(set(values) - set(CONFIG_FIELDS) - set(SETTINGS_FIELDS) - set(_DEFAULTS), key=str)
+    names = config_names()
+    unknown = sorted(set(values) - set(names) - set(SETTINGS_FIELDS) - set(param_defaults()), key=str)
     if unknown:
         raise ConfigError(unknown_names_message(unknown))
-    config_values = {k: v for k, v in values.items() if k in CONFIG_FIELDS}
+    config_values = {k: v for k, v in values.items() if k in names}
     settings_values = {k: v for k, v in values.items() if k in SETTINGS_FIELDS}
-    param_values = {k: v for k, v in values.items() if k not in CONFIG_FIELDS and k not in SETTINGS_FIELDS}
+    param_values = {k: v for k, v in values.items() if k not in names and k not in SETTINGS_FIELDS}
     return (config_from_dict(config_values), _dataclass_from_dict(RunSettings, settings_values),
             params_from_dict(param_values))

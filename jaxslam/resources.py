@@ -42,9 +42,9 @@ def estimate_run_bytes(config: SlamConfig, num_beams: int, first_scan_tiles: int
     for a first scan of ``first_scan_tiles`` tiles (None: Intel's allowance; the run sizes them
     from its log's, :func:`jaxslam.rbpf.first_scan_tiles`),
     the directories (N x DY x DX int32, twice), and scan insertion, which traces every beam with one
-    sample per cell up to ``max_insert_range``: N x B x S samples of about 40 bytes. The look-ahead
-    proposal adds its N x L x B float32 beam terms (B the beams used in likelihoods, ``num_beams /
-    beam_stride``), twice; about 1 GB is added for XLA (compiled code, buffers) and the host.
+    sample per cell up to ``max_insert_range``: N x B x S samples of about 40 bytes. The proposal
+    adds what its row's ``memory_fn`` says (the look-ahead: its N x L x B float32 beam terms, B the
+    beams used in likelihoods, twice); about 1 GB is added for XLA (compiled code, buffers) and the host.
     The pools grow with the area mapped (they are reported in ``summary.json``).
     """
     n = config.num_particles
@@ -58,11 +58,10 @@ def estimate_run_bytes(config: SlamConfig, num_beams: int, first_scan_tiles: int
            f"x 2 + {pool_sizes.capacity} tiles x {t} x {t} cells x 3 bytes x 2 + "
            f"{n} x {num_beams} beams x {samples} samples x 40 bytes")
     total = state + insertion + 2**30
-    if PROPOSALS[config.proposal].looks_ahead:
-        beams = -(-num_beams // config.beam_stride)
-        lp = n * config.num_localizers * beams * 4 * 2
-        total += lp
-        how += f" + {n} x {config.num_localizers} localizers x {beams} beams x 4 bytes x 2"
+    proposal_bytes, proposal_how = PROPOSALS[config.proposal].memory_fn(config, num_beams)
+    if proposal_bytes:
+        total += proposal_bytes
+        how += f" + {proposal_how}"
     return total, how + " + 1 GB for XLA"
 
 

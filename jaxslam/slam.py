@@ -148,6 +148,7 @@ def run(
     resume: RunProgress | None = None,
     initial_pool: tuple[int, int] | None = None,
     close_loops: "ClosureConfig | None" = None,
+    prepared: tuple | None = None,
 ) -> SlamResult:
     """Map a whole log: select the scans, then ``lax.scan`` the step over them in chunks; with
     ``close_loops``, then close the loops of the best particle's path (``result.closure``).
@@ -190,10 +191,13 @@ def run(
       close_loops: a :class:`jaxslam.graph.ClosureConfig`: after the filter, build the pose graph,
         search it for loops and optimise it (:func:`jaxslam.graph.close_loops`; ``result.closure``,
         ``result.closed_map``); None (the default): the filter alone.
+      prepared: :func:`jaxslam.rbpf.prepare`'s output for this ``log``, ``config`` and
+        ``settings`` where the caller has it (the command line's memory check), so that the log
+        is prepared once; None (the default): prepared here.
     """
     _check_chunk_size(chunk_size)
     t_start = time.perf_counter()
-    prepared, selection, frame_offset = rbpf.prepare(log, config, settings)
+    prepared, selection, frame_offset = rbpf.prepare(log, config, settings) if prepared is None else prepared
     local = local_log(log, frame_offset)  # from here on, the local frame
     state, info, growths, first_chunk_seconds = _filter_one(
         key, prepared, selection.indices.size - 1, local.sensor, params, config, chunk_size, progress, on_chunk,

@@ -22,6 +22,7 @@ from jaxslam import maps as paged
 from jaxslam import motion, resampling, window_posterior
 from jaxslam.config import SlamConfig, SlamParams
 from jaxslam.laser import SensorSpec
+from jaxslam.proposals import PROPOSALS
 from jaxslam.proposals.base import ProposalOutput, StepInputs
 
 
@@ -30,8 +31,9 @@ _TAG_SLIP, _TAG_SLIP_CHOICE = 0x511, 0x512  # fold-in tags of the slip search's 
 
 def searches_window(config: SlamConfig) -> bool:
     """Whether ``config``'s proposal searches the window posterior (the SMP, the LP from the
-    match), and so gets the slip search (static)."""
-    return config.proposal == "smp" or (config.proposal == "lp" and config.lookahead_initial == "scan_match")
+    match), and so gets the slip search (static; the proposal's row says:
+    :attr:`jaxslam.proposals.Proposal.searches_window_fn`)."""
+    return PROPOSALS[config.proposal].searches_window_fn(config)
 
 
 StepProposeFn = Callable[..., tuple[ProposalOutput, Int[Array, ""]]]

@@ -124,6 +124,17 @@ def _local_maxima_first(scores: Float[Array, "C"], cells: int) -> Float[Array, "
     return jnp.where(is_max, finite, finite - (high - low) - 2.0)
 
 
+def _polish(mode_cells: Float[Array, "M K 3"], spacing: Float[Array, "3"], exact, config) -> Float[Array, "M 3"]:
+    """Each mode's best cell (``mode_cells[:, 0]``: top_k sorts) and its 8 halves, scored by
+    ``exact(offsets, lookup)`` with ``config.match_lookup`` (bilinear: the posterior is continuous
+    in the pose there, so the peak settles between cells); the best of the nine offsets per mode."""
+    best_cell = mode_cells[:, 0, :]
+    polish = jnp.concatenate([best_cell[:, None, :], best_cell[:, None, :] + jnp.asarray(_HALVES) * spacing], axis=1)
+    polish_scores = exact(polish.reshape(-1, 3), config.match_lookup).reshape(config.window_modes, -1)
+    polish_scores = jnp.where(jnp.isnan(polish_scores), -jnp.inf, polish_scores)
+    return jnp.take_along_axis(polish, jnp.argmax(polish_scores, axis=1)[:, None, None], axis=1)[:, 0]
+
+
 def window_posterior(pose: Float[Array, "3"], field, motion_step: Float[Array, "3"], ranges: Float[Array, "B"],
                      sensor, params, config, fit_gain) -> WindowPosterior:
     """The window posterior of one particle (see the module docstring).
@@ -186,13 +197,8 @@ def window_posterior(pose: Float[Array, "3"], field, motion_step: Float[Array, "
         keep = min(config.window_keep, children.shape[1])
         _, best = jax.lax.top_k(child_scores, keep)
         mode_cells = jnp.take_along_axis(children, best[..., None], axis=1)
-    # 3. The polish: each mode's best cell and its 8 halves, read with ``match_lookup`` (bilinear:
-    # the posterior is continuous in the pose there, so the peak settles between cells).
-    best_cell = mode_cells[:, 0, :]  # (M, 3): top_k sorts, so the first kept is the best
-    polish = jnp.concatenate([best_cell[:, None, :], best_cell[:, None, :] + jnp.asarray(_HALVES) * spacing], axis=1)
-    polish_scores = exact(polish.reshape(-1, 3), config.match_lookup).reshape(config.window_modes, -1)
-    polish_scores = jnp.where(jnp.isnan(polish_scores), -jnp.inf, polish_scores)
-    peaks = poses_at(jnp.take_along_axis(polish, jnp.argmax(polish_scores, axis=1)[:, None, None], axis=1)[:, 0])
+    # 3. The polish of each mode's best cell.
+    peaks = poses_at(_polish(mode_cells, spacing, exact, config))
     # 4. A Gaussian and a mass per mode, from the stencil round its peak.
     gaussians = jax.vmap(lambda peak: _fit_mode(peak, pose, view, model, motion_step, ranges, sensor, params,
                                                 config, fit_gain))(peaks)

@@ -526,6 +526,38 @@ def test_a_wide_first_scan_is_counted_by_the_memory_check(tmp_path, small_log, c
     assert not (tmp_path / "out").exists()
 
 
+def test_a_log_the_memory_check_prepares_is_prepared_once(tmp_path, small_log, monkeypatch):
+    """Where the widest footprint does not fit but the first scan's does, the check prepares the
+    log to measure it, and the run takes that preparation: the log is prepared once."""
+    import jaxslam.cli.map
+    import jaxslam.rbpf
+    import jaxslam.resources
+    from jaxslam.cli import MAP_DEFAULTS
+    from jaxslam.io import read_log
+    from jaxslam.rbpf import first_scan_tiles, prepare
+
+    write_flaser_log(tmp_path / "office.clf", small_log)
+    config, settings, params = build_setup({**MAP_DEFAULTS, "num_particles": 2000, "tile_size": 8})
+    log = read_log(tmp_path / "office.clf")
+    need, _ = jaxslam.resources.estimate_run_bytes(config, log.num_beams,
+                                                   first_scan_tiles(prepare(log, config, settings)[0], params, config))
+    widest = config.grid.window_tiles(config.max_insert_range, config.field_radius) ** 2
+    assert jaxslam.resources.estimate_run_bytes(config, log.num_beams, widest)[0] > need
+    monkeypatch.setattr(jaxslam.cli.map, "available_memory_bytes", lambda: need)
+    calls, runs = [], []
+    monkeypatch.setattr(jaxslam.cli.map, "prepare", lambda *a: calls.append(a) or prepare(*a))
+
+    def trap(*args, **kwargs):
+        runs.append(kwargs["prepared"])
+        raise AssertionError("the filter ran")
+
+    monkeypatch.setattr(jaxslam.cli.map, "run", trap)
+    with pytest.raises(AssertionError, match="the filter ran"):
+        main(["map", str(tmp_path / "office.clf"), "--particles", "2000", "--set", "tile_size=8",
+              "--no-progress", "--out", str(tmp_path / "out")])
+    assert len(calls) == 1 and runs[0] is not None and runs[0][0].inputs.ranges.shape[0] > 0
+
+
 def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(tmp_path, small_log, monkeypatch):
     import jaxslam.cli.map
     import jaxslam.resources
@@ -540,8 +572,13 @@ def test_a_small_run_passes_the_memory_check_and_an_unreadable_meminfo_skips_it(
 
 
 def test_a_huge_insertion_reach_is_refused_by_the_memory_check(tmp_path, small_log, capsys, monkeypatch):
+    """Refused before any work: the estimate at the smallest footprint already exceeds the machine,
+    so the log is not even prepared (measuring its first scan would trace 20 million samples a beam)."""
+    import jaxslam.cli.map
+
     write_flaser_log(tmp_path / "office.clf", small_log)
     _trap_filter(monkeypatch)
+    monkeypatch.setattr(jaxslam.cli.map, "prepare", lambda *a, **k: pytest.fail("the log was prepared"))
     argv = ["map", str(tmp_path / "office.clf"), "--particles", "3", "--set", "max_insert_range=1e6",
             "--no-progress", "--out", str(tmp_path / "out")]
     _run_refused(argv, ["the run needs about", "samples x 40 bytes", "GB are available"], capsys)

@@ -115,7 +115,7 @@ def test_the_map_default_is_the_lp_and_help_shows_the_defaults(tmp_path, small_l
     text = " ".join(sub["map"].format_help().split())
     for words in ("(default lp)", "SLAM particles N (default 30)", "per SLAM particle (default 100)",
                   "processed scans (default 5)", "(default 0.5)", "after 0.5 m or 0.25 rad of odometry",
-                  "L = 100 localizers, horizon k = 5, alpha = 0.5", "JAXSLAM_CACHE_DIR"):
+                  "LP: num_localizers = 100, horizon = 5, lookahead_initial = scan_match", "JAXSLAM_CACHE_DIR"):
         assert words in text, words
     demo = " ".join(sub["demo"].format_help().split())
     assert f"(default {DEMO_DEFAULTS['proposal']}" in demo and "(default 20)" in demo

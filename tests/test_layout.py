@@ -189,3 +189,30 @@ def test_every_module_has_a_layer_and_no_import_points_up():
         layer_of(module)
     wrong = upward_imports(graph)
     assert not wrong, "imports that point up the layers:\n" + "\n".join(wrong)
+
+
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 80
+
+
+def long_parts(source: str, name: str) -> list[str]:
+    """What in one module's ``source`` is over the limits: the module over MAX_MODULE_LINES lines,
+    any function (nested ones too) over MAX_FUNCTION_LINES, docstring included."""
+    found = [f"{name}: {len(source.splitlines())} lines"] if len(source.splitlines()) > MAX_MODULE_LINES else []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            lines = node.end_lineno - node.lineno + 1
+            if lines > MAX_FUNCTION_LINES:
+                found.append(f"{name}.{node.name}: {lines} lines")
+    return found
+
+
+def test_long_parts_can_fail():
+    body = "\n".join(f"    x{i} = {i}" for i in range(MAX_FUNCTION_LINES))
+    assert long_parts(f"def f():\n{body}\n", "m") == [f"m.f: {MAX_FUNCTION_LINES + 1} lines"]
+    assert long_parts("x = 1\n" * (MAX_MODULE_LINES + 1), "m") == [f"m: {MAX_MODULE_LINES + 1} lines"]
+
+
+def test_no_module_over_600_lines_and_no_function_over_80():
+    found = [part for path in sorted(PACKAGE.rglob("*.py")) for part in long_parts(path.read_text(), _module_name(path))]
+    assert not found, found

@@ -125,7 +125,7 @@ def test_every_weight_zero_resets_to_uniform_and_reports_it(room_map, monkeypatc
 
     from jaxslam.proposals import PROPOSALS, Proposal
 
-    monkeypatch.setitem(PROPOSALS, "op", Proposal(hopeless, False, "test"))
+    monkeypatch.setitem(PROPOSALS, "op", Proposal(hopeless, "test"))
     state = _state(room_map, pose, np.full(N, -math.log(N)))
     # A config no other test traces (jit caches traces per function and static config).
     config = dataclasses.replace(CONFIG, proposal="op", match_iterations=1)

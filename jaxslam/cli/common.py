@@ -11,7 +11,7 @@ from pathlib import Path
 
 from jaxslam.config import ConfigError, build_setup, default_values
 from jaxslam.io.files import OutputError, check_output_folder
-from jaxslam.proposals import PROPOSALS
+from jaxslam.proposals import PROPOSALS, proposal_flags
 
 
 SEED_LIMIT = 2**32
@@ -42,9 +42,15 @@ def _check_filter_args(args: argparse.Namespace) -> None:
     check_seed(args.seed)
     _check_at_least("--chunk-size", args.chunk_size, 1, "steps per compiled chunk")
     _check_at_least("--particles", args.particles, 1, "SLAM particles")
-    _check_at_least("--localizers", args.localizers, 1, "localizer particles per SLAM particle")
-    _check_at_least("--horizon", args.horizon, 0, "look-ahead scans")
+    for flag in proposal_flags().values():
+        if flag.minimum is not None:
+            _check_at_least(flag.flag, getattr(args, _dest(flag)), flag.minimum, flag.help)
     _check_at_least("--checkpoint-every", getattr(args, "checkpoint_every", None), 1, "chunks between checkpoints")
+
+
+def _dest(flag) -> str:
+    """The argparse attribute of a proposal's flag (``--localizers`` -> ``localizers``)."""
+    return flag.flag.lstrip("-").replace("-", "_")
 
 
 def _check_out_folder(out) -> None:
@@ -90,11 +96,8 @@ def build_setup_from_args(args: argparse.Namespace, defaults: dict | None = None
     values = dict(defaults or {})
     if getattr(args, "config", None):
         values.update(read_config_file(args.config))
-    flags = {
-        "proposal": args.proposal, "num_particles": args.particles,
-        "num_localizers": getattr(args, "localizers", None), "horizon": getattr(args, "horizon", None),
-        "lookahead.alpha": getattr(args, "alpha", None),
-    }
+    flags = {"proposal": args.proposal, "num_particles": args.particles,
+             **{flag.name: getattr(args, _dest(flag), None) for flag in proposal_flags().values()}}
     values.update({k: v for k, v in flags.items() if v is not None})
     values.update(parse_assignments(args.set or []))
     return build_setup(values)
@@ -104,17 +107,13 @@ def _add_filter_options(p: argparse.ArgumentParser, command_defaults: dict, prop
     d = {**default_values(), **command_defaults}
     kinds = "; ".join(f"{name}: {proposal.summary}" for name, proposal in PROPOSALS.items())
     p.add_argument("--proposal", choices=list(PROPOSALS), default=None,
-                   help=f"proposal distribution ({kinds}; the look-ahead's localizers start round the scan "
-                        f"match, --set lookahead_initial=odometry: the paper's, from the motion model) "
-                        f"(default {d['proposal']}{proposal_note})")
+                   help=f"proposal distribution ({kinds}) (default {d['proposal']}{proposal_note})")
     p.add_argument("--particles", type=int, default=None,
                    help=f"number of SLAM particles N (default {d['num_particles']})")
-    p.add_argument("--localizers", type=int, default=None,
-                   help=f"LP: localizer particles L per SLAM particle (default {d['num_localizers']})")
-    p.add_argument("--horizon", type=int, default=None,
-                   help=f"LP: look-ahead horizon k, in processed scans (default {d['horizon']})")
-    p.add_argument("--alpha", type=float, default=None,
-                   help=f"LP: defensive share in [0, 1), 0 = the paper's Eq. 10 (default {d['lookahead.alpha']:g})")
+    owners = {flag.flag: name for name, proposal in PROPOSALS.items() for flag in proposal.flags}
+    for flag in proposal_flags().values():  # each proposal's own flags, from its row
+        p.add_argument(flag.flag, type=flag.type, default=None,
+                       help=f"{owners[flag.flag].upper()}: {flag.help} (default {d[flag.name]:g})")
     p.add_argument("--seed", type=int, default=0,
                    help="random seed in [0, 2**32) (runs reproduce bit for bit) (default 0)")
     p.add_argument("--config", help="JSON file {\"config\": {...}, \"params\": {...}}")
@@ -142,10 +141,12 @@ def _add_filter_options(p: argparse.ArgumentParser, command_defaults: dict, prop
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT.checkpoint.npz; it must be of the same log, seed, config, parameters "
                         "and --chunk-size (else refused); the outputs are those of an uninterrupted run")
+    own = "; ".join(f"{name.upper()}: " + ", ".join(f"{s.name} = {s.default}" for s in proposal.settings)
+                    for name, proposal in PROPOSALS.items() if proposal.settings)
     p.epilog = (f"Defaults: --proposal {d['proposal']}, {d['num_particles']} particles; a scan is processed after "
                 f"{d['linear_update']:g} m or {d['angular_update']:g} rad of odometry (--set linear_update=..., "
-                f"--set angular_update=...); the LP's L = {d['num_localizers']} localizers, horizon k = "
-                f"{d['horizon']}, alpha = {d['lookahead.alpha']:g}. Compilations are cached in "
+                f"--set angular_update=...); the proposals' own settings (--set NAME=VALUE): {own}. "
+                f"Compilations are cached in "
                 f"$JAXSLAM_CACHE_DIR (default $XDG_CACHE_HOME/jaxslam/jax or ~/.cache/jaxslam/jax; "
                 f"JAXSLAM_CACHE_DIR=off or --no-cache: no cache).")
 

@@ -5,6 +5,7 @@ resumable, stopped at a chunk boundary by Ctrl-C or SIGTERM) and its outputs
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 
@@ -20,6 +21,7 @@ from jaxslam.io import read_log
 from jaxslam.io.files import OutputError, check_free_space
 from jaxslam.io.rosbag import check_laser_pose
 from jaxslam.laserlog import check_log
+from jaxslam.proposals import PROPOSALS
 from jaxslam.outputs import expected_output_bytes, write_slam_outputs
 from jaxslam.laserlog import grid_to_world
 from jaxslam.rbpf import check_config_for_log, first_scan_tiles, prepare
@@ -87,26 +89,46 @@ def _format_gb(nbytes: float) -> str:
     return f"{gb:.0f}" if gb >= 10 else f"{gb:.1f}"
 
 
-def _check_memory(log, config, settings, params) -> None:
+def _check_memory(log, config, settings, params):
     """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.resources.estimate_run_bytes`)
     exceeds the machine's available memory; skipped where that cannot be read. The first pools
-    grow with the first scan's footprint (:func:`jaxslam.rbpf.pool_size`): where even the widest
-    footprint (the insertion's whole window) fits, that is enough; otherwise this log's first scan
-    is measured (one particle's insertion), so that a wide first scan at large N is refused here
-    rather than running out of memory in the run."""
+    grow with the first scan's footprint (:func:`jaxslam.rbpf.pool_size`). Where even the
+    smallest footprint (one tile) does not fit, the run is refused at once (no work: a huge
+    ``max_insert_range`` is refused here in milliseconds); where the widest (the insertion's whole
+    window) fits, that is enough; otherwise this log's first scan is measured (one particle's
+    insertion), so that a wide first scan at large N is refused here rather than running out of
+    memory in the run. Returns :func:`jaxslam.rbpf.prepare`'s output where it prepared the log (the
+    run then takes it, so the log is prepared once), else None."""
     available = available_memory_bytes()
     if available is None:
-        return
-    widest = config.grid.window_tiles(config.max_insert_range, config.field_radius) ** 2
-    need, how = estimate_run_bytes(config, log.num_beams, widest)
+        return None
+    prepared = None
+    need, how = estimate_run_bytes(config, log.num_beams, 1)
+    if need <= available:
+        widest = config.grid.window_tiles(config.max_insert_range, config.field_radius) ** 2
+        need, how = estimate_run_bytes(config, log.num_beams, widest)
+        if need > available:
+            prepared = prepare(log, config, settings)
+            need, how = estimate_run_bytes(config, log.num_beams, first_scan_tiles(prepared[0], params, config))
     if need > available:
-        prepared, _, _ = prepare(log, config, settings)
-        need, how = estimate_run_bytes(config, log.num_beams, first_scan_tiles(prepared, params, config))
-    if need > available:
-        lp = ", --localizers" if config.lookahead_steps else ""
+        lp = "".join(f", {flag.flag}" for flag in _memory_flags(config, log.num_beams))
         raise ConfigError(f"the run needs about {_format_gb(need)} GB ({how}) but {_format_gb(available)} GB are "
                           f"available; lower --particles{lp}, or a smaller --set map_extent=... (m), or a "
                           f"coarser --set resolution=... (m)")
+    return prepared
+
+
+def _memory_flags(config, num_beams: int) -> list:
+    """The proposal's int flags whose setting, halved, lowers the memory its row estimates."""
+    proposal = PROPOSALS[config.proposal]
+    need, _ = proposal.memory_fn(config, num_beams)
+    out = []
+    for flag in proposal.flags:
+        if flag.type is int and "." not in flag.name:
+            halved = dataclasses.replace(config, **{flag.name: max(getattr(config, flag.name) // 2, flag.minimum or 0)})
+            if proposal.memory_fn(halved, num_beams)[0] < need:
+                out.append(flag)
+    return out
 
 
 def _check_disk(log, config, settings, out, checkpoints: bool) -> None:
@@ -123,7 +145,7 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     config, settings, params = setup
 
     check_config_for_log(log, config)
-    _check_memory(log, config, settings, params)
+    prepared = _check_memory(log, config, settings, params)
     _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
     ckpt = checkpoint_path(args.out)
     identity = _run_identity(args, log, setup, source)
@@ -146,7 +168,8 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
 
             close = None if getattr(args, "no_close_loops", False) else ClosureConfig()
             result = run(jax.random.key(args.seed), log, config, params, settings, chunk_size=args.chunk_size,
-                         progress=not args.no_progress, on_chunk=on_chunk, resume=resume, close_loops=close)
+                         progress=not args.no_progress, on_chunk=on_chunk, resume=resume, close_loops=close,
+                         prepared=prepared)
         except RunInterrupted as err:
             print(f"jaxslam {args.command}: interrupted at step {err.steps_done} of {err.num_steps} "
                   f"(checkpoint {ckpt}); resume with --resume", file=sys.stderr)

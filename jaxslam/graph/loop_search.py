@@ -75,6 +75,19 @@ def _read(grid: jax.Array, rows: jax.Array, cols: jax.Array) -> jax.Array:
     return jnp.where(inside, grid[jnp.clip(rows, 0, h - 1), jnp.clip(cols, 0, w - 1)], 0).astype(jnp.int32)
 
 
+def _scan_cells(points: jax.Array, guess: jax.Array, resolution: float, half_theta: jax.Array,
+                window: SearchWindow) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The window's A headings round ``guess[2]`` (A,), which lie within ``half_theta`` (A,), and
+    the scan's (P, 2) points at each heading from ``guess``'s position as (row, col) cells (A, P, 2)."""
+    steps = jnp.arange(-window.half_angles, window.half_angles + 1)
+    angles = guess[2] + steps * window.angular_step
+    angle_ok = jnp.abs(steps * window.angular_step) <= half_theta
+    c, s = jnp.cos(angles)[:, None], jnp.sin(angles)[:, None]
+    x = guess[0] + c * points[None, :, 0] - s * points[None, :, 1]
+    y = guess[1] + s * points[None, :, 0] + c * points[None, :, 1]
+    return angles, angle_ok, jnp.stack([jnp.floor(y / resolution), jnp.floor(x / resolution)], -1).astype(jnp.int32)
+
+
 def search_one(fit: jax.Array, bounds: tuple[jax.Array, ...], resolution: float, points: jax.Array,
                valid: jax.Array, guess: jax.Array, half_cells: jax.Array, half_theta: jax.Array,
                window: SearchWindow) -> tuple[jax.Array, ...]:
@@ -98,13 +111,7 @@ def search_one(fit: jax.Array, bounds: tuple[jax.Array, ...], resolution: float,
     top = window.levels
     side = 2**top
     num_points = jnp.maximum(jnp.sum(valid), 1).astype(jnp.float32)
-    steps = jnp.arange(-window.half_angles, window.half_angles + 1)
-    angles = guess[2] + steps * window.angular_step
-    angle_ok = jnp.abs(steps * window.angular_step) <= half_theta
-    c, s = jnp.cos(angles)[:, None], jnp.sin(angles)[:, None]
-    x = guess[0] + c * points[None, :, 0] - s * points[None, :, 1]
-    y = guess[1] + s * points[None, :, 0] + c * points[None, :, 1]
-    cells = jnp.stack([jnp.floor(y / resolution), jnp.floor(x / resolution)], -1).astype(jnp.int32)  # (A, P, 2)
+    angles, angle_ok, cells = _scan_cells(points, guess, resolution, half_theta, window)
 
     def node_bounds(level, angle, corner):
         """Bounds (n,) of nodes (angle (n,), corner (n, 2) = (row, col) offset of the square)."""

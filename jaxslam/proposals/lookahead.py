@@ -88,7 +88,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import motion, resampling
-from jaxslam.proposals.base import ProposalOutput, StepInputs, step_params
+from jaxslam.proposals.base import Flag, ParamGroup, Proposal, ProposalOutput, Setting, StepInputs, step_params
 from jaxslam.laser import SensorSpec
 from jaxslam.map_view import MapView
 from jaxslam.sensor_model import SensorModel, sensor_model
@@ -520,3 +520,71 @@ def explain(
     poses_t, log_lik_t, draw, horizon, history = _propose_impl(
         key, pose, field, inputs, sensor, params, config, True, step_motion)
     return LookaheadExplanation(poses_t, log_lik_t, draw, horizon, history)
+
+
+class LookaheadParams(NamedTuple):
+    """Traced numbers of the look-ahead proposal (``params.lookahead``)."""
+
+    alpha: Float[Array, ""]
+    """Defensive share in [0, 1): 0 is the paper's Eq. 10; > 0 makes the weights unbiased."""
+    resample_threshold: Float[Array, ""]
+    """Localizers are resampled inside the horizon when their ESS < this * L."""
+    localizer_gain: Float[Array, ""]
+    """Likelihood gain inside the localizer filter (its weights a, g and so the selection).
+    1 uses each scan's own sharpness, as the SMP's fit does. The SLAM weight increment is
+    then scaled by ``likelihood.gain / localizer_gain`` (the tempered evidence), so setting
+    it equal to ``likelihood.gain`` tempers the localizers and leaves the increment as is."""
+    selection_correction: Float[Array, ""]
+    """Whether the SLAM weight keeps the selection correction: 1 or 0 (a switch, traced so that
+    changing it never recompiles). 1 (default) is the design's increment g_J - log L - log p_J,
+    unbiased for alpha > 0 but noisy, since it depends on which sample was drawn; 0 weighs every
+    SLAM particle by its evidence estimate log mean_i exp(g_i) alone, unbiased for every alpha
+    (the paper's 0 included) and independent of the draw, so the look-ahead then only chooses
+    the pose."""
+
+
+_SETTINGS = (
+    Setting("num_localizers", 100, lambda v: v >= 1, ">= 1",
+            "L, localizer particles per SLAM particle."),
+    Setting("horizon", 5, lambda v: v >= 0, ">= 0",
+            "k, the look-ahead horizon in processed scans (0: the LP's weights reduce to an average)."),
+    Setting("lookahead_initial", "scan_match", lambda v: v in ("odometry", "scan_match"),
+            "'odometry' or 'scan_match'",
+            """Where the LP draws its L time-t localizers: "scan_match" (the default: a Gaussian fitted
+    around each SLAM particle's scan-matched pose, importance-corrected; "LP-SM" in the docs) or
+    "odometry" (the motion model, as in the paper). Along a featureless corridor the paper's
+    localizers spread with the odometry and the particles inherit the spread; started from the
+    match they stay pinned to the map (the figures:
+    docs/notes/2026-11-25-robustness-table-and-the-library-lp.md)."""),
+)
+
+_PARAMS = ParamGroup("lookahead", LookaheadParams,
+                     {"alpha": 0.5, "resample_threshold": 0.5, "localizer_gain": 1.0, "selection_correction": 1.0},
+                     {"alpha": (lambda v: 0.0 <= v < 1.0, "in [0, 1)"),
+                      # Above 1 is allowed (ESS <= L): the localizers are then resampled at every step.
+                      "resample_threshold": (lambda v: v >= 0.0,
+                                             ">= 0 (a fraction of L: 0 never resamples, above 1 always)"),
+                      "localizer_gain": (lambda v: v > 0.0, "> 0"),
+                      "selection_correction": (lambda v: v in (0.0, 1.0),
+                                               "0 or 1 (keep the selection correction or not)")})
+
+
+def _memory(config, num_beams: int) -> tuple[int, str]:
+    """The localizers' beam terms: N x L x B float32 (B the beams used in likelihoods), twice."""
+    beams = -(-num_beams // config.beam_stride)
+    return (config.num_particles * config.num_localizers * beams * 4 * 2,
+            f"{config.num_particles} x {config.num_localizers} localizers x {beams} beams x 4 bytes x 2")
+
+
+PROPOSAL = Proposal(
+    propose,
+    "look-ahead: L localizers run k scans ahead in each particle's map (they start round the scan match; "
+    "--set lookahead_initial=odometry: the paper's, from the motion model)",
+    settings=_SETTINGS, params=_PARAMS,
+    flags=(Flag("--localizers", "num_localizers", int, "localizer particles L per SLAM particle", minimum=1),
+           Flag("--horizon", "horizon", int, "look-ahead horizon k, in processed scans", minimum=0),
+           Flag("--alpha", "lookahead.alpha", float, "defensive share in [0, 1), 0 = the paper's Eq. 10")),
+    future_scans_fn=lambda config: config.horizon,
+    searches_window_fn=lambda config: config.lookahead_initial == "scan_match",
+    memory_fn=_memory)
+"""The LP's row of :data:`jaxslam.proposals.PROPOSALS`."""

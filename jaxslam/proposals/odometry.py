@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jaxslam import motion
-from jaxslam.proposals.base import ProposalOutput, StepInputs, step_params
+from jaxslam.proposals.base import Proposal, ProposalOutput, StepInputs, step_params
 from jaxslam.map_view import MapView
 from jaxslam.sensor_model import sensor_model
 
@@ -22,3 +22,7 @@ def propose(key, pose, field, inputs: StepInputs, sensor, params, config, step_m
     log_lik = sensor_model(config).log_likelihoods_fn(MapView(config.grid, field), new_pose[None], inputs.ranges,
                                                       sensor, params.likelihood, config.likelihood_lookup)[0]
     return ProposalOutput(new_pose, log_lik + score_term, jnp.bool_(False))
+
+
+PROPOSAL = Proposal(propose, "odometry: the motion model")
+"""The OP's row of :data:`jaxslam.proposals.PROPOSALS`: no settings of its own."""

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from jaxslam import window_posterior
 from jaxslam.map_view import MapView
 from jaxslam.proposals import odometry
-from jaxslam.proposals.base import ProposalOutput, StepInputs, step_params
+from jaxslam.proposals.base import Proposal, ProposalOutput, Setting, StepInputs, step_params
 from jaxslam.sensor_model import sensor_model
 
 
@@ -61,3 +61,22 @@ def propose(key, pose, field, inputs: StepInputs, sensor, params, config, step_m
         fallback,
     )
 
+
+
+SMP_WEIGHT = Setting(
+    "smp_weight", "quadrature", lambda v: v in ("quadrature", "importance"), "'quadrature' or 'importance'",
+    """The SMP's log-weight increment. "quadrature" (the default, the published tables'): the log
+    of the window posterior's summed stencil masses, a Rao-Blackwellised estimate of
+    p(z_t | x_{t-1}, m, u_t) with little spread between particles, but a Riemann sum on the
+    stencil's spacing (``scan_match.linear_step``, ``angular_step``): where the posterior is much
+    narrower than that (accurate odometry, every scan an update) it overstates the evidence by
+    nats a step, and its gradient is not a score. "importance": the proper importance weight of
+    the drawn pose, log p(z_t | x_t, m)^gain + log p(x_t | x_{t-1}, u_t) - log q(x_t) with q the
+    window posterior's mixture, an unbiased estimate of the same quantity whose gradient is the
+    score of the drawn pose; what ``learning.slam_learning_setup`` sets (the figures:
+    docs/notes/2026-11-26-smp-weights-for-learning.md).""")
+
+PROPOSAL = Proposal(
+    propose, "scan matching (GMapping's proposal): a Gaussian round each mode of the window posterior",
+    settings=(SMP_WEIGHT,), searches_window_fn=lambda config: True)
+"""The SMP's row of :data:`jaxslam.proposals.PROPOSALS`."""
