@@ -275,6 +275,7 @@ def _run_cli_process(args, env_updates):
     from pathlib import Path
 
     env = dict(os.environ)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # the test session's cache (conftest): this test's is its own
     env.update(env_updates)
     repo = str(Path(__file__).resolve().parents[1])  # this checkout's jaxslam, not an installed one
     env["PYTHONPATH"] = os.pathsep.join([repo, env["PYTHONPATH"]]) if env.get("PYTHONPATH") else repo
