@@ -129,14 +129,14 @@ def test_the_filter_layer_imports_no_reader_output_or_host_driver():
 LAYERS: dict[str, int] = {
     # 0 base
     "geometry": 0, "warn": 0, "computed_once": 0, "compile_cache": 0, "grid": 0, "laser": 0,
-    "binary_bayes": 0, "resampling": 0, "segment_map": 0, "proposals.base": 0, "sim.world": 0,
+    "binary_bayes": 0, "resampling": 0, "segment_map": 0, "proposals.base": 0, "sim.world": 0, "checks": 0,
     # 1 data
     "laserlog": 1, "io": 1, "metrics": 1,
     # 2 models
     "motion": 2, "occupancy": 2, "maps": 2, "map_view": 2, "likelihood_field": 2, "sensor_model": 2,
     "window_posterior": 2, "scan_matching": 2, "particle_filter": 2, "localization.beam_model": 2,
     # 3 filters
-    "proposals": 3, "config": 3, "slip_search": 3, "rbpf": 3, "learning": 3, "localization.mcl": 3, "localization.doors": 3,
+    "proposals": 3, "params": 3, "config": 3, "slip_search": 3, "rbpf": 3, "learning": 3, "localization.mcl": 3, "localization.doors": 3,
     "localization": 3,
     # 4 runs
     "driver": 4, "slam": 4, "checkpoint": 4, "refine": 4, "islands": 4, "graph": 4, "resources": 4, "sim": 4,
