@@ -256,11 +256,14 @@ def test_every_numeric_setting_has_a_range_checked_before_any_arithmetic():
     (-1, and 0 where it must be positive) with a ConfigError naming it, never another error."""
     import dataclasses
 
-    from jaxslam.config import _DEFAULTS, _PARAM_RANGES, RunSettings, SlamConfig
+    from jaxslam.config import RunSettings, SlamConfig, param_defaults, param_ranges
+    from jaxslam.proposals import proposal_settings
 
-    assert set(_PARAM_RANGES) == set(_DEFAULTS)
+    assert set(param_ranges()) == set(param_defaults())
     numeric = [f.name for cls in (SlamConfig, RunSettings) for f in dataclasses.fields(cls)
                if type(f.default) in (int, float)]
+    numeric += [name for name, setting in proposal_settings().items() if type(setting.default) in (int, float)]
+    assert {"num_localizers", "horizon"} <= set(numeric)  # the proposals' own settings too
     positive = {"num_particles", "resolution", "map_extent", "tile_size", "max_insert_range", "field_radius",
                 "beam_stride", "num_localizers"}
     for name in numeric:
