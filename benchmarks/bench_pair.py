@@ -22,6 +22,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 _RUN = """
 import json, sys
 import numpy as np, jax
@@ -71,14 +73,9 @@ def main(argv=None) -> int:
                 runs[which].append(timings)
                 print(f"round {round_ + 1} {'AB'[which]}: {timings['total'] - timings['compile']:.1f} s after the "
                       f"first chunk, first chunk {timings['compile']:.1f} s", flush=True)
-        import numpy as np
-
         same = bool(np.array_equal(np.load(paths[0]), np.load(paths[1])))
 
-    def median(values):
-        return float(np.median(values))
-
-    steady = [median([t["total"] - t["compile"] for t in runs[w]]) for w in (0, 1)]
+    steady = [float(np.median([t["total"] - t["compile"] for t in runs[w]])) for w in (0, 1)]
     report = {"trees": [str(t) for t in trees], "log": args.log, "scans": args.scans, "proposal": args.proposal,
               "particles": args.particles, "seed": args.seed, "runs": runs,
               "steady_median_s": steady, "ratio_b_over_a": steady[1] / steady[0], "trajectories_equal": same}

@@ -93,8 +93,8 @@ def _check_memory(log, config, settings, params):
     """Refuse (``ConfigError``) a run whose estimated memory (:func:`jaxslam.resources.estimate_run_bytes`)
     exceeds the machine's available memory; skipped where that cannot be read. The first pools
     grow with the first scan's footprint (:func:`jaxslam.rbpf.pool_size`). Where even the
-    smallest footprint (one tile) does not fit, the run is refused at once (no work: a huge
-    ``max_insert_range`` is refused here in milliseconds); where the widest (the insertion's whole
+    smallest footprint (one tile) does not fit, the run is refused at once (no preparation, no
+    compilation: a huge ``max_insert_range`` is refused on the estimate alone); where the widest (the insertion's whole
     window) fits, that is enough; otherwise this log's first scan is measured (one particle's
     insertion), so that a wide first scan at large N is refused here rather than running out of
     memory in the run. Returns :func:`jaxslam.rbpf.prepare`'s output where it prepared the log (the
