@@ -34,7 +34,8 @@ from pathlib import Path
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--proposal", nargs="+", default=["op", "smp", "lp"], choices=["op", "smp", "lp"])
+    parser.add_argument("--proposal", nargs="+", default=["op", "smp", "lp"],
+                        help="registered proposals (jaxslam.proposals.PROPOSALS)")
     parser.add_argument("--particles", type=int, default=20)
     parser.add_argument("--scans", type=int, default=200, help="scans of the simulated office")
     parser.add_argument("--repeats", type=int, default=3)

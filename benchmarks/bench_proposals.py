@@ -68,7 +68,8 @@ def pose_evaluations(config) -> int:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--proposal", nargs="+", default=["smp", "lp"], choices=["op", "smp", "lp"])
+    parser.add_argument("--proposal", nargs="+", default=["smp", "lp"],
+                        help="registered proposals (jaxslam.proposals.PROPOSALS)")
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--scans", type=int, default=120, help="scans of the simulated office")
     parser.add_argument("--repeats", type=int, default=3)

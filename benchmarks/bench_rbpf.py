@@ -30,7 +30,7 @@ GMAPPING_INTEL = {"wall_s": 81.5, "scans_processed": 1051, "real_time_factor": 3
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--log", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "intel.sort.bag"))
-    parser.add_argument("--proposal", default="smp", choices=["op", "smp", "lp"])
+    parser.add_argument("--proposal", default="smp", help="a registered proposal (jaxslam.proposals.PROPOSALS)")
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")

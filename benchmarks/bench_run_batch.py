@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=4, help="runs R (seeds 0 .. R-1)")
     parser.add_argument("--log", default=None, help="a log file (default: the simulated office, --max-scans scans)")
     parser.add_argument("--max-scans", type=int, default=300)
-    parser.add_argument("--proposal", default="smp", choices=["op", "smp", "lp"])
+    parser.add_argument("--proposal", default="smp", help="a registered proposal (jaxslam.proposals.PROPOSALS)")
     parser.add_argument("--particles", type=int, default=30)
     parser.add_argument("--out", default="results/bench_run_batch.json")
     args = parser.parse_args(argv)

@@ -1,14 +1,14 @@
 """The maps' pools grown as a run needs them: the growth policy, and the chunk function that
-drives :func:`jaxslam.slam.run` and :func:`jaxslam.slam.run_batch`.
+drives :func:`jaxslam.slam.run`, :func:`jaxslam.slam.run_batch` and :func:`jaxslam.island_runs.run`.
 
 A run's pools (:class:`~jaxslam.maps.PagedMaps`) start at a guess. A step that needs more room
 than they have is not taken, nor is any step after it (the state stays the one before it:
-``SlamInfo.pool_overflow``). Both ``run`` (one run) and ``run_batch`` (R runs over a device
-mesh) step their runs with :func:`growing_chunks` in :func:`jaxslam.driver.run_in_chunks`:
-after a chunk in which a run's step s did not fit, it keeps each run's steps before its stall,
-grows every run's pools (:func:`grow_pools`, the one policy; :func:`larger_pool_for` sizes them)
-and takes each run's chunk again from its own stalled step (a run that did not stall takes
-no-op steps). The steps' keys are fixed and the pools' size never changes a result, so a run
+``SlamInfo.pool_overflow``). ``run`` (one run), ``run_batch`` (R runs over a device mesh) and
+:func:`jaxslam.island_runs.run` (the island filter as one run) step their runs with
+:func:`growing_chunks` in :func:`jaxslam.driver.run_in_chunks`: after a chunk in which a run's
+step s did not fit, it keeps each run's steps before its stall, grows every run's pools
+(:func:`grow_pools`, the one policy; :func:`larger_pool_for` sizes them) and takes each run's
+chunk again from its own stalled step (a run that did not stall takes no-op steps). The steps' keys are fixed and the pools' size never changes a result, so a run
 that grew is bit for bit the run that started in pools large enough.
 """
 

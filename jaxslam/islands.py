@@ -29,6 +29,8 @@ rounding). A step's cross-device traffic is one all-gather of a few floats per i
 ``lax.cond`` on the (replicated) island draw, so that a step without exchange moves no map.
 One device is the same code, with one island per step key when I = 1
 (:func:`filter` with ``num_islands=1`` is :func:`jaxslam.rbpf.filter` bit for bit).
+:func:`filter` runs in pools of a fixed size; :func:`jaxslam.island_runs.run` runs the same
+filter chunk by chunk on the package's driver, growing the pools as they fill.
 
 Keys: the step's key (split from ``filter``'s key as :func:`jaxslam.rbpf.filter` does) gives
 island g the key ``fold_in(key_t, g)`` (the step key itself when I = 1) and the island draw
@@ -99,8 +101,9 @@ class IslandInfo(NamedTuple):
     degenerate: Bool[Array, ""]
     """Every island got weight zero; the island weights were reset to uniform."""
     pool_overflow: Bool[Array, ""]
-    """Some island's pools could not hold its tiles (that island's step was not taken; the
-    flag is sticky, and :func:`filter` reports ``marginal_loglik = -inf``)."""
+    """Some island's pools could not hold its tiles: no island took the step (the flag is
+    sticky; :func:`filter` then reports ``marginal_loglik = -inf``, and
+    :func:`jaxslam.island_runs.run` grows the pools and takes the step again)."""
 
 
 def island_config(config: SlamConfig, num_islands: int) -> SlamConfig:
@@ -149,7 +152,7 @@ def island_keys(key: PRNGKeyArray, island_index: Int[Array, "L"], num_islands: i
 
 def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: SensorSpec, params: SlamParams,
          config: SlamConfig, island_threshold: Float[Array, ""] | float = 0.5, axis_name: str | None = None,
-         batch_islands: bool = False) -> tuple[IslandState, IslandInfo]:
+         batch_islands: bool = False, valid: Bool[Array, ""] | bool = True) -> tuple[IslandState, IslandInfo]:
     """One island step: every island takes :func:`jaxslam.rbpf.step_with_score_terms` with its
     own key, the island weights take the islands' evidence and are normalised over all islands,
     and when their ESS < ``island_threshold`` x I the islands are resampled as wholes (see the
@@ -164,6 +167,13 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
     ``batch_islands`` (static): step the device's islands as one ``vmap`` rather than one after
     the other (``lax.map``); faster where the islands are small, but the device count then
     changes the last bits of the evidence (benchmarks/bench_islands.py).
+
+    The step is taken by all islands or by none, as :func:`jaxslam.rbpf.step` is by all
+    particles or none: not when ``valid`` is False (a padding step), nor when some island's
+    pools could not hold its tiles. A step not taken changes no island and no island weight,
+    adds no evidence, and sets every island's (sticky) ``maps.overflow`` where some island's
+    pools overflowed, so that no later step is taken either: grow the pools and take the steps
+    again from it (:func:`jaxslam.island_runs.run` does).
     """
     num_islands = state.log_weights.shape[0]
     num_local = state.islands.log_weights.shape[0]
@@ -174,7 +184,7 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
     keys, key_draw = island_keys(key, local_index, num_islands)
 
     def island_step(k, s):
-        return rbpf.step_with_score_terms(k, s, inputs, sensor, params, one)
+        return rbpf.step_with_score_terms(k, s, inputs, sensor, params, one, valid)
 
     # By default one island at a time (a loop): every island is then the same unbatched program
     # whatever the device's island count, so that the device count changes no bit, and one
@@ -188,16 +198,15 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
     else:
         islands, infos, terms = jax.lax.map(lambda args: island_step(*args), (keys, state.islands))
 
-    # The islands' few floats, from every device: evidence, ESS, best particle and its pose, overflow.
-    best_local = jnp.argmax(terms.log_weights, axis=1)
-    best_pose = jnp.take_along_axis(infos.proposed_poses, best_local[:, None, None], axis=1)[:, 0]
-    summary = jnp.concatenate([infos.log_evidence[:, None], infos.ess[:, None],
-                               jnp.max(terms.log_weights, axis=1)[:, None], best_pose,
-                               best_local[:, None].astype(jnp.float32),
-                               islands.maps.overflow[:, None].astype(jnp.float32)], axis=1)  # (L, 8)
-    if axis_name is not None:
-        summary = jax.lax.all_gather(summary, axis_name, tiled=True)  # (I, 8)
+    summary = _summary(islands, infos, terms, axis_name)
     increments, ess_islands, best_log_weight = summary[:, 0], summary[:, 1], summary[:, 2]
+    overflow = jnp.any(summary[:, 7] > 0)
+    taken = jnp.asarray(valid, bool) & ~overflow
+    # A step not taken moves no island weight (increments 0) and draws no island (threshold 0).
+    increments = jnp.where(taken, increments, 0.0)
+    island_threshold = jnp.where(taken, jnp.asarray(island_threshold, jnp.float32), 0.0)
+    # Islands whose pools held the step took it; where another's did not, they go back (all or none).
+    islands = jax.lax.cond(overflow, lambda: _stalled(state.islands, islands), lambda: islands)
 
     ancestors, new_log_weights, update = resample_islands(key_draw, state.log_weights, increments, island_threshold,
                                                           config.resampler)
@@ -217,9 +226,33 @@ def step(key: PRNGKeyArray, state: IslandState, inputs: StepInputs, sensor: Sens
         best_particle=best_island * one.num_particles + summary[best_island, 6].astype(jnp.int32),
         best_pose=summary[best_island, 3:6],
         degenerate=update.degenerate,
-        pool_overflow=jnp.any(summary[:, 7] > 0),
+        pool_overflow=overflow,
     )
     return IslandState(islands, new_log_weights), info
+
+
+def _summary(islands: rbpf.SlamState, infos: rbpf.SlamInfo, terms: particle_filter.ScoreTerms,
+             axis_name: str | None) -> Float[Array, "I 8"]:
+    """The islands' few floats after their steps, from every device: evidence, ESS, largest
+    log-weight, that particle's pose and index, pools' overflow (columns 0, 1, 2, 3-5, 6, 7)."""
+    best_local = jnp.argmax(terms.log_weights, axis=1)
+    best_pose = jnp.take_along_axis(infos.proposed_poses, best_local[:, None, None], axis=1)[:, 0]
+    summary = jnp.concatenate([infos.log_evidence[:, None], infos.ess[:, None],
+                               jnp.max(terms.log_weights, axis=1)[:, None], best_pose,
+                               best_local[:, None].astype(jnp.float32),
+                               islands.maps.overflow[:, None].astype(jnp.float32)], axis=1)  # (L, 8)
+    if axis_name is not None:
+        summary = jax.lax.all_gather(summary, axis_name, tiled=True)  # (I, 8)
+    return summary
+
+
+def _stalled(before: rbpf.SlamState, stepped: rbpf.SlamState) -> rbpf.SlamState:
+    """The islands ``before`` a step some island's pools could not hold, each with its pools'
+    (sticky) overflow flag set and the largest requests seen by the step (``stepped``'s: they
+    size the grown pools, :func:`jaxslam.growth.larger_pool_for`)."""
+    maps = before.maps._replace(overflow=jnp.ones_like(before.maps.overflow), peak_request=stepped.maps.peak_request,
+                                peak_block_request=stepped.maps.peak_block_request)
+    return before._replace(maps=maps)
 
 
 def resample_islands(key: PRNGKeyArray, log_weights: Float[Array, "I"], increments: Float[Array, "I"],

@@ -223,3 +223,55 @@ def test_bad_island_and_device_counts_are_refused_before_any_work(prepared):
         islands.filter(jax.random.key(0), prepared, default_params(), CONFIG, 4, 4)
     with pytest.raises(ConfigError, match="score_lag"):
         islands.filter(jax.random.key(0), prepared, default_params(), dataclasses.replace(CONFIG, score_lag=2), 4)
+
+
+def test_the_driver_grows_the_islands_pools_and_draws_the_filters_particles(prepared, four_islands):
+    """island_runs.run from pools far too small: the pools grow (a chunk taken again from the
+    step that did not fit, by all islands), and the particles, weights, maps and island draws are
+    islands.filter's bit for bit. The evidence is summed by another program (chunks, not one
+    scan), so it agrees to float32 rounding."""
+    from jaxslam import island_runs
+    from jaxslam.maps import PoolSize
+
+    ref = four_islands(jax.random.key(1))
+    out = island_runs.run(jax.random.key(1), prepared, default_params(), CONFIG, 4, 1, ISLAND_THRESHOLD,
+                          chunk_size=8, initial_pool=PoolSize(64, 16, 16, 4))
+    assert len(out.growths) >= 2 and out.growths[-1]["capacity"] > 64
+    assert np.asarray(out.info.exchanged).any()
+    same = _leaves((ref.state.islands.poses, ref.state.islands.log_weights, ref.state.log_weights,
+                    ref.info.island_ancestors, ref.info.islands.ancestors, ref.info.best_pose))
+    got = _leaves((out.state.islands.poses, out.state.islands.log_weights, out.state.log_weights,
+                   out.info.island_ancestors, out.info.islands.ancestors, out.info.best_pose))
+    for name, value in same.items():
+        np.testing.assert_array_equal(got[name], value, err_msg=name)
+    for got_map, ref_map in zip(_dense(out.state), _dense(ref.state), strict=True):
+        np.testing.assert_array_equal(got_map, ref_map)
+    np.testing.assert_allclose(out.info.log_evidence, ref.info.log_evidence, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(out.marginal_loglik, float(ref.marginal_loglik), rtol=1e-5)
+    assert not np.asarray(out.state.islands.maps.overflow).any()
+
+
+def test_an_island_step_is_taken_by_all_islands_or_none(prepared):
+    """One island's pools full, the others' not: no island moves, no island weight changes, the
+    step adds no evidence, and every island's overflow is set (so the next steps wait too)."""
+    state = islands.init(jax.random.key(0), jnp.asarray(prepared.first_ranges), prepared.sensor, default_params(),
+                         CONFIG, 4, jnp.asarray(prepared.initial_pose))
+    full = state.islands.maps.overflow.at[2].set(True)
+    state = state._replace(islands=state.islands._replace(maps=state.islands.maps._replace(overflow=full)))
+    inputs = jax.tree.map(lambda a: jnp.asarray(a[0]), prepared.inputs)
+    new, info = jax.jit(lambda k, s: islands.step(k, s, inputs, prepared.sensor, default_params(), CONFIG,
+                                                  ISLAND_THRESHOLD))(jax.random.key(1), state)
+    assert bool(info.pool_overflow) and float(info.log_evidence) == 0.0
+    assert np.asarray(new.islands.maps.overflow).all()
+    np.testing.assert_array_equal(np.asarray(new.islands.poses), np.asarray(state.islands.poses))
+    np.testing.assert_array_equal(np.asarray(new.log_weights), np.asarray(state.log_weights))
+    np.testing.assert_array_equal(np.asarray(new.islands.maps.logodds), np.asarray(state.islands.maps.logodds))
+    assert not bool(info.exchanged)
+
+
+def _dense(state: islands.IslandState) -> list[np.ndarray]:
+    """Every island's particles' maps as dense log-odds, island by island (whatever the pools'
+    sizes and the tiles' slots in them)."""
+    maps = jax.tree.map(np.asarray, state.islands.maps)
+    return [paged.to_dense(CONFIG.grid, jax.tree.map(lambda a: a[g], maps), n)[0]
+            for g in range(maps.directory.shape[0]) for n in range(maps.directory.shape[1])]

@@ -139,7 +139,8 @@ LAYERS: dict[str, int] = {
     "proposals": 3, "params": 3, "config": 3, "slip_search": 3, "rbpf": 3, "learning": 3, "localization.mcl": 3, "localization.doors": 3,
     "localization": 3,
     # 4 runs
-    "driver": 4, "slam": 4, "checkpoint": 4, "refine": 4, "islands": 4, "graph": 4, "resources": 4, "sim": 4,
+    "driver": 4, "slam": 4, "checkpoint": 4, "refine": 4, "islands": 4, "island_runs": 4, "graph": 4, "resources": 4,
+    "sim": 4,
     "diagnose": 4, "growth": 4,
     # 5 front
     "outputs": 5, "plotting": 5, "localization.plotting": 5, "cli": 5, "": 5,
