@@ -141,6 +141,11 @@ def failure_cause(run: dict, success_ra: float) -> str | None:
 def run_world(cell: dict, seed: int, world: dict, max_laps: int | None = None, progress: bool = False) -> dict:
     """One run of a cell (a ``box_world`` cell record with its method's name) on world ``seed``: its
     record, ``box_world.score_run``'s fields with :func:`closure_then`'s and ``cause`` added."""
+    return run_world_result(cell, seed, world, max_laps, progress)[0]
+
+
+def run_world_result(cell: dict, seed: int, world: dict, max_laps: int | None = None, progress: bool = False):
+    """:func:`run_world`, returning ``(record, slam result, scenario, filter params)``."""
     draw = world_draw(seed, max_laps)
     simulation_key, filter_key = world_keys(seed)
     scenario = box_family.family_scenario(draw, simulation_key)
@@ -150,7 +155,7 @@ def run_world(cell: dict, seed: int, world: dict, max_laps: int | None = None, p
     run = box_world.score_run(seed, result, scenario, world, time.perf_counter() - t0)
     run.update(closure_then(result, scenario, world))
     run["cause"] = failure_cause(run, world["success_ra"])
-    return run
+    return run, result, scenario, params
 
 
 # ----------------------------------------------------------------------------- summaries
@@ -293,6 +298,23 @@ def parse_args(argv):
     return ap.parse_args(argv)
 
 
+def family_cells(exp: dict, methods: list[str], particles: list[int], assignments: dict) -> list[dict]:
+    """The cells (``box_world`` cell records with their method's name) of ``methods`` x ``particles``
+    at the json's "defaults" table's settings, ``assignments`` (``--set``) over them."""
+    table = exp["tables"][SETTINGS_TABLE]
+    # One insertion range for every world (the module's doc): one compile per cell.
+    insert_range = box_family.RANGE_MAX_RANGE[1] + exp["insert_range_margin"]
+    overrides = {**table.get("set", {}), "max_insert_range": insert_range, **assignments}
+    return [{"method": name, **box_world.cell_record(box_world.method_settings(exp, name, overrides), n, 1.0)}
+            for n in particles for name in methods]
+
+
+def family_world_settings(exp: dict, family: str, max_laps: int | None) -> dict:
+    """The runs' shared settings (``box_world.world_settings`` with the family's name and version)."""
+    return {**box_world.world_settings(exp, {}), "family": family, "family_version": box_family.FAMILY_VERSION,
+            "max_laps": max_laps}
+
+
 def check_args(args) -> None:
     """Refuse bad input before any work (ValueError naming the problem)."""
     if args.family == "test" and not args.choice_made:
@@ -327,14 +349,8 @@ def main(argv=None) -> int:
         unknown = [m for m in args.methods if m not in exp["methods"]]
         if unknown:
             raise ConfigError(f"unknown methods {unknown}; known: {list(exp['methods'])}")
-        table = exp["tables"][SETTINGS_TABLE]
-        # One insertion range for every world (the module's doc): one compile per cell.
-        insert_range = box_family.RANGE_MAX_RANGE[1] + exp["insert_range_margin"]
-        overrides = {**table.get("set", {}), "max_insert_range": insert_range, **parse_assignments(args.set)}
-        cells = [{"method": name, **box_world.cell_record(box_world.method_settings(exp, name, overrides), n, 1.0)}
-                 for n in args.particles for name in args.methods]
-        world = {**box_world.world_settings(exp, {}), "family": args.family,
-                 "family_version": box_family.FAMILY_VERSION, "max_laps": args.max_laps}
+        cells = family_cells(exp, args.methods, args.particles, parse_assignments(args.set))
+        world = family_world_settings(exp, args.family, args.max_laps)
         store = ResultStore(args.out, world, key=lambda r: (r["cell"], r["seed"]))
     except (ConfigError, SettingsMismatch, OSError, json.JSONDecodeError, ValueError) as err:
         print(f"box_family.py: {err}", file=sys.stderr)

@@ -18,6 +18,8 @@ import os
 import tempfile
 from pathlib import Path
 
+import jax
+
 ENV = "JAXSLAM_CACHE_DIR"
 """The environment variable that names the folder, or turns the cache off (``off``)."""
 OFF = ("off", "0", "none", "false", "no")
@@ -56,8 +58,6 @@ def enable(disabled: bool = False, environ=None) -> tuple[str | None, str | None
     Returns ``(folder, warning)``: the folder in use (None when off) and a one-line warning when
     the folder could not be used (the run goes on without the cache), else None.
     """
-    import jax
-
     environ = os.environ if environ is None else environ
     folder = None if disabled else cache_dir(environ)
     if folder is not None and not (environ.get(ENV) or "").strip() and jax.config.jax_compilation_cache_dir:

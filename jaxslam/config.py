@@ -23,6 +23,7 @@ value raises :class:`ConfigError` naming it, its value and what is accepted.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from typing import Any
 
 from jaxslam.checks import ConfigError, check_float, check_int, typed_value
@@ -317,8 +318,6 @@ def config_from_dict(values: dict[str, Any]) -> SlamConfig:
 def unknown_names_message(unknown: list[str]) -> str:
     """What ``build_setup`` says of names that are neither fields nor parameters: both kinds of
     known names, and the closest ones."""
-    import difflib
-
     fields = sorted(config_names() + SETTINGS_FIELDS)
     dotted = sorted(param_defaults())
     close = {name: difflib.get_close_matches(str(name), [*fields, *dotted], n=1, cutoff=0.8) for name in unknown}

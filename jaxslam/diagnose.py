@@ -52,6 +52,8 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxslam.geometry import between_np, compose_np
+from jaxslam.metrics import lookup_indices, motion_errors, normalized_weights, relation_error
+from jaxslam.rbpf import final_best_particle, particle_paths
 
 STEPS_FILE = "steps.npz"
 """The per-step record ``jaxslam map`` writes into its output folder."""
@@ -293,8 +295,6 @@ def _relation_scans(record: dict[str, np.ndarray], trajectory, relations) -> _Re
     processed scans ``trajectory.txt`` composes the best path with the odometry, so any
     history's pose at an asked scan is its own pose at that step composed with the same motion
     (read from the best path and the trajectory: the log is not needed)."""
-    from jaxslam.metrics import lookup_indices
-
     times, per_scan = np.asarray(trajectory[0], np.float64), np.asarray(trajectory[1], np.float64)
     processed, best = np.asarray(record["scan_index"]), np.asarray(record["best_path"], np.float64)
     if per_scan.shape != (times.size, 3) or processed[-1] >= times.size:
@@ -321,9 +321,6 @@ def final_particle_errors(record: dict[str, np.ndarray], trajectory: tuple[np.nd
     Returns:
       ``{"trans_mean": (N,) m, "rot_mean": (N,) rad}``, final particle by final particle.
     """
-    from jaxslam.metrics import motion_errors
-    from jaxslam.rbpf import particle_paths
-
     at = _relation_scans(record, trajectory, relations)
     best = np.asarray(record["best_path"], np.float64)
     paths = particle_paths(np.asarray(record["proposed_poses"], np.float64), record["ancestors"], best[0])
@@ -342,8 +339,6 @@ def errors_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.
     """(R, N) m: for each relation, the translational error of every particle the filter proposed
     at the relation's later scan, each judged on its own history up to then (the scan's pose
     itself, and its ancestor's at the earlier scan)."""
-    from jaxslam.metrics import motion_errors
-
     at = _relation_scans(record, trajectory, relations)
     proposed = np.asarray(record["proposed_poses"], np.float64)
     ancestors = np.asarray(record["ancestors"])
@@ -398,8 +393,6 @@ def weighted_then(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, n
     Beside :func:`closest_then`: near it, the weights favoured the particles that had the relation
     right at the time (a later resampling or step lost it); far above it, they did not.
     """
-    from jaxslam.metrics import normalized_weights
-
     if "log_weights" not in record:
         return None
     errors = errors_then(record, trajectory, relations) if errors is None else errors
@@ -524,9 +517,6 @@ def _add_relation_errors(out: dict, record: dict[str, np.ndarray], trajectory, r
     """Add to ``out`` (:func:`diagnose`'s result, in place) the relations' errors (m, rad) at their
     later scans, the closest and weighted particles' errors then, the worst relations as events and
     the final particles' own errors; ``lineages`` is the (S,) ``surviving_lineages`` series."""
-    from jaxslam.metrics import relation_error
-    from jaxslam.rbpf import final_best_particle
-
     summary, events = out["summary"], out["events"]
     n, steps = summary["num_particles"], summary["steps"]
     step_times = np.asarray(record["timestamp"])[1:]

@@ -15,6 +15,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
+from tqdm.auto import tqdm
 
 ChunkFn = Callable[[Any, Any, np.ndarray], tuple[Any, Any]]
 """``chunk_fn(carry, xs_chunk, valid_chunk) -> (carry, outputs_chunk)``; ``valid_chunk`` (C,)
@@ -88,8 +89,6 @@ def run_in_chunks(
     Returns:
       A :class:`ChunkedRun`.
     """
-    from tqdm.auto import tqdm
-
     if chunk_size < 1:
         raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
     num_chunks = max(1, -(-num_items // chunk_size))

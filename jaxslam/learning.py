@@ -38,7 +38,12 @@ from typing import Any, Callable, NamedTuple, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.extend.core import Literal
 from jaxtyping import Array, Float, Int, PRNGKeyArray
+from tqdm.auto import tqdm
+
+from jaxslam.config import build_setup
+from jaxslam.warn import warn
 
 
 class Transform(NamedTuple):
@@ -220,8 +225,6 @@ def _run_fit(key: PRNGKeyArray, num_steps: int, update, to_params, coords: dict,
     """:func:`fit`'s steps: ``update(step_key, coords, state) -> (objective, finite gradient per
     name, new coords, new state)`` once per step key, the constrained values and objective
     recorded before each update; a :class:`FitError` at the first non-finite step."""
-    from tqdm.auto import tqdm
-
     history: dict[str, list] = {"objective": [], **{name: [] for name in trainable}}
     bar = tqdm(jax.random.split(key, num_steps), desc="fit", unit="step", disable=not progress)
     for step_number, step_key in enumerate(bar):
@@ -246,8 +249,6 @@ def structurally_zero(objective_fn: Callable[[dict], Float[Array, ""]], coords: 
     """The names in ``coords`` (a dict of scalars) on which ``objective_fn(coords)`` cannot depend
     differentiably: autodiff's gradient for them is the constant 0 of the traced program, not a
     value that happens to be 0 (found by tracing the gradient, without running it)."""
-    from jax.extend.core import Literal
-
     jaxpr = jax.make_jaxpr(jax.grad(objective_fn))(coords)
     names = sorted(coords)  # a dict's leaves come in key order
     return [name for name, var in zip(names, jaxpr.jaxpr.outvars) if isinstance(var, Literal)]
@@ -275,9 +276,6 @@ def slam_learning_setup(values: dict[str, Any] | None = None):
     run settings and dotted parameters; e.g. the data's minimum stds ``motion.min_translation_std``
     and ``motion.min_rotation_std`` where they are known, as for a simulated log). A value in
     ``values`` that undoes a learning setting is kept but warned of."""
-    from jaxslam.config import build_setup
-    from jaxslam.warn import warn
-
     values = dict(values or {})
     undone = sorted(k for k, v in values.items() if k in LEARNING_SETTINGS and v != LEARNING_SETTINGS[k])
     if undone:

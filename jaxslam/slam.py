@@ -17,6 +17,8 @@ from typing import NamedTuple, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 from jaxtyping import PRNGKeyArray
 
 from jaxslam import maps as paged
@@ -94,11 +96,11 @@ class SlamResult(NamedTuple):
         """The map drawn again at the loop closure's optimised poses, as :meth:`dense_map` returns
         a map (:func:`jaxslam.graph.draw_map`); the filter's best map where no loop was kept (the
         poses are then the filter's)."""
-        from jaxslam.graph import draw_map
-
         if self.closure is None or self.closure.num_loops == 0:
             return self.dense_map()
-        return draw_map(self.closure, log, params, self.config, self.frame_offset)
+        from jaxslam import graph  # on first use: see run's import of it
+
+        return graph.draw_map(self.closure, log, params, self.config, self.frame_offset)
 
     def to_world(self, poses) -> np.ndarray:
         """Poses (..., 3) or points (..., 2) of the local frame (``state.poses``,
@@ -205,9 +207,11 @@ def run(
     result = _finish(state, info, prepared, local, selection, frame_offset, config, settings, growths,
                      first_chunk_seconds, time.perf_counter() - t_start)
     if close_loops is not None:
-        from jaxslam.graph import close_loops as close
+        # Imported here: jaxslam.graph loads scipy.sparse, 0.5-0.7 s of `import jaxslam`'s start-up
+        # (docs/design.md, "Imports"), and most runs of the library do not close loops.
+        from jaxslam import graph
 
-        result = result._replace(closure=close(log, result, params, close_loops, progress=progress))
+        result = result._replace(closure=graph.close_loops(log, result, params, close_loops, progress=progress))
     return result
 
 
@@ -340,8 +344,6 @@ def run_batch(
       A list of R :class:`SlamResult` (None for a run held by another process). ``timings`` are
       the batch's: ``total`` is the whole batch's wall time, ``compile`` its first chunk's.
     """
-    from jax.sharding import Mesh
-
     keys, logs = _check_batch(keys, logs, chunk_size)
     devices = batch_devices(devices)
     t_start = time.perf_counter()
@@ -396,9 +398,6 @@ def _prepare_runs(logs: list[LaserLog], config: SlamConfig, settings: RunSetting
 def _global_runs(mesh, leaf_of_slot, shape: tuple, slots: int) -> jax.Array:
     """A global array (slots, *shape) split over the runs, each process building its own slots
     (``leaf_of_slot(slot)``)."""
-    from jax.sharding import NamedSharding
-    from jax.sharding import PartitionSpec as P
-
     return jax.make_array_from_callback((slots,) + tuple(shape), NamedSharding(mesh, P(RUNS_AXIS)),
                                         lambda index: np.stack([leaf_of_slot(r) for r in range(slots)[index[0]]]))
 
@@ -518,8 +517,6 @@ def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config
     other on each device), the runs split over ``mesh`` (the state donated). Also returns,
     the same on every device, whether a valid step of some run overflowed its pools, and the
     largest pool use of any run (a :class:`~jaxslam.growth.PoolUse` that sizes the grown pools)."""
-    from jax.sharding import PartitionSpec as P
-
     def local(state, step_key_data, inputs, valid, sensor, params):
         keys = jax.random.wrap_key_data(step_key_data)
         if vectorize:
@@ -542,8 +539,6 @@ def _run_chunk_batch(state, step_key_data, inputs, valid, sensor, params, config
 @partial(jax.jit, static_argnames=("config", "pool", "mesh"))
 def _grow_batch(state, config, pool, mesh):
     """Every run's maps in pools of ``pool``'s sizes (:func:`jaxslam.maps.grow`)."""
-    from jax.sharding import PartitionSpec as P
-
     def local(state):
         return jax.vmap(lambda s: s._replace(maps=paged.grow(config.grid, s.maps, pool)))(state)
 

@@ -40,6 +40,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 from jaxslam.geometry import between_np, compose_np, wrap_angle_np
 from jaxslam.grid import GridSpec
@@ -536,7 +537,6 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     pairs = 0
     bar = None
     if progress:
-        from tqdm.auto import tqdm
         bar = tqdm(total=int(local.shape[0]), desc="loop closure", unit="node")
     # In time order, a block of queries at a time, as a robot would close them: the windows grow
     # with the path since the last loop, not since the start, and the guesses come from the

@@ -14,6 +14,8 @@ import os
 from pathlib import Path
 
 import numpy as np
+from PIL import Image  # matplotlib's own dependency; writes the 8-bit image as it is
+from ruamel.yaml import YAML  # a dependency of rosbags, so always installed with jaxslam
 
 from jaxslam.grid import GridSpec
 from jaxslam.laserlog import LogError
@@ -125,8 +127,6 @@ def write_map(path_stem, logodds, spec: GridSpec, occupied_thresh: float = 0.65,
         f"free_thresh: {float(free_thresh)!r}\n",
         encoding="utf-8",
     )
-    from PIL import Image  # matplotlib's own dependency; writes the 8-bit image as it is
-
     Image.fromarray(image).save(paths["png"])  # uint8 (H, W): 8-bit grey
     return paths
 
@@ -194,8 +194,6 @@ def read_map(yaml_path) -> tuple[np.ndarray, GridSpec]:
 
 def _read_yaml(src: str) -> dict:
     """The validated keys of a map YAML, defaults filled in."""
-    from ruamel.yaml import YAML  # a dependency of rosbags, so always installed with jaxslam
-
     try:
         text = Path(src).read_text(encoding="utf-8")
     except FileNotFoundError:

@@ -6,6 +6,7 @@ unobserved door's belief toward the stationary value, and position error over ti
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -122,8 +123,6 @@ def save_figures(out_dir, scenario, infos, history, params: doors.DoorParams,
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from pathlib import Path
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

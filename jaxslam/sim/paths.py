@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxslam.geometry import wrap_angle_np
+from jaxslam.metrics import checkpoint_passages
 
 _TINY = 1e-9
 
@@ -234,7 +235,5 @@ def concat_paths(*paths, atol: float = 1e-6) -> np.ndarray:
 def passage_indices(poses, point, tolerance: float) -> np.ndarray:
     """Indices of the poses at which a path passes over ``point`` (closest pose of each run of
     poses within ``tolerance`` metres); the rule of :func:`jaxslam.metrics.checkpoint_passages`."""
-    from jaxslam.metrics import checkpoint_passages
-
     return checkpoint_passages(poses, point, tolerance)
 
