@@ -118,7 +118,7 @@ def analyse_world(cell: dict, seed: int, world: dict, gains, backs, max_laps: in
 
 
 def print_world(out: dict) -> None:
-    print(f"world {out['seed']}: RA {out['ra']:.3f} ({out['cause']}), last passage at step {out['passage_step']} "
+    print(f"world {out['seed']}: RA {out['ra']:.3f} ({out['cause'] or 'success'}), last passage at step {out['passage_step']} "
           f"of {out['steps']}, landmarks {', '.join(out['landmarks'])}")
     for row in out["rows"]:
         print("  step {step}: closing {closing:2d}, share {share:.3f}, prior gap {prior_gap:+.3f}, increment gap "
