@@ -8,8 +8,9 @@ step t from that passage to the end, over the particles proposed at t (each on i
 
 * ``closing``: how many closed the loop, and ``share``, their weight;
 * ``prior_gap`` and ``increment_gap``: the mean log-weight before step t, and the mean increment
-  of step t, of the closing particles less the others' (the increment is the step's normalised
-  log-weight less the particle's log-weight before it: its proposal's increment, up to a constant);
+  of step t, of the closing particles less the others' (the increment is
+  :func:`jaxslam.diagnose.weight_increments`': the step's normalised log-weight less the one the
+  particle carried into it, its proposal's increment up to a constant);
   ``raw_gap`` is ``increment_gap`` / the likelihood gain, the untempered log-likelihood's.
 
 Then the counterfactual ``ra_at_gain``: the final particles re-weighted as if the last ``back``
@@ -34,22 +35,11 @@ import box_family  # noqa: E402  (experiments/box_family.py: the worlds' runs)
 import box_world  # noqa: E402
 import closing_steps  # noqa: E402
 
+from jaxslam.diagnose import weight_increments  # noqa: E402
 from jaxslam.io.files import write_file_atomic  # noqa: E402
 from jaxslam.metrics import normalized_weights, passage_errors  # noqa: E402
 from jaxslam.rbpf import particle_paths  # noqa: E402
 from jaxslam.sim import box_family as family  # noqa: E402
-
-
-def increments(log_weights: np.ndarray, resampled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(prior, increment)``, each (S, N): every proposed particle's normalised log-weight before
-    step t (uniform after a resampling) and its increment at t (``log_weights[t]`` less the prior;
-    the proposal's increment up to a constant per step). ``log_weights`` (S, N) is
-    ``SlamInfo.log_weights``, ``resampled`` (S,) ``SlamInfo.resampled``."""
-    num_particles = log_weights.shape[1]
-    normalised = log_weights - np.logaddexp.reduce(log_weights, axis=1, keepdims=True)
-    uniform = np.full(num_particles, -np.log(num_particles))
-    prior = np.vstack([uniform[None], np.where(resampled[:-1, None], uniform[None], normalised[:-1])])
-    return prior, log_weights - prior
 
 
 def passage_table(record: dict, first: int, last: int, true_first, true_last, start, rotation_weight: float,
@@ -57,14 +47,15 @@ def passage_table(record: dict, first: int, last: int, true_first, true_last, st
     """The module's per-step rows from the last passage's step (``last`` - 1) to the end.
     ``record``: ``proposed`` (S, N, 3), ``ancestors`` (S, N), ``log_weights`` (S, N), ``resampled`` (S,)
     in the frame of ``start`` and the true poses."""
-    prior, increment = increments(record["log_weights"], record["resampled"])
+    increment = weight_increments(record["log_weights"], record["ancestors"], record["resampled"])
+    prior = record["log_weights"] - increment  # the weight each carried into the step (up to a constant per step)
     rows = []
     for step in range(last - 1, record["log_weights"].shape[0]):
         histories = closing_steps.proposed_histories(record["proposed"], record["ancestors"], step, start)
         errors = passage_errors(histories, first, last, true_first, true_last, rotation_weight)
         closing = errors < success_ra
         both = bool(closing.any() and (~closing).any())
-        gap = (lambda a: float(a[closing].mean() - a[~closing].mean()) if both else float("nan"))
+        gap = (lambda a: float(np.nanmean(a[closing]) - np.nanmean(a[~closing])) if both else float("nan"))
         rows.append({"step": step, "closing": int(closing.sum()),
                      "share": float(normalized_weights(record["log_weights"][step])[closing].sum()),
                      "prior_gap": gap(prior[step]), "increment_gap": gap(increment[step]),
@@ -74,7 +65,8 @@ def passage_table(record: dict, first: int, last: int, true_first, true_last, st
 
 def lineage_increments(record: dict, back: int) -> np.ndarray:
     """(N,) each final particle's increments summed along its lineage over the last ``back`` steps."""
-    _, increment = increments(record["log_weights"], record["resampled"])
+    increment = weight_increments(record["log_weights"], record["ancestors"], record["resampled"])
+    increment = np.nan_to_num(increment, nan=0.0)  # a zero-weight particle's (its weight stays zero)
     num_steps, num_particles = increment.shape
     total, index = np.zeros(num_particles), np.arange(num_particles)
     for step in range(num_steps - 1, max(num_steps - 1 - back, -1), -1):

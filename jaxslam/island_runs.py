@@ -13,7 +13,6 @@ pools' size changes no result, so a run that grew is bit for bit one that starte
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import jax
@@ -74,12 +73,11 @@ def run(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, confi
     if chunk_size < 1:
         raise ConfigError(f"chunk_size must be >= 1, got {chunk_size}")
     num_steps = int(np.shape(prepared.inputs.motion)[0])
-    mesh = Mesh(np.array(jax.devices()[:num_devices]), (AXIS,))
+    mesh = islands.device_mesh(num_devices)
     key_init, key_steps = jax.random.split(key)
-    # islands.filter builds every island from the same key: one island's start, broadcast.
+    # islands.filter builds every island from the same key: one island's start, replicated.
     start = initial_state(key_init, prepared, params, one, initial_pool)
-    state = _on_mesh(IslandState(jax.tree.map(lambda x: jnp.broadcast_to(x, (num_islands,) + x.shape), start),
-                                 jnp.full((num_islands,), -math.log(num_islands), jnp.float32)), mesh)
+    state = _on_mesh(islands.replicate(start, num_islands), mesh)
     step_keys = jax.random.split(key_steps, max(num_steps, 1))
     with_run_axis = lambda a: np.asarray(a)[:num_steps, None]  # noqa: E731 (the driver's (S, R = 1, ...) items)
     xs = (with_run_axis(jax.random.key_data(step_keys)), jax.tree.map(with_run_axis, prepared.inputs),
@@ -97,8 +95,9 @@ def run(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, confi
 def _on_mesh(state: IslandState, mesh: Mesh) -> IslandState:
     """``state`` placed as :func:`_chunk_steps` holds it: the islands split over the mesh, their
     weights on every device."""
-    split, everywhere = NamedSharding(mesh, PartitionSpec(AXIS)), NamedSharding(mesh, PartitionSpec())
-    return IslandState(jax.device_put(state.islands, split), jax.device_put(state.log_weights, everywhere))
+    specs = islands.mesh_specs()[0]
+    return IslandState(jax.device_put(state.islands, NamedSharding(mesh, specs.islands)),
+                       jax.device_put(state.log_weights, NamedSharding(mesh, specs.log_weights)))
 
 
 def _island_runs(mesh: Mesh, sensor: SensorSpec, params: SlamParams, config: SlamConfig, num_devices: int,
@@ -130,19 +129,16 @@ def _chunk_steps(state: IslandState, keys, inputs, valid, sensor, params, island
                  num_devices: int, batch_islands: bool) -> tuple[IslandState, IslandInfo]:
     """:func:`jaxslam.islands.step` over one chunk inside the islands' ``shard_map`` (as
     :func:`jaxslam.islands.filter` runs it); ``valid`` False on the padding steps."""
-    mesh = Mesh(np.array(jax.devices()[:num_devices]), (AXIS,))
-
     def on_device(state, keys, inputs, valid, sensor, params, island_threshold):
         return particle_filter.scan_steps(
             lambda key, s, xs: islands.step(key, s, xs[0], sensor, params, config, island_threshold, AXIS,
                                             batch_islands, valid=xs[1]), state, keys, (inputs, valid))
 
-    replicated = PartitionSpec()
-    state_specs = IslandState(PartitionSpec(AXIS), replicated)
-    info_specs = IslandInfo(PartitionSpec(None, AXIS), *([replicated] * (len(IslandInfo._fields) - 1)))
+    state_specs, info_specs = islands.mesh_specs()
     # check_vma=False as in islands.filter: the replicated outputs are computed alike on every device.
-    on_mesh = jax.shard_map(on_device, mesh=mesh, in_specs=(state_specs,) + (replicated,) * 6,
-                            out_specs=(state_specs, info_specs), check_vma=False)
+    on_mesh = jax.shard_map(on_device, mesh=islands.device_mesh(num_devices),
+                            in_specs=(state_specs,) + (PartitionSpec(),) * 6, out_specs=(state_specs, info_specs),
+                            check_vma=False)
     return on_mesh(state, keys, inputs, valid, sensor, params, island_threshold)
 
 

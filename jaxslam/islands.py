@@ -136,8 +136,26 @@ def init(key: PRNGKeyArray, first_ranges: Float[Array, "B"], sensor: SensorSpec,
     config), with equal island weights. Inside :func:`filter` every device builds its own
     islands (``num_islands`` is then the device's count)."""
     one = rbpf.init(key, first_ranges, sensor, params, island_config(config, num_islands), initial_pose, pool=pool)
+    return replicate(one, num_islands)
+
+
+def replicate(one: rbpf.SlamState, num_islands: int) -> IslandState:
+    """``num_islands`` copies of one island's state ``one``, with equal island weights."""
     islands = jax.tree.map(lambda x: jnp.broadcast_to(x, (num_islands,) + x.shape), one)
     return IslandState(islands, jnp.full((num_islands,), -math.log(num_islands), jnp.float32))
+
+
+def device_mesh(num_devices: int) -> Mesh:
+    """The 1-D mesh (axis :data:`AXIS`) of the first ``num_devices`` of ``jax.devices()``."""
+    return Mesh(np.array(jax.devices()[:num_devices]), (AXIS,))
+
+
+def mesh_specs() -> tuple[IslandState, IslandInfo]:
+    """The ``shard_map`` specs of an :class:`IslandState` and of stacked :class:`IslandInfo`:
+    the islands split over the mesh (the infos' second axis), everything else replicated."""
+    replicated = PartitionSpec()
+    return (IslandState(PartitionSpec(AXIS), replicated),
+            IslandInfo(PartitionSpec(None, AXIS), *([replicated] * (len(IslandInfo._fields) - 1))))
 
 
 def island_keys(key: PRNGKeyArray, island_index: Int[Array, "L"], num_islands: int
@@ -353,7 +371,7 @@ def filter(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, co
     if config.score_lag is not None:
         raise ConfigError("islands.filter does not support score_lag (the fixed-lag score of the island filter is "
                           "not implemented); set score_lag=None")
-    mesh = Mesh(np.array(jax.devices()[:num_devices]), (AXIS,))
+    mesh = device_mesh(num_devices)
     num_local = num_islands // num_devices
 
     def on_device(key, prepared, params, island_threshold):
@@ -370,9 +388,8 @@ def filter(key: PRNGKeyArray, prepared: rbpf.PreparedLog, params: SlamParams, co
         return out._replace(marginal_loglik=jnp.where(jnp.any(overflow), -jnp.inf, out.marginal_loglik))
 
     replicated = PartitionSpec()
-    islands_first, islands_second = PartitionSpec(AXIS), PartitionSpec(None, AXIS)
-    info_specs = IslandInfo(islands_second, *([replicated] * (len(IslandInfo._fields) - 1)))
-    out_specs = FilterOutput(IslandState(islands_first, replicated), info_specs, replicated)
+    state_specs, info_specs = mesh_specs()
+    out_specs = FilterOutput(state_specs, info_specs, replicated)
     # check_vma=False: the library's loops start from replicated constants while the islands vary
     # over the mesh; the replicated outputs are computed alike on every device from gathered floats.
     on_mesh = jax.shard_map(on_device, mesh=mesh, in_specs=(replicated,) * 4, out_specs=out_specs, check_vma=False)

@@ -14,6 +14,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
 import closure_weights  # noqa: E402  (experiments/closure_weights.py)
 
+from jaxslam.diagnose import weight_increments  # noqa: E402  (the increments the script reads)
+
 
 def _record(increments: np.ndarray, resampled: np.ndarray, ancestors: np.ndarray) -> dict:
     """A record whose step-t log-weights are its particles' priors plus ``increments[t]`` (the
@@ -35,11 +37,11 @@ def test_the_increments_are_recovered_up_to_a_constant_per_step():
     true_increments = rng.normal(size=(steps, particles))
     resampled = np.arange(steps) % 3 == 1  # resampled after steps 1, 4, 7 and 10
     record = _record(true_increments, resampled, np.tile(np.arange(particles), (steps, 1)))
-    _, recovered = closure_weights.increments(record["log_weights"], record["resampled"])
+    recovered = weight_increments(record["log_weights"], record["ancestors"], record["resampled"])
     offset = recovered - true_increments
     np.testing.assert_allclose(offset, offset[:, :1] * np.ones((1, particles)), atol=1e-12)
     with pytest.raises(AssertionError):  # a wrong prior (never uniform) breaks it where a resampling happened
-        _, wrong = closure_weights.increments(record["log_weights"], np.zeros(steps, bool))
+        wrong = weight_increments(record["log_weights"], record["ancestors"], np.zeros(steps, bool))
         np.testing.assert_allclose(wrong - true_increments, (wrong - true_increments)[:, :1] * np.ones((1, particles)),
                                    atol=1e-12)
 
@@ -51,7 +53,7 @@ def test_lineages_sum_their_ancestors_increments():
     record = _record(increments, np.array([False, True, False]), ancestors)
     # The last two steps: step 2's own increment, plus step 1's of proposed particle 2 (3.0).
     summed = closure_weights.lineage_increments(record, back=2)
-    _, recovered = closure_weights.increments(record["log_weights"], record["resampled"])
+    recovered = weight_increments(record["log_weights"], record["ancestors"], record["resampled"])
     np.testing.assert_allclose(summed, recovered[2] + recovered[1][2])  # every lineage passes proposed particle 2
     np.testing.assert_allclose(summed[2] - summed[0], 4.0 - 1.0)  # the shared step cancels
     assert closure_weights.lineage_increments(record, back=1)[2] == pytest.approx(recovered[2][2])
