@@ -48,6 +48,18 @@ def compose_np(a, b) -> np.ndarray:
     return np.stack([x, y, wrap_angle_np(a[..., 2] + b[..., 2])], axis=-1)
 
 
+def chain_np(start, steps) -> np.ndarray:
+    """(T + 1, 3) float64 poses ``x_0 = start`` (3,), ``x_{i+1} = x_i (+) steps[i]`` ((T, 3)
+    relative poses), composed in closed form with no loop: the heading is the running sum of the
+    rotations, and each translation is turned by the heading of the pose it starts from."""
+    start, steps = np.asarray(start, np.float64), np.asarray(steps, np.float64).reshape(-1, 3)
+    headings = start[2] + np.concatenate([[0.0], np.cumsum(steps[:, 2])])
+    c, s = np.cos(headings[:-1]), np.sin(headings[:-1])
+    turned = np.stack([c * steps[:, 0] - s * steps[:, 1], s * steps[:, 0] + c * steps[:, 1]], axis=-1)
+    xy = start[:2] + np.concatenate([np.zeros((1, 2)), np.cumsum(turned, axis=0)])
+    return np.concatenate([xy, wrap_angle_np(headings)[:, None]], axis=1)
+
+
 def make_pose(x, y, theta) -> Float[Array, "... 3"]:
     """Stack x, y (m) and theta (rad, wrapped) into a pose array."""
     x, y, theta = jnp.broadcast_arrays(jnp.asarray(x), jnp.asarray(y), jnp.asarray(theta))

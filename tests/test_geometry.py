@@ -200,3 +200,17 @@ def test_pose_errors_match_numpy():
     diff = np.angle(np.exp(1j * (est[:, 2] - truth[:, 2])))
     np.testing.assert_allclose(np.asarray(position), np.linalg.norm(est[:, :2] - truth[:, :2], axis=1), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(heading), np.abs(diff), atol=1e-5)
+
+
+def test_chain_np_matches_composing_one_step_at_a_time():
+    rng = np.random.default_rng(0)
+    start = np.array([3.0, -2.0, 3.0])
+    steps = rng.normal(size=(50, 3)) * [0.5, 0.1, 0.4]
+    slow = [start]
+    for step in steps:
+        slow.append(G.compose_np(slow[-1], step))
+    np.testing.assert_allclose(G.chain_np(start, steps), np.array(slow), atol=1e-10)
+    poses = G.chain_np(start, steps)
+    expected = steps.copy()
+    expected[:, 2] = G.wrap_angle_np(steps[:, 2])
+    np.testing.assert_allclose(G.between_np(poses[:-1], poses[1:]), expected, atol=1e-10)

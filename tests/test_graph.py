@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from jaxslam.config import SlamConfig, default_params
-from jaxslam.geometry import between_np, compose_np
+from jaxslam.geometry import between_np, compose_np, wrap_angle_np
 from jaxslam.graph import ClosureConfig, close_trajectory_loops, load_graph, save_graph
 from jaxslam.graph import pose_graph
 from jaxslam.graph.loop_search import SearchWindow, search_batch
@@ -225,6 +225,34 @@ def test_twin_rooms_no_false_loop_is_kept_and_the_path_comes_closer(twin_rooms, 
     graph = load_graph(tmp_path / "graph.npz")
     assert graph["loop_refused"].shape == kept.shape and int((graph["loop_refused"] == "").sum()) == kept.sum()
     assert graph["edge_kind"].sum() == kept.sum()  # LOOP = 1, one edge per kept loop
+
+
+def test_twin_rooms_the_loops_measure_whose_heading_drifts(twin_rooms):
+    """The input path's heading drifts by 0.001 rad a step; the odometry here is the truth's
+    steps with a tenth of that in noise. The first pass's loops measure the input's drift as the
+    faster, the next passes search from a chain that takes most of its heading from the odometry,
+    and that chain ends nearer the truth in heading than the input. The simulator's own odometry
+    drifts faster than the input (about 0.03 rad a square-root step): the share stays small. With
+    one pass the closure is the input's chain alone (share 0)."""
+    scenario, selection, truth, drifted = twin_rooms
+    rng = np.random.default_rng(0)
+    motions = np.zeros_like(truth)
+    motions[1:] = between_np(truth[:-1], truth[1:])
+    motions[1:, 2] += rng.normal(0.0, 1e-4, truth.shape[0] - 1)
+    closure = close_trajectory_loops(scenario.log, selection.indices, drifted, motions, default_params(),
+                                     SlamConfig(), np.zeros(2))
+    filter_rate, odometry_rate = closure.drift_rates
+    assert filter_rate > 4 * odometry_rate
+    assert closure.passes >= 2 and closure.odometry_share > 0.5
+    heading_error = lambda poses: np.abs(wrap_angle_np(poses[-1, 2] - truth[-1, 2]))
+    assert heading_error(closure.chain_poses) < 0.5 * heading_error(drifted)
+    summary = closure.summary()
+    assert summary["passes"] == closure.passes and summary["odometry_heading_share"] == closure.odometry_share
+    honest = close_trajectory_loops(scenario.log, selection.indices, drifted, selection.motions, default_params(),
+                                    SlamConfig(), np.zeros(2), dataclasses.replace(ClosureConfig(), max_passes=1))
+    assert honest.passes == 1 and honest.odometry_share == 0.0
+    np.testing.assert_array_equal(honest.chain_poses, drifted)
+    assert honest.drift_rates[1] > honest.drift_rates[0]
 
 
 def test_twin_rooms_a_window_wider_than_the_drift_aliases(twin_rooms):

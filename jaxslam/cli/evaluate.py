@@ -106,7 +106,14 @@ def _draw_graph(run: Path, out: Path) -> Path:
             plot_map(ax, np.log(occupancy / (1 - occupancy)), spec)  # plot_map draws log-odds
         plot_graph(ax, graph)
         kept = int((graph["loop_refused"] == "").sum())
-        ax.set_title(f"{run}: {kept} loops kept of {graph['loop_refused'].size} candidates")
+        title = f"{run}: {kept} loops kept of {graph['loop_refused'].size} candidates"
+        if "drift_rates" in graph and np.all(np.isfinite(graph["drift_rates"])):
+            # Whose heading drifts, as the loops measured it: the reason a far loop was or was not reached.
+            filter_rate, odometry_rate = np.degrees(np.sqrt(graph["drift_rates"]))
+            title += (f"\nheading drift per sqrt(step): filter {filter_rate:.3f}, odometry {odometry_rate:.3f} deg; "
+                      f"{int(graph['passes'])} passes, odometry's share {float(graph['odometry_share']):.2f}")
+            print(title.replace("\n", "; "))
+        ax.set_title(title, fontsize=9)
         fig.savefig(out / "graph.png", dpi=120)
     finally:
         plt.close(fig)

@@ -2,7 +2,8 @@
 loops found by a branch-and-bound search of scans against submaps, a sparse robust optimiser,
 and the map drawn again (:func:`close_loops`, :func:`draw_map`)."""
 
-from jaxslam.graph.closure import ClosureConfig, LoopClosure, Loops, close_loops, close_trajectory_loops
+from jaxslam.graph.acceptance import Loops
+from jaxslam.graph.closure import ClosureConfig, LoopClosure, close_loops, close_trajectory_loops
 from jaxslam.graph.output import GRAPH_FILE, draw_map, load_graph, plot_graph, save_graph
 from jaxslam.graph.pose_graph import Edges, PoseGraph, optimize
 

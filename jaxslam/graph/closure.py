@@ -25,8 +25,16 @@ The queries are taken in time order, ``query_block`` nodes at a time, each block
 the graph as solved so far; after a block that kept loops the graph is solved
 (:func:`jaxslam.graph.pose_graph.optimize`): plain least squares, the loops still in conflict
 (chi2 above ``max_chi2``) refused and the graph solved again, then Dynamic Covariance Scaling on
-the loops from that solution. :mod:`jaxslam.graph.output` draws the map again at the optimised
-poses and writes the graph.
+the loops from that solution. :mod:`jaxslam.graph.acceptance` holds the five tests.
+
+The chain between loops is the filter's steps, until the loops say otherwise. The kept loops
+measure how fast the filter's heading and the odometry's drift (:mod:`jaxslam.graph.drift`);
+where the filter's drifts faster, the closure runs again from the chain that takes the
+odometry's share of every heading change, which reaches loops the filter's chain left out of
+every window, and measures the rates again from every loop kept so far, until the share moves by
+less than ``min_share_change`` (at most ``max_passes``). The final graph holds every pass's kept
+loops on the last chain. The submaps stay the filter's. :mod:`jaxslam.graph.output` draws the
+map again at the optimised poses and writes the graph.
 """
 
 from __future__ import annotations
@@ -34,25 +42,20 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from functools import partial
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from jaxslam.geometry import between_np, compose_np, wrap_angle_np
-from jaxslam.grid import GridSpec
+from jaxslam.geometry import between_np, compose_np
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
-from jaxslam.graph import pose_graph
-from jaxslam.graph.loop_search import SearchResult, SearchWindow, search_pairs
-from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
+from jaxslam.graph import acceptance, drift, pose_graph
+from jaxslam.graph.acceptance import Loops, Searched, loop_edges
+from jaxslam.graph.loop_search import SearchWindow, search_pairs
+from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps, scan_points
-from jaxslam.map_view import MapView
 from jaxslam.motion import noise_std
-from jaxslam.scan_matching import match
-from jaxslam.sensor_model import ENDPOINT
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,19 +130,31 @@ class ClosureConfig:
     """Nodes whose queries are searched before the graph is solved again (time order)."""
     match_iterations: int = 12
     """Hill-climbing rounds that refine each match below the search's cell (static)."""
+    max_passes: int = 4
+    """Closures at most: each after the first searches from the chain whose heading weighs the
+    filter's and the odometry's by the drift rates the last one's loops measured
+    (:mod:`jaxslam.graph.drift`)."""
+    min_share_change: float = 0.05
+    """The passes stop when the odometry's share of the heading changes by less than this."""
+    min_drift_loops: int = 3
+    """Kept loops needed to measure the drift rates (fewer: one pass)."""
+    slip_z: float = 4.0
+    """A step whose heading change the odometry and the filter disagree on by more than this many
+    robust stds keeps the filter's heading (:func:`jaxslam.graph.drift.odometry_slips`)."""
 
     def __post_init__(self):
         counts = ("nodes_per_submap", "query_stride", "submaps_per_query", "num_points", "levels", "keep", "batch",
-                  "consistency_nodes", "max_rounds", "query_block", "match_iterations")
+                  "consistency_nodes", "max_rounds", "query_block", "match_iterations", "max_passes",
+                  "min_drift_loops")
         lengths = ("search_range", "sigma", "window_min_xy", "window_max_xy", "window_min_theta", "window_max_theta",
                    "angular_step", "max_std_xy", "max_std_theta", "consistency_xy", "consistency_theta", "loop_phi",
-                   "max_chi2")
+                   "max_chi2", "slip_z")
         for name in counts:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ClosureConfig: {name} must be a positive integer, got {value!r}")
         for name in lengths + ("min_separation", "max_node_distance", "window_xy_per_metre",
-                               "window_theta_per_metre", "min_score", "max_second_ratio"):
+                               "window_theta_per_metre", "min_score", "max_second_ratio", "min_share_change"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"ClosureConfig: {name} must be a finite number >= 0, got {value!r}")
@@ -166,40 +181,6 @@ class ClosureConfig:
             ambiguity_angles=int(math.ceil(math.radians(3.0) / self.angular_step)))
 
 
-class Loops(NamedTuple):
-    """Candidate loops (host arrays, one row each)."""
-
-    query: np.ndarray
-    """(C,) int: the node searched."""
-    submap: np.ndarray
-    """(C,) int: the submap it matched."""
-    measurement: np.ndarray
-    """(C, 3): the query's pose in the submap's first node's frame."""
-    information: np.ndarray
-    """(C, 3, 3): the match's information (the Laplace fit's inverse covariance)."""
-    score: np.ndarray
-    """(C,) the refined match's mean fit."""
-    second_ratio: np.ndarray
-    """(C,) the second mode's score over the best's."""
-    certified: np.ndarray
-    """(C,) bool: the search's best is the exact optimum of its window."""
-    refused: np.ndarray
-    """(C,) str: why the loop was refused ("" for a kept one): "score", "window", "ambiguous",
-    "information", "consistency" or "chi2"."""
-    chi2: np.ndarray
-    """(C,) the loop's chi2 in the final graph (nan for one refused before the optimisation)."""
-
-    @classmethod
-    def empty(cls) -> "Loops":
-        """No loops (``refused`` of dtype object while the closure collects them)."""
-        return cls(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0),
-                   np.zeros(0), np.zeros(0, bool), np.zeros(0, object), np.zeros(0))
-
-    def extend(self, other: "Loops") -> "Loops":
-        """These loops, then ``other``'s."""
-        return Loops(*(np.concatenate([a, b]) for a, b in zip(self, other)))
-
-
 class LoopClosure(NamedTuple):
     """What :func:`close_loops` returns (host arrays, world frame)."""
 
@@ -220,7 +201,17 @@ class LoopClosure(NamedTuple):
     pairs_searched: int
     """Scan-submap pairs the search ran."""
     timings: dict
-    """Seconds: ``submaps``, ``search``, ``accept``, ``optimize``, ``total``."""
+    """Seconds: ``submaps``, ``search``, ``accept``, ``optimize`` (summed over the passes), ``total``."""
+    chain_poses: np.ndarray
+    """(S, 3): the chain the last pass searched from (world frame): the filter's steps, their
+    heading changes moved by ``odometry_share`` toward the odometry's."""
+    odometry_share: float
+    """The odometry's share of each step's heading change in ``chain_poses`` (0: the filter's)."""
+    drift_rates: tuple
+    """``(filter, odometry)`` heading variance per step (rad^2) that the last pass's kept loops
+    measured (:func:`jaxslam.graph.drift.heading_drift_rates`; nan with too few loops)."""
+    passes: int
+    """Closures run (:attr:`ClosureConfig.max_passes`)."""
 
     @property
     def num_loops(self) -> int:
@@ -238,7 +229,11 @@ class LoopClosure(NamedTuple):
                 "pairs_searched": int(self.pairs_searched), "candidates": int(self.loops.query.size),
                 "loops_kept": self.num_loops, "refused": {str(r): int(c) for r, c in zip(reasons, counts)},
                 "certified_share": float(np.mean(self.loops.certified)) if self.loops.query.size else None,
-                "largest_correction_m": float(shift.max())}
+                "largest_correction_m": float(shift.max()), "passes": int(self.passes),
+                "odometry_heading_share": float(self.odometry_share),
+                "heading_drift_deg_per_sqrt_step": {
+                    name: (float(np.degrees(np.sqrt(rate))) if np.isfinite(rate) else None)
+                    for name, rate in zip(("filter", "odometry"), self.drift_rates)}}
 
 
 def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params) -> Edges:
@@ -309,125 +304,8 @@ def candidate_pairs(poses: np.ndarray, submaps: Submaps, config: ClosureConfig, 
     return queries[q_idx], j_idx, half_xy[q_idx, j_idx], half_theta[q_idx, j_idx]
 
 
-@partial(jax.jit, static_argnames=("grid", "iterations"))
-def _refine_one(field, grid: GridSpec, pose, scan, sensor, likelihood, iterations: int):
-    """One match refined below the search's cell on its submap's field (bilinear hill climb),
-    its mean fit there, and its information: minus the Hessian of the tempered log-likelihood
-    (central differences at one cell and 0.01 rad), clamped positive semi-definite."""
-    steps = jnp.array([grid.resolution, grid.resolution, 0.01], jnp.float32)
-    result = match(grid, field, pose, scan, sensor, likelihood, jnp.float32(grid.resolution), jnp.float32(0.005),
-                   iterations, lookup="bilinear")
-    view = MapView(grid, field)
-    eye = jnp.eye(3) * steps
-    corners = [result.pose + sa * eye[:, None, :] + sb * eye[None, :, :] for sa, sb in ((1, 1), (-1, -1), (1, -1), (-1, 1))]
-    stencil = jnp.concatenate([c.reshape(-1, 3) for c in corners])
-    ll = ENDPOINT.log_likelihoods_fn(view, stencil, scan, sensor, likelihood, "bilinear").reshape(4, 3, 3)
-    hess = (ll[0] + ll[1] - ll[2] - ll[3]) / (4.0 * steps[:, None] * steps[None, :])
-    info = -0.5 * (hess + hess.T)
-    w, v = jnp.linalg.eigh(info)
-    info = (v * jnp.maximum(w, 1e-6)) @ v.T
-    return result.pose, info, ENDPOINT.match_score_fn(view, result.pose, scan, sensor, likelihood)
-
-
-def _refine_and_fit(submaps: Submaps, submap, grid_pose, ranges, sensor, likelihood, iterations: int):
-    """:func:`_refine_one` for every match (host arrays), 32 at a time."""
-    fn = jax.vmap(lambda j, p, r: _refine_one(submaps.field[j], submaps.grid, p, r, sensor, likelihood, iterations))
-    poses, infos, scores = [], [], []
-    for start in range(0, len(submap), 32):
-        take = np.arange(start, start + 32).clip(max=len(submap) - 1)
-        p, i, s = fn(jnp.asarray(submap[take]), jnp.asarray(grid_pose[take], jnp.float32), jnp.asarray(ranges[take]))
-        n = min(32, len(submap) - start)
-        poses.append(np.asarray(p)[:n]), infos.append(np.asarray(i)[:n]), scores.append(np.asarray(s)[:n])
-    if not poses:
-        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
-    return np.concatenate(poses), np.concatenate(infos).astype(np.float64), np.concatenate(scores)
-
-
-def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.ndarray, poses: np.ndarray,
-                      origins: np.ndarray, config: ClosureConfig) -> tuple[np.ndarray, np.ndarray]:
-    """For each loop, how many other loops agree with it and how many disagree: loops whose
-    queries lie within ``consistency_nodes`` nodes and whose submaps are the same or adjacent
-    are compared through the filter's relative poses (a loop's query pose is its submap's
-    origin composed with its measurement); they agree when they predict the relative pose of
-    the two queries within ``consistency_xy`` and ``consistency_theta`` of the filter's.
-
-    Returns:
-        ``(agree (C,), disagree (C,))`` counts.
-    """
-    implied = compose_np(origins[submap], measurement)  # each query's pose through its loop
-    near = ((np.abs(query[:, None] - query[None]) <= config.consistency_nodes)
-            & (np.abs(submap[:, None] - submap[None]) <= 1) & ~np.eye(query.size, dtype=bool))
-    a, b = np.nonzero(near)
-    through_loops = between_np(implied[a], implied[b])
-    through_filter = between_np(poses[query[a]], poses[query[b]])
-    diff = between_np(through_filter, through_loops)
-    agree = (np.hypot(diff[:, 0], diff[:, 1]) <= config.consistency_xy) & (np.abs(diff[:, 2]) <= config.consistency_theta)
-    return np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
-
-
-class _Searched(NamedTuple):
-    """One block's searched pairs (host arrays, one row a pair)."""
-
-    query: np.ndarray
-    submap: np.ndarray
-    guess: np.ndarray
-    half_xy: np.ndarray
-    half_theta: np.ndarray
-    result: SearchResult
-
-
-def _accept(submaps: Submaps, searched: _Searched, ranges, sensor, likelihood, estimate, kept_before: Loops,
-            config: ClosureConfig) -> Loops:
-    """The searched pairs whose score is near the threshold, refined, fitted and put to the
-    score, window, uniqueness, information and consistency tests (``refused`` says which failed)."""
-    result = searched.result
-    promising = np.nonzero(result.score >= 0.8 * config.min_score)[0]
-    query, submap = searched.query[promising], searched.submap[promising]
-    guess, half_xy, half_theta = (searched.guess[promising], searched.half_xy[promising],
-                                  searched.half_theta[promising])
-    refined, information, score = _refine_and_fit(submaps, submap, result.pose[promising], ranges[query], sensor,
-                                                  likelihood, config.match_iterations)
-    measurement = refined.astype(np.float64)
-    measurement[:, :2] += submaps.corner[submap]
-    measurement[:, 2] = wrap_angle_np(measurement[:, 2])
-    second_ratio = result.second_score[promising] / np.maximum(result.score[promising], 1e-9)
-    cov = np.linalg.inv(information) if promising.size else np.zeros((0, 3, 3))
-    std_xy = np.sqrt(np.clip(np.linalg.eigvalsh(cov[:, :2, :2])[:, -1], 0, None)) if promising.size else np.zeros(0)
-    std_theta = np.sqrt(np.clip(cov[:, 2, 2], 0, None))
-    # A peak on the window's edge is no mode of the score: the best match may lie outside, where
-    # the search did not look (along a corridor, a shifted doorway).
-    offset = refined - guess
-    margin_xy = 2 * submaps.grid.resolution
-    at_edge = ((np.max(np.abs(offset[:, :2]), axis=1) > half_xy - margin_xy)
-               | (np.abs(wrap_angle_np(offset[:, 2])) > half_theta - 2 * config.angular_step))
-    refused = np.full(promising.size, "", dtype=object)
-    refused[score < config.min_score] = "score"
-    refused[(refused == "") & at_edge] = "window"
-    refused[(refused == "") & (second_ratio >= config.max_second_ratio)] = "ambiguous"
-    refused[(refused == "") & ((std_xy > config.max_std_xy) | (std_theta > config.max_std_theta))] = "information"
-    # Consistency: the block's loops that passed, and the loops kept before (which vote but are
-    # not judged again): a loop needs min_support agreeing and more agreeing than disagreeing.
-    passed = np.nonzero(refused == "")[0]
-    earlier = np.nonzero(kept_before.refused == "")[0]
-    agree, disagree = consistency_votes(np.concatenate([query[passed], kept_before.query[earlier]]),
-                                        np.concatenate([submap[passed], kept_before.submap[earlier]]),
-                                        np.concatenate([measurement[passed], kept_before.measurement[earlier]]),
-                                        estimate, estimate[submaps.first_node], config)
-    agree, disagree = agree[:passed.size], disagree[:passed.size]
-    refused[passed[(agree < config.min_support) | (disagree >= agree)]] = "consistency"
-    return Loops(query, submap, measurement, information, score, second_ratio,
-                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan))
-
-
-def loop_edges(loops: Loops, submaps: Submaps) -> Edges:
-    """The graph's edges of the kept loops: from each one's submap's first node to its query."""
-    kept = loops.refused == ""
-    return Edges(submaps.first_node[loops.submap[kept]], loops.query[kept], loops.measurement[kept],
-                 loops.information[kept], np.full(int(kept.sum()), LOOP))
-
-
 def _search_block(queries, estimate, travelled, found: Loops, submaps: Submaps, points, valid,
-                  config: ClosureConfig) -> _Searched:
+                  config: ClosureConfig) -> Searched:
     """Search a block's queries against their candidate submaps, from the current estimate, in
     windows grown over the graph's distance (through the loops kept so far)."""
     kept = found.refused == ""
@@ -440,7 +318,7 @@ def _search_block(queries, estimate, travelled, found: Loops, submaps: Submaps, 
     result = search_pairs(submaps, submap, points[query], valid[query], guess,
                           np.ceil(half_xy / resolution).astype(np.int32), half_theta, config.window(resolution),
                           batch=config.batch)
-    return _Searched(query, submap, guess, half_xy, half_theta, result)
+    return Searched(query, submap, guess, half_xy, half_theta, result)
 
 
 def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray, estimate: np.ndarray,
@@ -514,57 +392,118 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     if node_scans.ndim != 1 or filter_poses.shape != (node_scans.size, 3) or np.shape(motions) != filter_poses.shape:
         raise ValueError(f"close_loops: node_scans (S,), node_poses (S, 3) and motions (S, 3) must agree, got "
                          f"{node_scans.shape}, {filter_poses.shape} and {np.shape(motions)}")
+    motions = np.asarray(motions, np.float64)
     local = to_local(filter_poses, frame_offset)
-    sequential = sequential_edges(local, np.asarray(motions, np.float64), params.motion)
     if path_distances(local)[-1] < config.min_separation:  # no submap can be searched: nothing to build
         trajectory = trajectory_per_scan(log, node_scans, filter_poses)
-        return LoopClosure(node_scans, filter_poses, filter_poses.copy(), trajectory, sequential,
+        return LoopClosure(node_scans, filter_poses, filter_poses.copy(), trajectory,
+                           sequential_edges(local, motions, params.motion),
                            Loops.empty()._replace(refused=np.zeros(0, str)), np.zeros(0, int), 0,
                            {"submaps": 0.0, "search": 0.0, "accept": 0.0, "optimize": 0.0,
-                            "total": time.perf_counter() - t0})
+                            "total": time.perf_counter() - t0}, filter_poses.copy(), 0.0, (np.nan, np.nan), 0)
     ranges = np.asarray(log.ranges[node_scans], np.float32)
-    resolution = slam_config.resolution
-    submaps = build_submaps(local, ranges, log.sensor, params.insertion, resolution, slam_config.max_insert_range,
-                            config.nodes_per_submap, config.sigma, config.levels)
-    t1 = time.perf_counter()
-
     points, valid = scan_points(ranges, log.sensor, config.search_range, config.num_points)
-    travelled = path_distances(local)
+    odometry_headings = np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
+    slips = drift.odometry_slips(between_np(local[:-1], local[1:]), motions[1:], config.slip_z)
+    # The submaps are the filter's, whatever chain a pass searches from: a submap's 20 scans are
+    # placed by the filter's own steps, which its map held together; a chain that takes part of
+    # its heading from the odometry takes the odometry's step-to-step noise too (the simulated
+    # worlds' loops came out 3 degrees off against submaps drawn on it).
+    submaps = build_submaps(local, ranges, log.sensor, params.insertion, slam_config.resolution,
+                            slam_config.max_insert_range, config.nodes_per_submap, config.sigma, config.levels)
+    seconds = {"submaps": time.perf_counter() - t0, "search": 0.0, "accept": 0.0, "optimize": 0.0}
+    pairs = 0
+    share, chain = 0.0, local
+    everything = Loops.empty()  # every pass's candidates, in pass order
+    bar = None
+    for done in range(1, config.max_passes + 1):
+        if progress:
+            bar = tqdm(total=int(local.shape[0]), desc=f"loop closure, pass {done}", unit="node")
+        closed = _close_pass(chain, motions, submaps, ranges, points, valid, log.sensor, params, config, bar)
+        if bar is not None:
+            bar.close()
+        pairs += closed.pairs
+        for stage, taken in closed.seconds.items():
+            seconds[stage] += taken
+        everything = everything.extend(closed.loops)
+        new_share, rates = _measured_share(everything, submaps, local, odometry_headings, share, config)
+        if abs(new_share - share) < config.min_share_change or done == config.max_passes:
+            break
+        share = new_share
+        chain = drift.reweighted_chain(local, motions, share, slips)
+    found, estimate, sequential = closed.loops, closed.poses, closed.sequential
+    if done > 1:  # the loops of every pass in one graph on the last chain, from the last pass's solution
+        found = acceptance.merged(everything)
+        t_solve = time.perf_counter()
+        estimate = _solve(found, submaps, sequential, chain, estimate, chain.shape[0], config)
+        seconds["optimize"] += time.perf_counter() - t_solve
+    edges = pose_graph.concat_edges(sequential, loop_edges(found, submaps))
+    poses = to_world(estimate, frame_offset)
+    trajectory = trajectory_per_scan(log, node_scans, poses)
+    loops = found._replace(refused=found.refused.astype(str))
+    timings = {**seconds, "total": time.perf_counter() - t0}
+    return LoopClosure(node_scans, filter_poses, poses, trajectory, edges, loops, submaps.first_node, pairs,
+                       timings, to_world(chain, frame_offset), float(share), tuple(float(r) for r in rates), done)
+
+
+def _measured_share(everything: Loops, submaps: Submaps, local: np.ndarray, odometry_headings: np.ndarray,
+                    share: float, config: ClosureConfig) -> tuple[float, tuple[float, float]]:
+    """The odometry's share of the heading that the loops kept so far measure (the filter's
+    drift rate over both: the minimum-variance weighing), and the rates; ``share`` unchanged
+    with fewer than ``min_drift_loops`` loops.
+
+    Every loop any pass kept measures both chains' drift, whether or not the last pass's chain
+    found it again (a loop's measurement is the query's scan against a filter submap: no chain
+    enters it), so the rates come from all of them, and so does the final graph."""
+    kept = acceptance.first_kept(everything)
+    rates = (np.nan, np.nan)
+    if kept.size >= config.min_drift_loops:
+        rates = drift.heading_drift_rates(submaps.first_node[everything.submap[kept]], everything.query[kept],
+                                          everything.measurement[kept, 2], local[:, 2], odometry_headings)
+    if np.all(np.isfinite(rates)) and sum(rates) > 0:
+        return rates[0] / (rates[0] + rates[1]), rates
+    return share, rates
+
+
+class _Pass(NamedTuple):
+    """One closure from one chain (local frame, host arrays)."""
+
+    poses: np.ndarray
+    loops: Loops
+    sequential: Edges
+    pairs: int
+    seconds: dict
+
+
+def _close_pass(chain, motions, submaps: Submaps, ranges, points, valid, sensor, params, config: ClosureConfig,
+                bar) -> _Pass:
+    """The search in time order from ``chain`` ((S, 3) local frame) and the optimisations
+    (:func:`close_trajectory_loops`' one pass)."""
+    sequential = sequential_edges(chain, motions, params.motion)
+    seconds = {"search": 0.0, "accept": 0.0, "optimize": 0.0}
+    travelled = path_distances(chain)
     likelihood = params.likelihood._replace(sigma=jnp.float32(config.sigma))
     found = Loops.empty()
-    estimate = local.copy()  # the current estimate: optimised up to the last block, then the filter's steps
-    seconds = {"search": 0.0, "accept": 0.0, "optimize": 0.0}
+    estimate = chain.copy()  # the current estimate: optimised up to the last block, then the chain's steps
     pairs = 0
-    bar = None
-    if progress:
-        bar = tqdm(total=int(local.shape[0]), desc="loop closure", unit="node")
     # In time order, a block of queries at a time, as a robot would close them: the windows grow
     # with the path since the last loop, not since the start, and the guesses come from the
     # graph as optimised so far.
-    for block_start in range(0, local.shape[0], config.query_block):
-        block_end = min(block_start + config.query_block, local.shape[0])
+    for block_start in range(0, chain.shape[0], config.query_block):
+        block_end = min(block_start + config.query_block, chain.shape[0])
         queries = np.arange(block_start, block_end)
         t_a = time.perf_counter()
         searched = _search_block(queries[queries % config.query_stride == 0], estimate, travelled, found, submaps,
                                  points, valid, config)
         pairs += int(searched.query.size)
         t_b = time.perf_counter()
-        new = _accept(submaps, searched, ranges, log.sensor, likelihood, estimate, found, config)
+        new = acceptance.accept(submaps, searched, ranges, sensor, likelihood, estimate, found, config)
         found = found.extend(new)
         t_c = time.perf_counter()
         if np.any(new.refused == ""):
-            estimate = _solve(found, submaps, sequential, local, estimate, block_end, config)
+            estimate = _solve(found, submaps, sequential, chain, estimate, block_end, config)
         for stage, seconds_taken in (("search", t_b - t_a), ("accept", t_c - t_b), ("optimize", time.perf_counter() - t_c)):
             seconds[stage] += seconds_taken
         if bar is not None:
             bar.update(block_end - block_start)
-    if bar is not None:
-        bar.close()
-    optimized = estimate
-    edges = pose_graph.concat_edges(sequential, loop_edges(found, submaps))
-
-    poses = to_world(optimized, frame_offset)
-    trajectory = trajectory_per_scan(log, node_scans, poses)
-    loops = found._replace(refused=found.refused.astype(str))
-    timings = {"submaps": t1 - t0, **seconds, "total": time.perf_counter() - t0}
-    return LoopClosure(node_scans, filter_poses, poses, trajectory, edges, loops, submaps.first_node, pairs, timings)
+    return _Pass(estimate, found, sequential, pairs, seconds)

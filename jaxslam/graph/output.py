@@ -53,7 +53,9 @@ def save_graph(path, closure: LoopClosure) -> None:
     ``filter_poses``, ``poses``), the edges (``edge_first``, ``edge_second``,
     ``edge_measurement``, ``edge_information``, ``edge_kind``, and ``edge_chi2`` at the optimised
     poses), every candidate loop (``loop_*``: the fields of :class:`Loops`, ``loop_node`` its
-    submap's first node) and ``submap_first_node``."""
+    submap's first node), ``submap_first_node``, and the chain the last pass searched from
+    (``chain_poses``, ``odometry_share``, ``drift_rates`` (filter, odometry) in rad^2 per step,
+    ``passes``: :mod:`jaxslam.graph.drift`)."""
     edges = closure.edges
     loops = closure.loops
     arrays = {"node_scans": closure.node_scans, "filter_poses": closure.filter_poses, "poses": closure.poses,
@@ -61,7 +63,9 @@ def save_graph(path, closure: LoopClosure) -> None:
               "edge_first": edges.first, "edge_second": edges.second, "edge_measurement": edges.measurement,
               "edge_information": edges.information, "edge_kind": edges.kind,
               "edge_chi2": pose_graph.chi2(closure.poses, edges),
-              "loop_node": closure.submap_first_node[loops.submap] if loops.submap.size else np.zeros(0, int)}
+              "loop_node": closure.submap_first_node[loops.submap] if loops.submap.size else np.zeros(0, int),
+              "chain_poses": closure.chain_poses, "odometry_share": np.float64(closure.odometry_share),
+              "drift_rates": np.asarray(closure.drift_rates, np.float64), "passes": np.int64(closure.passes)}
     arrays.update({f"loop_{name}": np.asarray(value) for name, value in loops._asdict().items()})
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
@@ -79,6 +83,11 @@ def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None
     query at the optimised poses: kept in green, refused in red (thin), labelled by reason count."""
     poses, filt = graph["poses"], graph["filter_poses"]
     ax.plot(filt[:, 0], filt[:, 1], color="tab:red", lw=0.6, alpha=0.6, label="filter")
+    share = float(graph.get("odometry_share", 0.0))
+    if share > 0:
+        chain = graph["chain_poses"]
+        ax.plot(chain[:, 0], chain[:, 1], color="tab:orange", lw=0.6, ls=":",
+                label=f"chain ({share:.2f} of the heading the odometry's)")
     ax.plot(poses[:, 0], poses[:, 1], color="tab:blue", lw=0.8, label="closed")
     if truth is not None:
         ax.plot(truth[:, 0], truth[:, 1], color="tab:green", lw=0.8, ls="--", label="ground truth")

@@ -15,7 +15,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from jaxslam.driver import run_in_chunks
-from jaxslam.geometry import between, wrap_angle_np
+from jaxslam.geometry import between, chain_np
 from jaxslam.laser import SensorSpec
 from jaxslam.laserlog import LaserLog
 from jaxslam.motion import MotionParams, noise_std
@@ -157,15 +157,7 @@ def noisy_odometry(key: PRNGKeyArray, true_poses, params: MotionParams) -> np.nd
     """
     true_poses = np.asarray(true_poses, dtype=np.float64).reshape(-1, 3)
     noisy = np.asarray(_noisy_motions(key, true_poses.astype(np.float32), params), dtype=np.float64)
-    # Compose the chain x_{i+1} = x_i (+) u_i in closed form (float64, no loop): the heading
-    # is the running sum of the rotations, and each translation is turned by the heading
-    # of the pose it starts from.
-    headings = true_poses[0, 2] + np.concatenate([[0.0], np.cumsum(noisy[:, 2])])
-    c, s = np.cos(headings[:-1]), np.sin(headings[:-1])
-    steps = np.stack([c * noisy[:, 0] - s * noisy[:, 1], s * noisy[:, 0] + c * noisy[:, 1]], axis=-1)
-    xy = true_poses[0, :2] + np.concatenate([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
-    wrapped = wrap_angle_np(headings)
-    return np.concatenate([xy, wrapped[:, None]], axis=1)
+    return chain_np(true_poses[0], noisy)
 
 
 def simulate_log(

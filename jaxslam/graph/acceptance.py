@@ -1,0 +1,197 @@
+"""Which of the loop search's matches become loop edges: the five tests of
+:mod:`jaxslam.graph.closure` (score, window, uniqueness, information, consistency), each match
+refined below the search's cell first, and the record of every candidate (:class:`Loops`).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam.geometry import between_np, compose_np, wrap_angle_np
+from jaxslam.grid import GridSpec
+from jaxslam.graph.loop_search import SearchResult
+from jaxslam.graph.pose_graph import LOOP, Edges
+from jaxslam.graph.submaps import Submaps
+from jaxslam.map_view import MapView
+from jaxslam.scan_matching import match
+from jaxslam.sensor_model import ENDPOINT
+
+
+class Loops(NamedTuple):
+    """Candidate loops (host arrays, one row each)."""
+
+    query: np.ndarray
+    """(C,) int: the node searched."""
+    submap: np.ndarray
+    """(C,) int: the submap it matched."""
+    measurement: np.ndarray
+    """(C, 3): the query's pose in the submap's first node's frame."""
+    information: np.ndarray
+    """(C, 3, 3): the match's information (the Laplace fit's inverse covariance)."""
+    score: np.ndarray
+    """(C,) the refined match's mean fit."""
+    second_ratio: np.ndarray
+    """(C,) the second mode's score over the best's."""
+    certified: np.ndarray
+    """(C,) bool: the search's best is the exact optimum of its window."""
+    refused: np.ndarray
+    """(C,) str: why the loop was refused ("" for a kept one): "score", "window", "ambiguous",
+    "information", "consistency" or "chi2"."""
+    chi2: np.ndarray
+    """(C,) the loop's chi2 in the final graph (nan for one refused before the optimisation)."""
+
+    @classmethod
+    def empty(cls) -> "Loops":
+        """No loops (``refused`` of dtype object while the closure collects them)."""
+        return cls(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0),
+                   np.zeros(0), np.zeros(0, bool), np.zeros(0, object), np.zeros(0))
+
+    def extend(self, other: "Loops") -> "Loops":
+        """These loops, then ``other``'s."""
+        return Loops(*(np.concatenate([a, b]) for a, b in zip(self, other)))
+
+
+class Searched(NamedTuple):
+    """One block's searched pairs (host arrays, one row a pair)."""
+
+    query: np.ndarray
+    submap: np.ndarray
+    guess: np.ndarray
+    half_xy: np.ndarray
+    half_theta: np.ndarray
+    result: SearchResult
+
+
+@partial(jax.jit, static_argnames=("grid", "iterations"))
+def _refine_one(field, grid: GridSpec, pose, scan, sensor, likelihood, iterations: int):
+    """One match refined below the search's cell on its submap's field (bilinear hill climb),
+    its mean fit there, and its information: minus the Hessian of the tempered log-likelihood
+    (central differences at one cell and 0.01 rad), clamped positive semi-definite."""
+    steps = jnp.array([grid.resolution, grid.resolution, 0.01], jnp.float32)
+    result = match(grid, field, pose, scan, sensor, likelihood, jnp.float32(grid.resolution), jnp.float32(0.005),
+                   iterations, lookup="bilinear")
+    view = MapView(grid, field)
+    eye = jnp.eye(3) * steps
+    corners = [result.pose + sa * eye[:, None, :] + sb * eye[None, :, :] for sa, sb in ((1, 1), (-1, -1), (1, -1), (-1, 1))]
+    stencil = jnp.concatenate([c.reshape(-1, 3) for c in corners])
+    ll = ENDPOINT.log_likelihoods_fn(view, stencil, scan, sensor, likelihood, "bilinear").reshape(4, 3, 3)
+    hess = (ll[0] + ll[1] - ll[2] - ll[3]) / (4.0 * steps[:, None] * steps[None, :])
+    info = -0.5 * (hess + hess.T)
+    w, v = jnp.linalg.eigh(info)
+    info = (v * jnp.maximum(w, 1e-6)) @ v.T
+    return result.pose, info, ENDPOINT.match_score_fn(view, result.pose, scan, sensor, likelihood)
+
+
+def _refine_and_fit(submaps: Submaps, submap, grid_pose, ranges, sensor, likelihood, iterations: int):
+    """:func:`_refine_one` for every match (host arrays), 32 at a time."""
+    fn = jax.vmap(lambda j, p, r: _refine_one(submaps.field[j], submaps.grid, p, r, sensor, likelihood, iterations))
+    poses, infos, scores = [], [], []
+    for start in range(0, len(submap), 32):
+        take = np.arange(start, start + 32).clip(max=len(submap) - 1)
+        p, i, s = fn(jnp.asarray(submap[take]), jnp.asarray(grid_pose[take], jnp.float32), jnp.asarray(ranges[take]))
+        n = min(32, len(submap) - start)
+        poses.append(np.asarray(p)[:n]), infos.append(np.asarray(i)[:n]), scores.append(np.asarray(s)[:n])
+    if not poses:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+    return np.concatenate(poses), np.concatenate(infos).astype(np.float64), np.concatenate(scores)
+
+
+def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.ndarray, poses: np.ndarray,
+                      origins: np.ndarray, config) -> tuple[np.ndarray, np.ndarray]:
+    """For each loop, how many other loops agree with it and how many disagree: loops whose
+    queries lie within ``consistency_nodes`` nodes and whose submaps are the same or adjacent
+    are compared through the filter's relative poses (a loop's query pose is its submap's
+    origin composed with its measurement); they agree when they predict the relative pose of
+    the two queries within ``consistency_xy`` and ``consistency_theta`` of the filter's.
+
+    Returns:
+        ``(agree (C,), disagree (C,))`` counts.
+    """
+    implied = compose_np(origins[submap], measurement)  # each query's pose through its loop
+    near = ((np.abs(query[:, None] - query[None]) <= config.consistency_nodes)
+            & (np.abs(submap[:, None] - submap[None]) <= 1) & ~np.eye(query.size, dtype=bool))
+    a, b = np.nonzero(near)
+    through_loops = between_np(implied[a], implied[b])
+    through_filter = between_np(poses[query[a]], poses[query[b]])
+    diff = between_np(through_filter, through_loops)
+    agree = (np.hypot(diff[:, 0], diff[:, 1]) <= config.consistency_xy) & (np.abs(diff[:, 2]) <= config.consistency_theta)
+    return np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
+
+
+def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, estimate, kept_before: Loops,
+            config) -> Loops:
+    """The searched pairs whose score is near the threshold, refined, fitted and put to the
+    score, window, uniqueness, information and consistency tests (``refused`` says which failed);
+    ``config`` is the closure's :class:`~jaxslam.graph.closure.ClosureConfig`."""
+    result = searched.result
+    promising = np.nonzero(result.score >= 0.8 * config.min_score)[0]
+    query, submap = searched.query[promising], searched.submap[promising]
+    guess, half_xy, half_theta = (searched.guess[promising], searched.half_xy[promising],
+                                  searched.half_theta[promising])
+    refined, information, score = _refine_and_fit(submaps, submap, result.pose[promising], ranges[query], sensor,
+                                                  likelihood, config.match_iterations)
+    measurement = refined.astype(np.float64)
+    measurement[:, :2] += submaps.corner[submap]
+    measurement[:, 2] = wrap_angle_np(measurement[:, 2])
+    second_ratio = result.second_score[promising] / np.maximum(result.score[promising], 1e-9)
+    cov = np.linalg.inv(information) if promising.size else np.zeros((0, 3, 3))
+    std_xy = np.sqrt(np.clip(np.linalg.eigvalsh(cov[:, :2, :2])[:, -1], 0, None)) if promising.size else np.zeros(0)
+    std_theta = np.sqrt(np.clip(cov[:, 2, 2], 0, None))
+    # A peak on the window's edge is no mode of the score: the best match may lie outside, where
+    # the search did not look (along a corridor, a shifted doorway).
+    offset = refined - guess
+    margin_xy = 2 * submaps.grid.resolution
+    at_edge = ((np.max(np.abs(offset[:, :2]), axis=1) > half_xy - margin_xy)
+               | (np.abs(wrap_angle_np(offset[:, 2])) > half_theta - 2 * config.angular_step))
+    refused = np.full(promising.size, "", dtype=object)
+    refused[score < config.min_score] = "score"
+    refused[(refused == "") & at_edge] = "window"
+    refused[(refused == "") & (second_ratio >= config.max_second_ratio)] = "ambiguous"
+    refused[(refused == "") & ((std_xy > config.max_std_xy) | (std_theta > config.max_std_theta))] = "information"
+    # Consistency: the block's loops that passed, and the loops kept before (which vote but are
+    # not judged again): a loop needs min_support agreeing and more agreeing than disagreeing.
+    passed = np.nonzero(refused == "")[0]
+    earlier = np.nonzero(kept_before.refused == "")[0]
+    agree, disagree = consistency_votes(np.concatenate([query[passed], kept_before.query[earlier]]),
+                                        np.concatenate([submap[passed], kept_before.submap[earlier]]),
+                                        np.concatenate([measurement[passed], kept_before.measurement[earlier]]),
+                                        estimate, estimate[submaps.first_node], config)
+    agree, disagree = agree[:passed.size], disagree[:passed.size]
+    refused[passed[(agree < config.min_support) | (disagree >= agree)]] = "consistency"
+    return Loops(query, submap, measurement, information, score, second_ratio,
+                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan))
+
+
+def loop_edges(loops: Loops, submaps: Submaps) -> Edges:
+    """The graph's edges of the kept loops: from each one's submap's first node to its query."""
+    kept = loops.refused == ""
+    return Edges(submaps.first_node[loops.submap[kept]], loops.query[kept], loops.measurement[kept],
+                 loops.information[kept], np.full(int(kept.sum()), LOOP))
+
+
+def first_kept(loops: Loops) -> np.ndarray:
+    """Indices of the kept loops, each (query, submap) pair once (its first kept row)."""
+    kept = np.nonzero(loops.refused == "")[0]
+    if kept.size == 0:
+        return kept
+    _, first = np.unique(np.stack([loops.query[kept], loops.submap[kept]]), axis=1, return_index=True)
+    return kept[np.sort(first)]
+
+
+def merged(loops: Loops) -> Loops:
+    """Every pass's candidates as one set: each (query, submap) pair once, its first kept row
+    where a pass kept it, else its last refused one; ``chi2`` reset for the final solve."""
+    kept = first_kept(loops)
+    refused = np.nonzero(loops.refused != "")[0][::-1]  # the last refusal first
+    pairs = np.stack([loops.query, loops.submap])
+    if pairs.shape[1] == 0:
+        return loops
+    _, first = np.unique(pairs[:, np.concatenate([kept, refused])], axis=1, return_index=True)
+    rows = np.sort(np.concatenate([kept, refused])[first])
+    merged = Loops(*(field[rows] for field in loops))
+    return merged._replace(refused=merged.refused.copy(), chi2=np.full(rows.size, np.nan))
