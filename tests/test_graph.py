@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from jaxslam.config import SlamConfig, default_params
-from jaxslam.geometry import between_np, compose_np, wrap_angle_np
+from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
 from jaxslam.graph import ClosureConfig, close_trajectory_loops, load_graph, save_graph
 from jaxslam.graph import pose_graph
 from jaxslam.graph.loop_search import SearchWindow, search_batch
@@ -253,6 +253,35 @@ def test_twin_rooms_the_loops_measure_whose_heading_drifts(twin_rooms):
     assert honest.passes == 1 and honest.odometry_share == 0.0
     np.testing.assert_array_equal(honest.chain_poses, drifted)
     assert honest.drift_rates[1] > honest.drift_rates[0]
+
+
+def test_twin_rooms_no_loop_from_the_filter_then_one_pass_from_the_odometry(twin_rooms):
+    """An input whose heading drifts 0.012 rad a step is out of every window at the revisit: the
+    first pass keeps no loop; the second searches from the odometry's chain (the truth's steps
+    and a little noise) and keeps loops, none into the twin room, which measure the input's drift
+    as the faster. At 0.015 rad a step neither pass keeps one, and the result is the first pass's:
+    nothing says the odometry is better."""
+    scenario, selection, truth, _ = twin_rooms
+    motions = np.zeros_like(truth)
+    motions[1:] = between_np(truth[:-1], truth[1:])
+    motions[1:, 2] += np.random.default_rng(1).normal(0.0, 1e-3, truth.shape[0] - 1)  # steps differ, as in a log
+    one_pass = dataclasses.replace(ClosureConfig(), max_passes=1)
+    for bias, finds in ((0.012, True), (0.015, False)):
+        steps = between_np(truth[:-1], truth[1:])
+        steps[:, 2] += bias
+        drifted = chain_np(truth[0], steps)
+        first = close_trajectory_loops(scenario.log, selection.indices, drifted, motions, default_params(),
+                                       SlamConfig(), np.zeros(2), one_pass)
+        closure = close_trajectory_loops(scenario.log, selection.indices, drifted, motions, default_params(),
+                                         SlamConfig(), np.zeros(2))
+        kept = closure.loops.refused == ""
+        assert first.num_loops == 0 and closure.passes == 2
+        if finds:
+            assert kept.sum() >= 3 and np.all(_loop_errors(closure, truth)[kept] < 0.5)
+            assert closure.drift_rates[0] > 4 * closure.drift_rates[1] and closure.odometry_share > 0.5
+        else:
+            assert kept.sum() == 0 and closure.odometry_share == 0.0
+            np.testing.assert_array_equal(closure.poses, first.poses)
 
 
 def test_twin_rooms_a_window_wider_than_the_drift_aliases(twin_rooms):

@@ -427,12 +427,23 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
             seconds[stage] += taken
         everything = everything.extend(closed.loops)
         new_share, rates = _measured_share(everything, submaps, local, odometry_headings, share, config)
+        if done == 1:
+            first_pass = closed
+        if done == 1 and not np.all(np.isfinite(rates)) and done < config.max_passes:
+            # No loop to measure the drift with: the filter's chain may have drifted past every
+            # window before the first revisit. The odometry's chain is the other estimate of where
+            # the robot was; search once from it, and let its loops (if any) measure the rates.
+            share = 1.0
+            chain = drift.reweighted_chain(local, motions, share, slips)
+            continue
         if abs(new_share - share) < config.min_share_change or done == config.max_passes:
             break
         share = new_share
         chain = drift.reweighted_chain(local, motions, share, slips)
+    if not np.all(np.isfinite(rates)):  # no pass kept enough loops: nothing says the odometry is better
+        closed, share, chain, done = first_pass, 0.0, local, done
     found, estimate, sequential = closed.loops, closed.poses, closed.sequential
-    if done > 1:  # the loops of every pass in one graph on the last chain, from the last pass's solution
+    if done > 1 and share > 0:  # the loops of every pass in one graph on the last chain, from the last pass's solution
         found = acceptance.merged(everything)
         t_solve = time.perf_counter()
         estimate = _solve(found, submaps, sequential, chain, estimate, chain.shape[0], config)
