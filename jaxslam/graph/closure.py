@@ -372,8 +372,8 @@ def close_loops(log, result, params, config: ClosureConfig = ClosureConfig(), pr
 
 def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_config, frame_offset,
                            config: ClosureConfig = ClosureConfig(), progress: bool = False) -> LoopClosure:
-    """:func:`close_loops` from a trajectory rather than a run: what ``jaxslam close`` does with
-    a finished run's ``trajectory.txt``.
+    """:func:`close_loops` from a trajectory rather than a run: a finished run's
+    ``trajectory_filter.txt`` at its processed scans, or any path to test the closure on.
 
     Args:
         log: the log (T scans).
@@ -395,12 +395,7 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     motions = np.asarray(motions, np.float64)
     local = to_local(filter_poses, frame_offset)
     if path_distances(local)[-1] < config.min_separation:  # no submap can be searched: nothing to build
-        trajectory = trajectory_per_scan(log, node_scans, filter_poses)
-        return LoopClosure(node_scans, filter_poses, filter_poses.copy(), trajectory,
-                           sequential_edges(local, motions, params.motion),
-                           Loops.empty()._replace(refused=np.zeros(0, str)), np.zeros(0, int), 0,
-                           {"submaps": 0.0, "search": 0.0, "accept": 0.0, "optimize": 0.0,
-                            "total": time.perf_counter() - t0}, filter_poses.copy(), 0.0, (np.nan, np.nan), 0)
+        return _unclosed(log, node_scans, filter_poses, sequential_edges(local, motions, params.motion), t0)
     ranges = np.asarray(log.ranges[node_scans], np.float32)
     points, valid = scan_points(ranges, log.sensor, config.search_range, config.num_points)
     odometry_headings = np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
@@ -441,20 +436,27 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
         share = new_share
         chain = drift.reweighted_chain(local, motions, share, slips)
     if not np.all(np.isfinite(rates)):  # no pass kept enough loops: nothing says the odometry is better
-        closed, share, chain, done = first_pass, 0.0, local, done
+        closed, share, chain = first_pass, 0.0, local
     found, estimate, sequential = closed.loops, closed.poses, closed.sequential
     if done > 1 and share > 0:  # the loops of every pass in one graph on the last chain, from the last pass's solution
         found = acceptance.merged(everything)
         t_solve = time.perf_counter()
         estimate = _solve(found, submaps, sequential, chain, estimate, chain.shape[0], config)
         seconds["optimize"] += time.perf_counter() - t_solve
-    edges = pose_graph.concat_edges(sequential, loop_edges(found, submaps))
     poses = to_world(estimate, frame_offset)
-    trajectory = trajectory_per_scan(log, node_scans, poses)
-    loops = found._replace(refused=found.refused.astype(str))
-    timings = {**seconds, "total": time.perf_counter() - t0}
-    return LoopClosure(node_scans, filter_poses, poses, trajectory, edges, loops, submaps.first_node, pairs,
-                       timings, to_world(chain, frame_offset), float(share), tuple(float(r) for r in rates), done)
+    return LoopClosure(node_scans, filter_poses, poses, trajectory_per_scan(log, node_scans, poses),
+                       pose_graph.concat_edges(sequential, loop_edges(found, submaps)),
+                       found._replace(refused=found.refused.astype(str)), submaps.first_node, pairs,
+                       {**seconds, "total": time.perf_counter() - t0}, to_world(chain, frame_offset), float(share),
+                       tuple(float(r) for r in rates), done)
+
+
+def _unclosed(log, node_scans, filter_poses, sequential: Edges, t0: float) -> LoopClosure:
+    """The closure of a path too short for any search: the filter's poses, no loop."""
+    return LoopClosure(node_scans, filter_poses, filter_poses.copy(), trajectory_per_scan(log, node_scans, filter_poses),
+                       sequential, Loops.empty()._replace(refused=np.zeros(0, str)), np.zeros(0, int), 0,
+                       {"submaps": 0.0, "search": 0.0, "accept": 0.0, "optimize": 0.0,
+                        "total": time.perf_counter() - t0}, filter_poses.copy(), 0.0, (np.nan, np.nan), 0)
 
 
 def _measured_share(everything: Loops, submaps: Submaps, local: np.ndarray, odometry_headings: np.ndarray,

@@ -20,7 +20,7 @@ the two disagree far beyond the log's usual (a wheel slip, which the filter's sl
 keeps the filter's heading (:func:`odometry_slips`). The loop closure searches again from that
 chain, and measures the rates again from its loops, until the share settles
 (:func:`jaxslam.graph.closure.close_trajectory_loops`). On the classic logs the odometry's
-heading drifts 80-170 times faster than the filter's (std per square-root step; w under 0.001):
+heading drifts 40-170 times faster than the filter's (std per square-root step; w under 0.001):
 one pass, nothing changes. On FR-clinic the filter's drifts 5.8 times faster (w 0.97).
 """
 
