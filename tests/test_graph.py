@@ -333,7 +333,7 @@ def test_map_closes_loops_by_default_and_not_on_request(tmp_path, twin_rooms):
 
 def test_closure_config_refuses_bad_values():
     for bad, words in (({"keep": 0}, "keep must be a positive integer"), ({"query_stride": 2.5}, "query_stride"),
-                       ({"sigma": 0.0}, "sigma must be > 0"), ({"window_min_xy": 9.0}, "minimum exceeds"),
+                       ({"sigma": 0.0}, "sigma must be > 0"), ({"window_min_xy": 21.0}, "minimum exceeds"),
                        ({"min_score": 1.5}, "min_score and max_second_ratio"),
                        ({"window_xy_per_metre": float("nan")}, "finite number")):
         with pytest.raises(ValueError, match=words):
