@@ -443,16 +443,12 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
             # window before the first revisit. The odometry's chain is the other estimate of where
             # the robot was; search once from it, and let its loops (if any) measure the rates.
             share = 1.0
-            # Each node turned (not each submap): a filter that drifted out of every window has
-            # drifted inside its submaps too.
-            every_node = np.arange(local.shape[0])
-            chain = drift.fused_chain(local, local[0, 2] + odometry_headings, every_node, every_node)
+            chain, heading_rate = _weighed_chain(local, motions, None, jitter, submaps)
             continue
         if abs(new_share - share) < config.min_share_change or done == config.max_passes:
             break
         share = new_share
-        chain = _weighed_chain(local, motions, rates, jitter, submaps)
-        heading_rate = rates[0] * rates[1] / (rates[0] + rates[1])  # the fused chain's: both walks weighed
+        chain, heading_rate = _weighed_chain(local, motions, rates, jitter, submaps)
     if not np.all(np.isfinite(rates)):  # no pass kept enough loops: nothing says the odometry is better
         closed, share, chain = first_pass, 0.0, local
     found, estimate, sequential = closed.loops, closed.poses, closed.sequential
@@ -469,12 +465,23 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
                        tuple(float(r) for r in rates), done)
 
 
-def _weighed_chain(local: np.ndarray, motions: np.ndarray, rates, jitter: float, submaps: Submaps) -> np.ndarray:
-    """The chain whose headings the filter's and the odometry's give by their drift rates
-    ``(filter, odometry)`` and the filter's jitter (:func:`jaxslam.graph.drift.smoothed_headings`),
-    each submap rigid (:func:`jaxslam.graph.drift.fused_chain`)."""
+def _weighed_chain(local: np.ndarray, motions: np.ndarray, rates, jitter: float,
+                   submaps: Submaps) -> tuple[np.ndarray, float | None]:
+    """The chain a pass searches from, and its sequential edges' heading variance per step.
+
+    With the drift rates ``(filter, odometry)``: the headings of both weighed by them and the
+    filter's jitter (:func:`jaxslam.graph.drift.smoothed_headings`), each submap rigid
+    (:func:`jaxslam.graph.drift.fused_chain`), at the rate the fused chain drifts. Without
+    (``None``): the odometry's headings, every node turned, not every submap (a filter that
+    drifted out of every window has drifted inside its submaps too), the motion model's
+    variance."""
+    if rates is None:
+        every_node = np.arange(local.shape[0])
+        odometry = local[0, 2] + np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
+        return drift.fused_chain(local, odometry, every_node, every_node), None
     headings = drift.smoothed_headings(local[:, 2], motions[1:, 2], rates[0], rates[1], jitter)
-    return drift.fused_chain(local, headings, submaps.first_node, submaps.last_node)
+    fused_rate = rates[0] * rates[1] / (rates[0] + rates[1])
+    return drift.fused_chain(local, headings, submaps.first_node, submaps.last_node), fused_rate
 
 
 def _unclosed(log, node_scans, filter_poses, sequential: Edges, t0: float) -> LoopClosure:

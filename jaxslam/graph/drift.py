@@ -1,5 +1,6 @@
 """How fast the filter's heading and the odometry's drift, as the loops measure them, and the
-chain of steps that weighs the two by it (:func:`heading_drift_rates`, :func:`reweighted_chain`).
+chain whose headings weigh the two by it (:func:`heading_drift_rates`, :func:`smoothed_headings`,
+:func:`fused_chain`).
 
 The pose graph's chain between loops is the filter's steps. Where the filter's heading drifts
 faster than the robot's odometry (on FR-clinic 34 degrees after 1.4 km against the odometry's
@@ -7,23 +8,25 @@ faster than the robot's odometry (on FR-clinic 34 degrees after 1.4 km against t
 drifts slower differs from robot to robot, and no single step says it: a step's difference
 between them is mostly the filter's white jitter about its map, which the map cancels over the
 next steps (the particles' spread at a step measures that jitter, not the drift: weighing each
-step by it took Intel from 0.051 to 2.04 m; docs/notes/2026-11-28-whose-heading-drifts.md). Drift shows
-over long spans, and a kept loop is a long span measured: its heading against each chain's
-relative heading from the loop's submap node to its query is one sample of each chain's drift
-over that many steps.
+step by it took Intel from 0.051 to 2.04 m; docs/notes/2026-11-28-whose-heading-drifts.md).
+Drift shows over long spans, and a kept loop is a long span measured: its heading against each
+chain's relative heading over it is one sample of each chain's drift over that many steps.
 
 Modelling each chain's heading error as a random walk, the loops give each one's variance per
-step (:func:`heading_drift_rates`); the minimum-variance chain takes each step's heading
-change as the filter's plus the odometry's share ``w = v_filter / (v_filter + v_odometry)`` of
-their difference (:func:`reweighted_chain`), the translation staying the filter's. A step where
-the two disagree far beyond the log's usual (a wheel slip, which the filter's slip search took)
-keeps the filter's heading (:func:`odometry_slips`). The loop closure searches again from that
-chain, and measures the rates again from its loops, until the share settles
-(:func:`jaxslam.graph.closure.close_trajectory_loops`). On the classic logs the odometry's
-heading drifts 40-170 times faster than the filter's (std per square-root step; w under 0.001):
-one pass, nothing changes. On FR-clinic the filter's drifts 5.8 times faster (w 0.97).
+step (:func:`heading_drift_rates`), the loop's ends taken where the submap's scans and the
+query's neighbours put them, not where one jittered node does. The step disagreements give the
+filter's white jitter (:func:`step_noise`). A robust smoother then takes the headings most
+probable under both (:func:`smoothed_headings`): who is at fault at a large disagreement is
+decided by whether it stays, not by its size (on FR-clinic 88-94 % of the steps beyond 4 robust
+stds were the filter's jumps, which a rule on the size gave to the odometry; the chains it made
+ended 19-24 m off; docs/notes/2026-11-28-the-filter-jitters.md). The chain turns each submap
+rigidly by its nodes' mean correction (:func:`fused_chain`). The loop closure searches again
+from that chain, and measures the rates again from its loops, until the odometry's share
+``w = v_filter / (v_filter + v_odometry)`` settles
+(:func:`jaxslam.graph.closure.close_trajectory_loops`). On Intel and ACES the odometry's heading
+drifts 10-30 times faster than the filter's (std per square-root step; w under 0.01): one pass,
+nothing changes. On FR-clinic the filter's drifts 3-15 times faster (w 0.96-1.0).
 """
-
 from __future__ import annotations
 
 import numpy as np
