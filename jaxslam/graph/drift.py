@@ -18,14 +18,15 @@ query's neighbours put them, not where one jittered node does. The step disagree
 filter's white jitter (:func:`step_noise`). A robust smoother then takes the headings most
 probable under both (:func:`smoothed_headings`): who is at fault at a large disagreement is
 decided by whether it stays, not by its size (on FR-clinic 88-94 % of the steps beyond 4 robust
-stds were the filter's jumps, which a rule on the size gave to the odometry; the chains it made
-ended 19-24 m off; docs/notes/2026-11-28-the-filter-jitters.md). The chain turns each submap
+stds were the filter's jumps, which a rule on the size took for wheel slips and kept; the
+chains it made ended 19-24 m off; docs/notes/2026-11-28-the-filter-jitters.md). The chain turns each submap
 rigidly by its nodes' mean correction (:func:`fused_chain`). The loop closure searches again
 from that chain, and measures the rates again from its loops, until the odometry's share
 ``w = v_filter / (v_filter + v_odometry)`` settles
 (:func:`jaxslam.graph.closure.close_trajectory_loops`). On Intel and ACES the odometry's heading
 drifts 10-30 times faster than the filter's (std per square-root step; w under 0.01): one pass,
-nothing changes. On FR-clinic the filter's drifts 3-15 times faster (w 0.96-1.0).
+nothing changes (MIT CSAIL: w 0.065, two passes). On FR-clinic the filter's drifts 4-14
+times faster in seven seeds of eight (w 0.96-1.0).
 """
 from __future__ import annotations
 
@@ -129,7 +130,7 @@ def smoothed_headings(filter_headings: np.ndarray, odometry_turns: np.ndarray, f
     large disagreement is decided by what follows it, not by its size: a filter jump that its
     map takes back is the filter's jitter; a step that stays (a wheel slip) is the odometry's.
     On FR-clinic 88-94 % of the steps the two disagree on beyond 4 robust stds are the filter's
-    (against the relations they span), which a rule on the size alone gave to the odometry.
+    (against the relations they span), which a rule on the size alone took for wheel slips.
 
     The least squares over ``(x, b)`` is banded (two superdiagonals, interleaved): Cholesky by
     ``scipy.linalg.solveh_banded``, iteratively reweighted.
