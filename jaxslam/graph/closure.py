@@ -151,8 +151,8 @@ class ClosureConfig:
                   "consistency_nodes", "max_rounds", "query_block", "match_iterations", "max_passes",
                   "min_drift_loops")
         lengths = ("search_range", "sigma", "window_min_xy", "window_max_xy", "window_min_theta", "window_max_theta",
-                   "angular_step", "near_window_xy", "max_std_xy", "max_std_theta", "consistency_xy", "consistency_theta", "loop_phi",
-                   "max_chi2")
+                   "angular_step", "near_window_xy", "max_std_xy", "max_std_theta", "consistency_xy",
+                   "consistency_theta", "loop_phi", "max_chi2")
         for name in counts:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:

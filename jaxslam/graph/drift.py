@@ -28,6 +28,7 @@ drifts 10-30 times faster than the filter's (std per square-root step; w under 0
 nothing changes (MIT CSAIL: w 0.065, two passes). On FR-clinic the filter's drifts 4-14
 times faster in seven seeds of eight (w 0.96-1.0).
 """
+
 from __future__ import annotations
 
 import numpy as np
