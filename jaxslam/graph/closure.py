@@ -94,7 +94,7 @@ class ClosureConfig:
     """Growth of the translation window per metre travelled since the submap (m/m)."""
     window_max_xy: float = 20.0
     """Largest translation window (m either side; static): the growth reaches it after 630 m
-    of path without a loop (FR-clinic's hour-long loop is 13 m off on every chain)."""
+    of path without a loop (FR-clinic's hour-long loop is 10-14 m off on every chain)."""
     window_min_theta: float = math.radians(30.0)
     """Angular window (rad either side) right after the submap."""
     window_theta_per_metre: float = math.radians(0.05)
@@ -246,7 +246,7 @@ def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params, head
 
     ``heading_rate`` (rad^2 per step), where the loops measured it, is each step's heading
     variance instead: the motion model's (about 3 degrees a step) would let the graph bend a
-    chain whose heading the loops found good to 0.03 degrees a root step, and close a loop's
+    chain whose heading the loops found good to 0.04-0.06 degrees a root step, and close a loop's
     translation by turning it (FR-clinic: 12 degrees)."""
     first = np.arange(poses.shape[0] - 1)
     measurement = between_np(poses[:-1], poses[1:])
