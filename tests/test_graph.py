@@ -358,3 +358,68 @@ def test_scan_points_match_a_loop_over_the_scans():
             ends = np.asarray(beam_endpoints(jnp.zeros((1, 3)), jnp.asarray(ranges[s]), log.sensor)[0][0])
             assert valid[s].sum() == pick.size
             np.testing.assert_array_equal(points[s, :pick.size], ends[pick].astype(np.float32))
+
+
+def test_graph_distances_chain_loops_against_a_slow_reference():
+    """Shortest paths over the chain and any number of kept loops, against Floyd-Warshall on a
+    dense matrix; a query reaching a submap through two loops is nearer than through one."""
+    from jaxslam.graph.closure import graph_distances
+
+    rng = np.random.default_rng(3)
+    num = 60
+    travelled = np.concatenate([[0.0], np.cumsum(rng.uniform(0.0, 1.0, num - 1))])
+    travelled[10] = travelled[9]  # a step of no length (a turn on the spot) is still an edge
+    # Loop A: node 30 reaches node 15; loop B: node 50 reaches node 35. Node 55 reaches node 5
+    # only through both (55 -> 50 -> 35 -> 30 -> 15 -> 5).
+    loop_query, loop_node = np.array([30, 50]), np.array([15, 35])
+    dense = np.full((num, num), np.inf)
+    np.fill_diagonal(dense, 0.0)
+    for i in range(num - 1):
+        dense[i, i + 1] = dense[i + 1, i] = travelled[i + 1] - travelled[i]
+    for q, n in zip(loop_query, loop_node):
+        dense[q, n] = dense[n, q] = 0.0
+    for k in range(num):  # Floyd-Warshall
+        dense = np.minimum(dense, dense[:, k:k + 1] + dense[k:k + 1, :])
+    queries, submap_last = np.array([12, 40, 55, 59]), np.array([5, 9, 19, 39])
+    got = graph_distances(travelled, queries, submap_last, loop_query, loop_node)
+    np.testing.assert_allclose(got, dense[np.ix_(queries, submap_last)], atol=1e-9)
+    through_both = (travelled[55] - travelled[50]) + (travelled[35] - travelled[30]) + (travelled[15] - travelled[5])
+    assert got[2, 0] == pytest.approx(through_both)
+    assert got[2, 0] < travelled[55] - travelled[5] - 10.0
+    no_loops = graph_distances(travelled, queries, submap_last, np.array([], int), np.array([], int))
+    np.testing.assert_allclose(no_loops, np.abs(travelled[queries][:, None] - travelled[submap_last][None]), atol=1e-9)
+
+
+def test_acceptance_scores_only_the_beams_the_search_used(twin_rooms):
+    """A beam as long as the search's range or longer ends where the submaps hold nothing; the
+    acceptance's mean fit must not count it (FR-clinic's return: 35-50 % such beams took true
+    matches from 0.6 to 0.4). Moving every long beam elsewhere leaves the score unchanged, and
+    a shorter search range scores fewer beams."""
+    import dataclasses as dc
+
+    from jaxslam.graph.acceptance import Loops, Searched, accept
+    from jaxslam.graph.loop_search import SearchResult
+    from jaxslam.graph.submaps import build_submaps, submap_pose
+
+    scenario, selection, truth, _ = twin_rooms
+    log, params, config = scenario.log, default_params(), ClosureConfig(search_range=4.0)
+    submaps = build_submaps(truth, np.asarray(log.ranges[selection.indices]), log.sensor, params.insertion, 0.05,
+                            SlamConfig().max_insert_range, config.nodes_per_submap, config.sigma, config.levels)
+    query = np.array([5, 12])  # two nodes of submap 0, matched at their true poses
+    guess = np.stack([submap_pose(submaps, 0, truth[q], truth[0]) for q in query])
+    one = np.ones(query.size, np.float32)
+    searched = Searched(query, np.zeros(query.size, int), guess, one * 2.0, one * 0.5,
+                        SearchResult(guess.astype(np.float32), one, 0 * one, 0 * one))
+    likelihood = params.likelihood._replace(sigma=jnp.float32(config.sigma))
+    ranges = np.array(log.ranges[selection.indices], np.float32)
+    long = (ranges >= config.search_range) & (ranges < float(log.sensor.range_max))
+    assert long[query].mean() > 0.1  # the test needs long beams
+    moved = np.where(long, ranges + 2.5, ranges)  # elsewhere, still a return
+
+    def score(r, cfg):
+        return accept(submaps, searched, r, log.sensor, likelihood, truth, Loops.empty(), cfg).score
+
+    np.testing.assert_allclose(score(moved, config), score(ranges, config), atol=1e-6)
+    assert np.all(score(ranges, config) > 0.8)  # the true pose fits its own submap's short beams
+    wide = dc.replace(config, search_range=15.0)
+    assert not np.allclose(score(moved, wide), score(ranges, wide), atol=1e-3)  # counted, they move it
