@@ -25,8 +25,8 @@ from that chain, and measures the rates again from its loops, until the odometry
 ``w = v_filter / (v_filter + v_odometry)`` settles
 (:func:`jaxslam.graph.closure.close_trajectory_loops`). On Intel and ACES the odometry's heading
 drifts 10-30 times faster than the filter's (std per square-root step; w under 0.01): one pass,
-nothing changes (MIT CSAIL: w 0.065, two passes). On FR-clinic the filter's drifts 4-14
-times faster in seven seeds of eight (w 0.96-1.0).
+nothing changes (MIT CSAIL: w 0.061-0.065, two passes). On FR-clinic the filter's drifts 3-14
+times faster in nine seeds of ten (w 0.89-1.0).
 """
 
 from __future__ import annotations
