@@ -136,7 +136,7 @@ def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, est
                                   searched.half_theta[promising])
     # The beams the search scored: a beam past the search's range ends where the submaps hold
     # nothing (they register endpoints to the same range), and counted it scores 0. At FR-clinic's
-    # return to its start 35-50 % of the beams are longer; counted, they took true matches of
+    # return to its start 29-52 % of the beams are longer; counted, they took true matches of
     # 0.6 down to 0.4, under min_score.
     usable = np.asarray(within_usable_range(jnp.asarray(ranges[query]), config.search_range))
     refined, information, score = _refine_and_fit(submaps, submap, result.pose[promising], usable, sensor,
