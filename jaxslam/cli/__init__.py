@@ -76,6 +76,9 @@ def make_parser() -> argparse.ArgumentParser:
     p_eval.add_argument("trajectory", help="trajectory text file: 'timestamp x y theta' per line")
     p_eval.add_argument("relations", help="relations file: 't1 t2 x y z roll pitch yaw' per line")
     p_eval.add_argument("--out", help="write the table as JSON to this file (not a folder)")
+    p_eval.add_argument("--log", help="the log the trajectory came from, for relations written on another clock "
+                                      "(a converter rewrote the log's timestamps, as MIT Killian's bag): each "
+                                      "relation timestamp is found among its scans by the time gaps and the odometry")
     p_eval.set_defaults(func=_cmd_eval)
 
     p_diag = sub.add_parser("diagnose", help="what happened in a map run, step by step (ESS, lineages, "

@@ -13,7 +13,8 @@ import numpy as np
 
 from jaxslam.config import ConfigError
 from jaxslam.diagnose import diagnose, read_step_record
-from jaxslam.io import read_relations, read_trajectory
+from jaxslam.io import read_log, read_relations, read_trajectory
+from jaxslam.io.relation_clock import align_relations_clock
 from jaxslam.io.files import OutputError, check_output_file, write_file_atomic
 from jaxslam.io.maps import read_map
 from jaxslam.metrics import relation_error
@@ -33,10 +34,28 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         timestamps, poses = read_trajectory(args.trajectory)  # repeated timestamps: the last kept, warned
     found = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     relations = read_relations(args.relations)
-    err = relation_error(timestamps, poses, relations)
+    alignment = None
+    if args.log:
+        log = read_log(args.log)
+        alignment = align_relations_clock(relations, log.timestamps, log.odometry)
+        relations = alignment.relations
+    try:
+        err = relation_error(timestamps, poses, relations)
+    except ValueError as missing:
+        if alignment is not None:
+            raise
+        raise ConfigError(f"{missing}; relations written on another clock than the log's (a converted log, as "
+                          f"MIT Killian's bag) need --log LOG") from None
     table = err.to_dict()
     for warning in found:
         print(f"warning: {warning}", file=sys.stderr)
+    if alignment is not None:
+        table["clock_alignment"] = _alignment_summary(alignment)
+        print(f"{'clock':>22}: {alignment.times.size} relation timestamps found among the log's scans "
+              f"(scan period {alignment.scan_period:.4f} s); {table['clock_alignment']['unpinned']} not pinned to "
+              f"one scan (margin < 1); neighbour relations against the odometry: median "
+              f"{table['clock_alignment']['residual_median_m']:.3f} m, largest "
+              f"{table['clock_alignment']['residual_max_m']:.3f} m")
     print(f"{'relations':>22}: {table.get('count')}")
     for key, value in table.items():
         if key != "count" and not isinstance(value, (list, dict)):
@@ -49,6 +68,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         write_file_atomic(args.out, json.dumps(values, indent=2, allow_nan=False))
         print(f"written to {args.out}")
     return 0
+
+
+def _alignment_summary(alignment) -> dict:
+    """What ``jaxslam eval --log`` records of the clock's alignment."""
+    return {"timestamps": int(alignment.times.size), "scan_period_s": float(alignment.scan_period),
+            "unpinned": int(np.sum(alignment.margin < 1.0)),
+            "residual_median_m": float(np.nanmedian(alignment.residual)),
+            "residual_max_m": float(np.nanmax(alignment.residual))}
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:

@@ -1,0 +1,186 @@
+"""Relations written on another clock than the log's: :func:`align_relations_clock`.
+
+A relations file names its scans by the original log's timestamps. A converter that rewrote the
+timestamps (MIT Killian's bag: 1,000,000,000 s onward, 0.1 s apart) keeps the scans and their
+order but loses that key, so :func:`jaxslam.metrics.relation_error` cannot find a relation's two
+scans. Every distinct relation timestamp is still one scan of the log, and the indices increase
+with the time. Two things say which:
+
+- **the time gaps**: the original scans came at a nearly steady period, so the number of scans
+  between two relation timestamps is close to their time apart over the period (exactly, where
+  the gap is short; within a few scans over a long one);
+- **the odometry**: a relation between two neighbouring relation timestamps (most of them: a
+  short step of the robot) must match the log's odometry between the two scans, to the
+  odometry's error over a second or two.
+
+:func:`align_relations_clock` finds the indices that best satisfy both: each timestamp's index is
+its nominal one (its time from the first over the period) plus an offset, and a Viterbi pass over
+the timestamps in order picks the offsets, with a cost per scan that an offset changes by between
+neighbours and a robust chi-square of each neighbour relation against the odometry.
+
+What it cannot pin: where the robot stood still or moved evenly, shifting a run of timestamps by
+one scan leaves every neighbour relation's odometry the same. ``margin`` says where: the cost of
+the best alignment that moves that timestamp by one scan, above the best. A relation that spans a
+loop and ends at such a timestamp is off by that scan's motion (the robot's speed over one scan
+period), so a relation error measured through this alignment carries it; measure its spread over
+``gap_cost`` before trusting the last centimetre.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from jaxslam.geometry import between_np, wrap_angle_np
+from jaxslam.io.relations import Relations
+from jaxslam.laserlog import LogError
+
+__all__ = ["ClockAlignment", "align_relations_clock"]
+
+
+class ClockAlignment(NamedTuple):
+    """What :func:`align_relations_clock` returns."""
+
+    relations: Relations
+    """The relations with ``t1`` and ``t2`` replaced by their scans' timestamps in the log."""
+    times: np.ndarray
+    """(K,) float64: the relations' distinct timestamps on their own clock, increasing (s)."""
+    scan_index: np.ndarray
+    """(K,) int: the log scan of each of ``times``."""
+    margin: np.ndarray
+    """(K,) float64: the cost of the best alignment that moves this timestamp by one scan, above
+    the best (chi-square units): small where the robot stood still or moved evenly."""
+    residual: np.ndarray
+    """(R,) float64: each relation's translation error against the odometry at the aligned scans
+    (m); nan for a relation between timestamps that are not neighbours (a loop's)."""
+    scan_period: float
+    """The original log's scan period the nominal indices used (s)."""
+
+
+def align_relations_clock(relations: Relations, timestamps, odometry, scan_period: float | None = None,
+                          max_offset: int = 40, gap_cost: float = 5.0, long_gap: float = 10.0,
+                          sigma_xy: float = 0.05, sigma_theta: float = 0.03, max_cost: float = 50.0) -> ClockAlignment:
+    """Find the log scan of every relation timestamp (see the module docstring).
+
+    Args:
+        relations: the relations on their own clock (R relations, K distinct timestamps).
+        timestamps: (T,) the log's scan timestamps (s), increasing: what the aligned relations use.
+        odometry: (T, 3) the log's odometry poses at its scans (m, m, rad).
+        scan_period: the original log's scan period (s); default: the relations' time span over
+            T - 1, right when the relations run from the log's first scans to its last.
+        max_offset: largest difference, in scans, between a timestamp's index and its nominal
+            one (its time from the first relation timestamp over ``scan_period``).
+        gap_cost: cost (chi-square units) per scan by which the offset changes between two
+            neighbouring timestamps at most ``long_gap`` apart; a longer gap costs less in
+            proportion (its scan count is less certain).
+        long_gap: see ``gap_cost`` (s).
+        sigma_xy: the odometry's translation error over a neighbour relation (m).
+        sigma_theta: ... and its heading error (rad).
+        max_cost: largest chi-square one relation adds (a robust cap: odometry slips).
+
+    Returns:
+        :class:`ClockAlignment`.
+
+    Raises:
+        LogError: before any work, for a log whose arrays disagree, relations with more distinct
+            timestamps than the log has scans or a time span longer than the log at
+            ``scan_period``; after the pass, for a best alignment that reaches ``max_offset``
+            (the window was too narrow: its true offset may lie beyond).
+    """
+    times_log = np.asarray(timestamps, np.float64)
+    odometry = np.asarray(odometry, np.float64)
+    num_scans = times_log.size
+    if times_log.ndim != 1 or odometry.shape != (num_scans, 3):
+        raise LogError(f"align_relations_clock: timestamps (T,) and odometry (T, 3) must agree, got "
+                       f"{times_log.shape} and {odometry.shape}")
+    if not (np.all(np.isfinite(odometry)) and np.all(np.diff(times_log) > 0)):
+        raise LogError("align_relations_clock: the log's timestamps must increase and its odometry be finite")
+    times = np.unique(np.concatenate([relations.t1, relations.t2]))
+    if times.size > num_scans:
+        raise LogError(f"align_relations_clock: the relations name {times.size} distinct scans, more than the "
+                       f"log's {num_scans}: they are not this log's")
+    span = float(times[-1] - times[0])
+    period = span / max(num_scans - 1, 1) if scan_period is None else float(scan_period)
+    if not period > 0 or round(span / period) > num_scans - 1:
+        raise LogError(f"align_relations_clock: the relations span {span:.1f} s, {span / period:.0f} scans at a "
+                       f"{period:.4f} s period, longer than the log's {num_scans} scans")
+    first = np.searchsorted(times, relations.t1)
+    second = np.searchsorted(times, relations.t2)
+    neighbours = np.abs(first - second) == 1
+    if not np.any(neighbours):
+        raise LogError("align_relations_clock: no relation joins two neighbouring timestamps: the odometry has "
+                       "nothing to align")
+    nominal = np.round((times - times[0]) / period).astype(np.int64)
+    offsets = np.arange(-max_offset, max_offset + 1)
+    gap_costs = gap_cost * np.minimum(1.0, long_gap / np.maximum(np.diff(times), 1e-9))
+    by_step = _neighbour_relations(first, second, neighbours, times.size)
+    step_cost = _StepCost(relations.motion, first, nominal, offsets, odometry, by_step,
+                          (sigma_xy, sigma_theta, max_cost))
+    change = np.abs(offsets[:, None] - offsets[None])
+    # Forward and backward passes of min-sum: their sum is each timestamp's min-marginal cost.
+    forward = np.zeros((times.size, offsets.size))
+    backward = np.zeros((times.size, offsets.size))
+    forward[0] = step_cost.outside(0)
+    for k in range(times.size - 1):
+        forward[k + 1] = np.min(forward[k][:, None] + step_cost(k) + gap_costs[k] * change, axis=0)
+    backward[-1] = step_cost.outside(times.size - 1)
+    for k in range(times.size - 2, -1, -1):
+        backward[k] = np.min(step_cost(k) + gap_costs[k] * change + backward[k + 1][None], axis=1) \
+            + step_cost.outside(k)
+    marginal = forward + backward  # the outside costs (0 or inf) counted twice: still 0 or inf
+    best = np.argmin(marginal, axis=1)
+    rows = np.arange(times.size)
+    neighbour_best = np.minimum(marginal[rows, np.maximum(best - 1, 0)], marginal[rows, np.minimum(best + 1, offsets.size - 1)])
+    margin = neighbour_best - marginal[rows, best]
+    if np.any(np.abs(offsets[best]) == max_offset):
+        raise LogError(f"align_relations_clock: the best alignment reaches the offset window's edge ({max_offset} "
+                       f"scans): raise max_offset or give the scan period")
+    scan_index = nominal + offsets[best]
+    if np.any(np.diff(scan_index) <= 0):  # only where the window forbade nothing: a tie
+        raise LogError("align_relations_clock: two relation timestamps came to the same scan (the odometry "
+                       "could not tell them apart); give the scan period")
+    moved = between_np(odometry[scan_index[first]], odometry[scan_index[second]])
+    residual = np.where(neighbours, np.hypot(*(moved[:, :2] - relations.motion[:, :2]).T), np.nan)
+    aligned = relations._replace(t1=times_log[scan_index[first]], t2=times_log[scan_index[second]])
+    return ClockAlignment(aligned, times, scan_index, margin, residual, period)
+
+
+def _neighbour_relations(first, second, neighbours, num_times) -> list:
+    """For each step k -> k + 1 between neighbouring timestamps, its relations' indices."""
+    step = np.minimum(first, second)
+    chosen = np.nonzero(neighbours)[0]
+    order = chosen[np.argsort(step[chosen], kind="stable")]
+    bounds = np.searchsorted(step[order], np.arange(num_times + 1))
+    return [order[bounds[k]:bounds[k + 1]] for k in range(num_times)]
+
+
+class _StepCost:
+    """The cost of each pair of offsets (k's, k + 1's): the neighbour relations' robust chi-square
+    against the odometry, and an infinite cost for an index outside the log or not after k's."""
+
+    def __init__(self, motion, first, nominal, offsets, odometry, by_step, noise):
+        self.motion, self.first, self.nominal, self.offsets = motion, first, nominal, offsets
+        self.odometry, self.by_step, self.noise = odometry, by_step, noise
+
+    def outside(self, k) -> np.ndarray:
+        """(O,) inf where timestamp k's index would fall outside the log."""
+        index = self.nominal[k] + self.offsets
+        return np.where((index < 0) | (index >= self.odometry.shape[0]), np.inf, 0.0)
+
+    def __call__(self, k) -> np.ndarray:
+        sigma_xy, sigma_theta, max_cost = self.noise
+        here = self.nominal[k] + self.offsets
+        there = self.nominal[k + 1] + self.offsets
+        cost = np.where(there[None] > here[:, None], 0.0, np.inf) + self.outside(k + 1)[None]
+        last = self.odometry.shape[0] - 1
+        here_pose = self.odometry[np.clip(here, 0, last)][:, None]
+        there_pose = self.odometry[np.clip(there, 0, last)][None]
+        for s in self.by_step[k]:
+            # The relation's own direction: from t1's scan to t2's.
+            moved = between_np(here_pose, there_pose) if self.first[s] == k else between_np(there_pose, here_pose)
+            wanted = self.motion[s]
+            chi2 = (np.sum((moved[..., :2] - wanted[:2]) ** 2, axis=-1) / sigma_xy ** 2
+                    + wrap_angle_np(moved[..., 2] - wanted[2]) ** 2 / sigma_theta ** 2)
+            cost = cost + np.minimum(chi2, max_cost)
+        return cost

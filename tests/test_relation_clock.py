@@ -1,0 +1,102 @@
+"""Relations on another clock than the log's (jaxslam.io.relation_clock): a converted log whose
+scan times were rewritten, as MIT Killian's bag."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxslam.cli import main
+from jaxslam.geometry import between_np, chain_np
+from jaxslam.io import write_carmen, write_trajectory
+from jaxslam.io.relation_clock import align_relations_clock
+from jaxslam.io.relations import Relations
+from jaxslam.laser import make_sensor
+from jaxslam.laserlog import LaserLog, LogError
+from jaxslam.metrics import relation_error
+
+
+def _converted_log(seed: int = 0, num_scans: int = 500):
+    """A robot path, its original scan times (a 0.44 s period with jitter, one burst where two
+    scans took 2.2 s), relations between a subset of them, odometry with
+    drift, and the converter's clock (0.1 s apart)."""
+    rng = np.random.default_rng(seed)
+    speed = 0.12 + 0.08 * np.sin(np.arange(num_scans) / 17.0) + 0.02 * rng.standard_normal(num_scans)
+    speed[200:230] = 0.0  # the robot stands still: no scan there can be told from its neighbour
+    turn = 0.15 * np.sin(np.arange(num_scans) / 11.0) * (rng.random(num_scans) < 0.7)
+    steps = np.stack([speed, np.zeros(num_scans), turn], axis=1)
+    truth = chain_np(np.zeros(3), steps[1:])
+    interval = 0.44 + 0.004 * rng.standard_normal(num_scans - 1)
+    interval[300:302] = 1.1  # two scans that took five periods
+    original = 5000.0 + np.concatenate([[0.0], np.cumsum(interval)])
+    chosen = np.sort(rng.choice(np.arange(8, num_scans - 5), size=num_scans // 4, replace=False))
+    pairs = [(a, b) for a, b in zip(chosen[:-1], chosen[1:])]
+    pairs += [(b, a) for a, b in pairs[::9]]  # some written from the later scan
+    pairs += [(chosen[i], chosen[-1 - i]) for i in range(0, 40, 4)]  # loops
+    first, second = np.array(pairs).T
+    relations = Relations(original[first], original[second], between_np(truth[first], truth[second]))
+    noisy = steps[1:] + rng.normal(0.0, [0.005, 0.002, 0.002], size=steps[1:].shape)
+    odometry = chain_np(np.zeros(3), noisy)
+    converted = 1e9 + 0.1 * np.arange(num_scans)
+    return truth, original, odometry, converted, relations, chosen
+
+
+def test_alignment_finds_every_moving_scan_and_zero_error_for_the_truth():
+    truth, original, odometry, converted, relations, chosen = _converted_log()
+    aligned = align_relations_clock(relations, converted, odometry)
+    np.testing.assert_array_equal(aligned.times, original[chosen])
+    standing = (chosen >= 200) & (chosen <= 230)
+    np.testing.assert_array_equal(aligned.scan_index[~standing], chosen[~standing])
+    # Where the robot stood still a scan is not pinned, and its margin says so.
+    wrong = aligned.scan_index != chosen
+    assert np.all(aligned.margin[wrong] < 0.5) and np.median(aligned.margin[~standing]) > 5.0
+    # The true path through the aligned relations: no error (a scan off where the robot stood
+    # still is at the same pose).
+    error = relation_error(converted, truth, aligned.relations)
+    assert error.trans_mean < 1e-9 and error.rot_mean < 1e-9
+    assert np.nanmax(aligned.residual) < 0.1 and np.isnan(aligned.residual[-10:]).all()
+
+
+def test_relations_of_another_log_are_refused_before_any_work():
+    truth, original, odometry, converted, relations, chosen = _converted_log()
+    with pytest.raises(LogError, match=r"more than the log's 100"):
+        align_relations_clock(relations, converted[:100], odometry[:100])
+    with pytest.raises(LogError, match=r"longer than the log's 500 scans"):
+        align_relations_clock(relations, converted, odometry, scan_period=0.05)
+    with pytest.raises(LogError, match=r"must agree"):
+        align_relations_clock(relations, converted, odometry[:-1])
+    # Two relations that cross: each joins timestamps with the other's between them.
+    loops_only = Relations(original[chosen[[0, 1]]], original[chosen[[2, 3]]], np.zeros((2, 3)))
+    with pytest.raises(LogError, match=r"no relation joins two neighbouring timestamps"):
+        align_relations_clock(loops_only, converted, odometry)
+
+
+def test_a_window_too_narrow_is_an_error_not_a_wrong_alignment():
+    truth, original, odometry, converted, relations, _ = _converted_log()
+    # The burst (two scans in five periods) moves every later index three scans from its nominal.
+    with pytest.raises(LogError, match=r"offset window's edge \(2 scans\)"):
+        align_relations_clock(relations, converted, odometry, max_offset=2)
+
+
+def test_eval_aligns_the_clock_from_the_log(tmp_path, capsys):
+    """``jaxslam eval TRAJ RELATIONS --log LOG``: the converted log's scans are found, the true path
+    scores no error; without --log the error says what to give."""
+    truth, original, odometry, converted, relations, _ = _converted_log()
+    log = LaserLog(converted, odometry, np.full((converted.size, 3), 5.0, np.float32),
+                   make_sensor(np.linspace(-0.5, 0.5, 3), range_max=30.0))
+    write_carmen(tmp_path / "converted.clf", log)
+    write_trajectory(tmp_path / "truth.txt", converted, truth)
+    (tmp_path / "original.relations").write_text("".join(
+        f"{a:.6f} {b:.6f} {m[0]:.9f} {m[1]:.9f} 0 0 0 {m[2]:.9f}\n"
+        for a, b, m in zip(relations.t1, relations.t2, relations.motion)))
+    out = tmp_path / "errors.json"
+    args = ["eval", str(tmp_path / "truth.txt"), str(tmp_path / "original.relations")]
+    assert main(args + ["--log", str(tmp_path / "converted.clf"), "--out", str(out)]) == 0
+    table = json.loads(out.read_text())
+    assert table["trans_mean"] < 1e-6 and table["clock_alignment"]["timestamps"] == np.unique(
+        np.concatenate([relations.t1, relations.t2])).size
+    assert "relation timestamps found among the log's scans" in capsys.readouterr().out
+    assert main(args) == 2
+    assert "need --log LOG" in capsys.readouterr().err
