@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxslam.geometry import between_np, chain_np
-from jaxslam.graph.drift import fused_chain, heading_drift_rates, smoothed_headings, step_noise
+from jaxslam.graph.drift import fused_chain, heading_drift_rates, parting, smoothed_headings, step_noise
 
 
 def test_heading_drift_rates_recover_two_random_walks_whatever_the_submaps_first_node_jitters():
@@ -150,3 +150,23 @@ def test_the_passes_loops_merge_each_pair_once_kept_where_any_pass_kept_it():
     assert np.all(np.isnan(merged.chi2))
     merged.refused[0] = "chi2"  # the final solve writes into its own copy
     assert everything.refused[0] == ""
+
+
+def test_parting_is_a_standard_normal_where_the_rates_hold_and_large_after_a_turn_they_do_not():
+    """Headings that random-walk at the rates, the filter's with white jitter: |parting| over
+    many draws exceeds 2 as often as a standard normal does (4.55 %), within 4 binomial standard
+    errors; a 15-degree turn of the filter alone (7 standard deviations) after node ``since`` parts it by far more than 3."""
+    rng = np.random.default_rng(3)
+    draws, nodes, since = 4000, 400, 150
+    filter_rate, odometry_rate, jitter = 0.002 ** 2, 0.001 ** 2, 0.004 ** 2
+    rates = (filter_rate, odometry_rate)
+    values, turned = [], []
+    for _ in range(draws):
+        odometry_h = 2.0 + np.cumsum(rng.normal(0.0, np.sqrt(odometry_rate), nodes))
+        filter_h = np.cumsum(rng.normal(0.0, np.sqrt(filter_rate), nodes)) + rng.normal(0.0, np.sqrt(jitter), nodes)
+        values.append(parting(filter_h, odometry_h, since, rates, jitter))
+        filter_h[300:] += np.radians(15.0)
+        turned.append(parting(filter_h, odometry_h, since, rates, jitter))
+    share = np.mean(np.asarray(values) > 2.0)
+    assert abs(share - 0.0455) < 4 * np.sqrt(0.0455 * 0.9545 / draws)
+    assert np.mean(np.asarray(turned) > 3.0) > 0.99

@@ -46,8 +46,6 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse
-import scipy.sparse.csgraph
 from tqdm.auto import tqdm
 
 from jaxslam.geometry import between_np, compose_np
@@ -57,6 +55,7 @@ from jaxslam.graph.acceptance import Loops, Searched, loop_edges
 from jaxslam.graph.loop_search import SearchWindow, search_pairs
 from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps, scan_points
+from jaxslam.graph.windows import candidate_pairs, graph_distances, path_distances
 from jaxslam.motion import noise_std
 
 
@@ -147,6 +146,10 @@ class ClosureConfig:
     """The passes stop when the odometry's share of the heading changes by less than this."""
     min_drift_loops: int = 3
     """Kept loops needed to measure the drift rates (fewer: one pass)."""
+    max_parting: float = 3.0
+    """Standard deviations by which the filter's and the odometry's headings may part after the
+    last kept loop (:func:`jaxslam.graph.drift.parting`); beyond, one pass searches from the
+    odometry's chain, whatever the share."""
 
     def __post_init__(self):
         counts = ("nodes_per_submap", "query_stride", "submaps_per_query", "num_points", "levels", "keep", "batch",
@@ -154,7 +157,7 @@ class ClosureConfig:
                   "min_drift_loops")
         lengths = ("search_range", "sigma", "window_min_xy", "window_max_xy", "window_min_theta", "window_max_theta",
                    "angular_step", "near_window_xy", "max_std_xy", "max_std_theta", "consistency_xy",
-                   "consistency_theta", "loop_phi", "max_chi2")
+                   "consistency_theta", "loop_phi", "max_chi2", "max_parting")
         for name in counts:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -260,79 +263,6 @@ def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params, head
     return Edges(first, first + 1, measurement, information, np.full(first.size, SEQUENTIAL))
 
 
-def path_distances(poses: np.ndarray) -> np.ndarray:
-    """(S,) metres travelled along the nodes from the first."""
-    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
-
-
-def graph_distances(travelled: np.ndarray, queries: np.ndarray, submap_last: np.ndarray, loop_query: np.ndarray,
-                    loop_node: np.ndarray) -> np.ndarray:
-    """(Q, M) how far each query is from each submap along the graph: the shortest path over the
-    chain (each step its length) and the kept loops (each of length 0, query to the loop's submap
-    node), through any number of loops. The drift a window must allow grows with it.
-
-    A path through one loop is not enough where a return reaches old submaps through several:
-    FR-clinic's return to its start reaches its first submaps through the loop at node 2,166 and
-    then those of nodes 765-849, 105 m of graph (a 4 m window) against 560 m through one loop (an
-    18 m window). On FR-clinic seeds 0-2 the closed errors came out the same either way
-    (docs/notes/2026-11-29-the-return-to-the-start.md); the window is what the drift allows.
-
-    Args:
-        travelled: (S,) :func:`path_distances` along the chain (m).
-        queries: (Q,) int query nodes.
-        submap_last: (M,) int each submap's last node.
-        loop_query: (L,) int kept loops' query nodes.
-        loop_node: (L,) int the node each loop reaches (its submap's last node).
-    """
-    num = travelled.size
-    steps = np.arange(num - 1)
-    # A loop's length is 0, stored as the smallest positive float: a sparse matrix may drop an
-    # explicit 0 (eliminate_zeros), and with it the edge.
-    tiny = np.finfo(np.float64).tiny
-    graph = scipy.sparse.coo_matrix(
-        (np.concatenate([np.maximum(np.diff(travelled), tiny), np.full(loop_query.size, tiny)]),
-         (np.concatenate([steps, loop_query]), np.concatenate([steps + 1, loop_node]))), shape=(num, num)).tocsr()
-    return scipy.sparse.csgraph.dijkstra(graph, directed=False, indices=queries)[:, submap_last]
-
-
-def candidate_pairs(poses: np.ndarray, submaps: Submaps, config: ClosureConfig, queries: np.ndarray,
-                    travelled: np.ndarray, distance: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The (query, submap) pairs to search and their windows: each query against the
-    ``submaps_per_query`` nearest submaps that end at least ``min_separation`` metres of path
-    before it and have a node within its window plus ``max_node_distance`` of it.
-
-    Args:
-        poses: (S, 3) the current node estimates.
-        submaps: the submaps.
-        config: the closure's settings.
-        queries: (Q,) nodes to search from.
-        travelled: (S,) :func:`path_distances`.
-        distance: (Q, M) :func:`graph_distances`: what the windows grow with.
-
-    Returns:
-        ``(query (P,), submap (P,), half_xy (P,) m, half_theta (P,) rad)``.
-    """
-    last = submaps.last_node
-    since = travelled[queries][:, None] - travelled[last][None]
-    eligible = (queries[:, None] > last[None]) & (since >= config.min_separation)
-    half_xy = np.minimum(config.window_max_xy, config.window_min_xy + config.window_xy_per_metre * distance)
-    half_theta = np.minimum(config.window_max_theta, config.window_min_theta + config.window_theta_per_metre * distance)
-    near = np.full(eligible.shape, np.inf)
-    for j in range(last.size):  # M is small: a loop over submaps
-        nodes = poses[submaps.first_node[j]:last[j] + 1, :2]
-        near[:, j] = np.min(np.linalg.norm(poses[queries, None, :2] - nodes[None], axis=-1), axis=1)
-    ok = eligible & (near <= half_xy + config.max_node_distance)
-    order = np.argsort(np.where(ok, near, np.inf), axis=1, kind="stable")
-    position = np.empty_like(order)
-    np.put_along_axis(position, order, np.arange(order.shape[1])[None], axis=1)  # each submap's place by distance
-    allowed = np.ceil(config.submaps_per_query * np.maximum(1.0, (half_xy / config.near_window_xy) ** 2))
-    q_idx, j_idx = np.nonzero(ok & (position < allowed))
-    by_distance = np.lexsort((position[q_idx, j_idx], q_idx))  # per query, nearest first
-    q_idx, j_idx = q_idx[by_distance], j_idx[by_distance]
-    return queries[q_idx], j_idx, half_xy[q_idx, j_idx], half_theta[q_idx, j_idx]
-
-
 def _search_block(queries, estimate, travelled, found: Loops, submaps: Submaps, points, valid,
                   config: ClosureConfig) -> Searched:
     """Search a block's queries against their candidate submaps, from the current estimate, in
@@ -427,8 +357,6 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
         return _unclosed(log, node_scans, filter_poses, sequential_edges(local, motions, params.motion), t0)
     ranges = np.asarray(log.ranges[node_scans], np.float32)
     points, valid = scan_points(ranges, log.sensor, config.search_range, config.num_points)
-    odometry_headings = np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
-    _, jitter = drift.step_noise(between_np(local[:-1], local[1:]), motions[1:])
     # The submaps are the filter's, whatever chain a pass searches from: a submap's 20 scans are
     # placed by the filter's own steps, which its map held together; a chain that takes part of
     # its heading from the odometry takes the odometry's step-to-step noise too (the simulated
@@ -436,14 +364,58 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     submaps = build_submaps(local, ranges, log.sensor, params.insertion, slam_config.resolution,
                             slam_config.max_insert_range, config.nodes_per_submap, config.sigma, config.levels)
     seconds = {"submaps": time.perf_counter() - t0, "search": 0.0, "accept": 0.0, "optimize": 0.0}
+    run = _passes(local, motions, submaps, ranges, points, valid, log.sensor, params, config, seconds, progress)
+    closed, everything, share, chain, rates, done = run.closed, run.everything, run.share, run.chain, run.rates, run.done
+    if not np.all(np.isfinite(rates)):  # no pass kept enough loops: nothing says the odometry is better
+        closed, share, chain = run.first_pass, 0.0, local
+    found, estimate, sequential = closed.loops, closed.poses, closed.sequential
+    if run.searched_parting:  # the final chain is not the one the last pass searched from
+        sequential = sequential_edges(chain, motions, params.motion, run.heading_rate)
+    if done > 1 and share > 0:  # the loops of every pass in one graph on the last chain, from the last pass's solution
+        found = acceptance.merged(everything)
+        t_solve = time.perf_counter()
+        estimate = _solve(found, submaps, sequential, chain, estimate, chain.shape[0], config)
+        seconds["optimize"] += time.perf_counter() - t_solve
+    poses = to_world(estimate, frame_offset)
+    return LoopClosure(node_scans, filter_poses, poses, trajectory_per_scan(log, node_scans, poses),
+                       pose_graph.concat_edges(sequential, loop_edges(found, submaps)),
+                       found._replace(refused=found.refused.astype(str)), submaps.first_node, run.pairs,
+                       {**seconds, "total": time.perf_counter() - t0}, to_world(chain, frame_offset), float(share),
+                       tuple(float(r) for r in rates), done)
+
+
+class _Passes(NamedTuple):
+    """What :func:`_passes` leaves: the last pass and the first, every pass's candidates, the final
+    chain, its share and heading rate, the rates measured, whether the last pass was the parting's
+    (:func:`_parted`), the passes run and the pairs searched."""
+
+    closed: _Pass
+    first_pass: _Pass
+    everything: Loops
+    share: float
+    chain: np.ndarray
+    heading_rate: float | None
+    rates: tuple
+    searched_parting: bool
+    done: int
+    pairs: int
+
+
+def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, params, config: ClosureConfig,
+            seconds: dict, progress: bool) -> _Passes:
+    """The closure's passes (:func:`close_trajectory_loops`), each from the chain the loops so far
+    weigh; ``seconds`` gains each stage's time."""
+    odometry_headings = np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
+    _, jitter = drift.step_noise(between_np(local[:-1], local[1:]), motions[1:])
     pairs = 0
     share, chain, heading_rate = 0.0, local, None
     everything = Loops.empty()  # every pass's candidates, in pass order
+    parted = parting_pass = searched_parting = False  # a pass from the odometry's chain for a parting: run, next, last
     bar = None
     for done in range(1, config.max_passes + 1):
         if progress:
             bar = tqdm(total=int(local.shape[0]), desc=f"loop closure, pass {done}", unit="node")
-        closed = _close_pass(chain, heading_rate, motions, submaps, ranges, points, valid, log.sensor, params, config,
+        closed = _close_pass(chain, heading_rate, motions, submaps, ranges, points, valid, sensor, params, config,
                              bar)
         if bar is not None:
             bar.close()
@@ -461,24 +433,33 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
             share = 1.0
             chain, heading_rate = _weighed_chain(local, motions, None, jitter, submaps)
             continue
-        if abs(new_share - share) < config.min_share_change or done == config.max_passes:
+        searched_parting, parting_pass = parting_pass, False  # this pass was the parting's: one, then stop
+        settled = abs(new_share - share) < config.min_share_change or searched_parting
+        parting_pass = (settled and not parted and done < config.max_passes and share < 1.0
+                        and _parted(everything, local, odometry_headings, rates, jitter, config))
+        if (settled or done == config.max_passes) and not parting_pass:
             break
+        # The rates did not settle, or the chains part after the last loop beyond what they allow:
+        # nothing measured the filter there, and the odometry's chain is the other estimate.
+        parted = parted or parting_pass
+        share = 1.0 if parting_pass else new_share
+        chain, heading_rate = _weighed_chain(local, motions, None if parting_pass else rates, jitter, submaps)
+    if searched_parting:
+        # The last pass searched from the odometry's chain: the final graph weighs the headings by
+        # the rates every pass's loops measure.
         share = new_share
         chain, heading_rate = _weighed_chain(local, motions, rates, jitter, submaps)
-    if not np.all(np.isfinite(rates)):  # no pass kept enough loops: nothing says the odometry is better
-        closed, share, chain = first_pass, 0.0, local
-    found, estimate, sequential = closed.loops, closed.poses, closed.sequential
-    if done > 1 and share > 0:  # the loops of every pass in one graph on the last chain, from the last pass's solution
-        found = acceptance.merged(everything)
-        t_solve = time.perf_counter()
-        estimate = _solve(found, submaps, sequential, chain, estimate, chain.shape[0], config)
-        seconds["optimize"] += time.perf_counter() - t_solve
-    poses = to_world(estimate, frame_offset)
-    return LoopClosure(node_scans, filter_poses, poses, trajectory_per_scan(log, node_scans, poses),
-                       pose_graph.concat_edges(sequential, loop_edges(found, submaps)),
-                       found._replace(refused=found.refused.astype(str)), submaps.first_node, pairs,
-                       {**seconds, "total": time.perf_counter() - t0}, to_world(chain, frame_offset), float(share),
-                       tuple(float(r) for r in rates), done)
+    return _Passes(closed, first_pass, everything, share, chain, heading_rate, rates, searched_parting, done, pairs)
+
+
+def _parted(everything: Loops, local, odometry_headings, rates, jitter, config: ClosureConfig) -> bool:
+    """Whether the filter's and the odometry's headings part after the last kept loop by more than
+    ``max_parting`` standard deviations (:func:`jaxslam.graph.drift.parting`), over a path long
+    enough (``min_separation``) to hold a loop no window reached."""
+    kept = acceptance.first_kept(everything)
+    since = int(everything.query[kept].max()) if kept.size else local.shape[0] - 1
+    return bool(np.all(np.isfinite(rates)) and path_distances(local[since:])[-1] >= config.min_separation
+                and drift.parting(local[:, 2], odometry_headings, since, rates, jitter) > config.max_parting)
 
 
 def _weighed_chain(local: np.ndarray, motions: np.ndarray, rates, jitter: float,

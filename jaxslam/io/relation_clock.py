@@ -117,18 +117,7 @@ def align_relations_clock(relations: Relations, timestamps, odometry, scan_perio
     by_step = _neighbour_relations(first, second, neighbours, times.size)
     step_cost = _StepCost(relations.motion, first, nominal, offsets, odometry, by_step,
                           (sigma_xy, sigma_theta, max_cost))
-    change = np.abs(offsets[:, None] - offsets[None])
-    # Forward and backward passes of min-sum: their sum is each timestamp's min-marginal cost.
-    forward = np.zeros((times.size, offsets.size))
-    backward = np.zeros((times.size, offsets.size))
-    forward[0] = step_cost.outside(0)
-    for k in range(times.size - 1):
-        forward[k + 1] = np.min(forward[k][:, None] + step_cost(k) + gap_costs[k] * change, axis=0)
-    backward[-1] = step_cost.outside(times.size - 1)
-    for k in range(times.size - 2, -1, -1):
-        backward[k] = np.min(step_cost(k) + gap_costs[k] * change + backward[k + 1][None], axis=1) \
-            + step_cost.outside(k)
-    marginal = forward + backward  # the outside costs (0 or inf) counted twice: still 0 or inf
+    marginal = _min_marginals(step_cost, gap_costs, offsets, times.size)
     best = np.argmin(marginal, axis=1)
     rows = np.arange(times.size)
     neighbour_best = np.minimum(marginal[rows, np.maximum(best - 1, 0)], marginal[rows, np.minimum(best + 1, offsets.size - 1)])
@@ -144,6 +133,21 @@ def align_relations_clock(relations: Relations, timestamps, odometry, scan_perio
     residual = np.where(neighbours, np.hypot(*(moved[:, :2] - relations.motion[:, :2]).T), np.nan)
     aligned = relations._replace(t1=times_log[scan_index[first]], t2=times_log[scan_index[second]])
     return ClockAlignment(aligned, times, scan_index, margin, residual, period)
+
+
+def _min_marginals(step_cost, gap_costs, offsets, num_times) -> np.ndarray:
+    """(K, O) each timestamp's min-marginal cost per offset: the forward and the backward pass of
+    min-sum over the chain of timestamps, added (the outside costs, 0 or inf, counted twice)."""
+    change = np.abs(offsets[:, None] - offsets[None])
+    forward = np.zeros((num_times, offsets.size))
+    backward = np.zeros((num_times, offsets.size))
+    forward[0] = step_cost.outside(0)
+    for k in range(num_times - 1):
+        forward[k + 1] = np.min(forward[k][:, None] + step_cost(k) + gap_costs[k] * change, axis=0)
+    backward[-1] = step_cost.outside(num_times - 1)
+    for k in range(num_times - 2, -1, -1):
+        backward[k] = np.min(step_cost(k) + gap_costs[k] * change + backward[k + 1][None], axis=1) + step_cost.outside(k)
+    return forward + backward
 
 
 def _neighbour_relations(first, second, neighbours, num_times) -> list:
