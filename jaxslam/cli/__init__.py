@@ -41,6 +41,10 @@ __all__ = [
 ]
 
 
+LOG_CLOCK_HELP = ("the log the trajectory came from, for relations written on another clock (a converter rewrote "
+                  "the log's timestamps, as MIT Killian's bag): each relation timestamp is found among its scans by "
+                  "the time gaps and the odometry")
+
 def make_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="jaxslam", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -76,15 +80,14 @@ def make_parser() -> argparse.ArgumentParser:
     p_eval.add_argument("trajectory", help="trajectory text file: 'timestamp x y theta' per line")
     p_eval.add_argument("relations", help="relations file: 't1 t2 x y z roll pitch yaw' per line")
     p_eval.add_argument("--out", help="write the table as JSON to this file (not a folder)")
-    p_eval.add_argument("--log", help="the log the trajectory came from, for relations written on another clock "
-                                      "(a converter rewrote the log's timestamps, as MIT Killian's bag): each "
-                                      "relation timestamp is found among its scans by the time gaps and the odometry")
+    p_eval.add_argument("--log", help=LOG_CLOCK_HELP)
     p_eval.set_defaults(func=_cmd_eval)
 
     p_diag = sub.add_parser("diagnose", help="what happened in a map run, step by step (ESS, lineages, "
                                              "corrections, relation error over time)")
     p_diag.add_argument("run_dir", help="the output folder of `jaxslam map` (it holds steps.npz)")
     p_diag.add_argument("relations", nargs="?", help="relations file of the log, for the error over time")
+    p_diag.add_argument("--log", help=LOG_CLOCK_HELP)
     p_diag.add_argument("--out", help="folder for diagnosis.json and diagnosis.png (default: RUN_DIR)")
     p_diag.set_defaults(func=_cmd_diagnose)
 

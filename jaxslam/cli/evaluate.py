@@ -33,12 +33,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         warnings.simplefilter("always")
         timestamps, poses = read_trajectory(args.trajectory)  # repeated timestamps: the last kept, warned
     found = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
-    relations = read_relations(args.relations)
-    alignment = None
-    if args.log:
-        log = read_log(args.log)
-        alignment = align_relations_clock(relations, log.timestamps, log.odometry)
-        relations = alignment.relations
+    relations, alignment = _read_relations(args.relations, args.log)
     try:
         err = relation_error(timestamps, poses, relations)
     except ValueError as missing:
@@ -70,6 +65,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_relations(path, log_path):
+    """The relations file, and with ``--log`` its timestamps found among that log's scans
+    (:func:`jaxslam.io.relation_clock.align_relations_clock`): ``(relations, alignment or None)``."""
+    relations = read_relations(path)
+    if not log_path:
+        return relations, None
+    log = read_log(log_path)
+    alignment = align_relations_clock(relations, log.timestamps, log.odometry)
+    return alignment.relations, alignment
+
+
 def _alignment_summary(alignment) -> dict:
     """What ``jaxslam eval --log`` records of the clock's alignment."""
     return {"timestamps": int(alignment.times.size), "scan_period_s": float(alignment.scan_period),
@@ -83,7 +89,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     run = Path(args.run_dir)
     out = Path(args.out) if args.out else run
     record = read_step_record(run)  # before any work: a clear error for a folder without it
-    relations = read_relations(args.relations) if args.relations else None
+    relations = _read_relations(args.relations, args.log)[0] if args.relations else None
     # The particles' record is the filter's: compare it with the filter's own trajectory.
     filter_trajectory = run / ("trajectory_filter.txt" if (run / "trajectory_filter.txt").exists() else "trajectory.txt")
     trajectory = read_trajectory(filter_trajectory) if relations is not None else None
