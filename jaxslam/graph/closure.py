@@ -18,8 +18,9 @@ the filter"):
    heading under ``max_std_theta`` (a corridor's matches slide along it and fail here);
 5. **consistency**: the loops that close near it (queries within ``consistency_nodes`` nodes,
    submaps within one; earlier kept loops vote too) are compared with it through the filter's
-   local relative poses: at least ``min_support`` agree, and more agree than disagree (a slide
-   along a corridor agrees with its own kind, but the loops before it disagree).
+   local relative poses, up to what a jump of the filter's heading between them explains: at
+   least ``min_support`` agree, and more agree than disagree (a slide along a corridor agrees
+   with its own kind, but the loops before it disagree).
 
 The queries are taken in time order, ``query_block`` nodes at a time, each block searched from
 the graph as solved so far; after a block that kept loops the graph is solved
@@ -32,7 +33,9 @@ measure how fast the filter's heading and the odometry's drift (:mod:`jaxslam.gr
 where the filter's drifts faster, the closure runs again from the chain that takes the
 odometry's share of every heading change, which reaches loops the filter's chain left out of
 every window, and measures the rates again from every loop kept so far, until the share moves by
-less than ``min_share_change`` (at most ``max_passes``). The final graph holds every pass's kept
+less than ``min_share_change`` (at most ``max_passes``). Where the filter's and the odometry's
+headings then part after the last kept loop by more than the rates allow (``max_parting``), one
+more pass searches from the odometry's chain. The final graph holds every pass's kept
 loops on the last chain. The submaps stay the filter's. :mod:`jaxslam.graph.output` draws the
 map again at the optimised poses and writes the graph.
 """
