@@ -425,28 +425,3 @@ def test_acceptance_scores_only_the_beams_the_search_used(twin_rooms):
     assert np.all(score(ranges, config) > 0.8)  # the true pose fits its own submap's short beams
     wide = dc.replace(config, search_range=15.0)
     assert not np.allclose(score(moved, wide), score(ranges, wide), atol=1e-3)  # counted, they move it
-
-
-def test_consistency_forgives_a_jump_of_the_filters_heading_but_not_a_slide():
-    """Loops that measure the truth, on a filter whose heading jumps 5 degrees at node 50 (the
-    rest of its path turned about it): the loops before and after the jump agree, as a jump
-    explains their difference (the old rule, 0.05 rad, had every pair across it disagree); a
-    loop slid 2 m along the path (a corridor's alias) disagrees with every one, and so does one
-    turned 20 degrees, beyond any jump the vote forgives."""
-    from jaxslam.graph.acceptance import consistency_votes
-
-    truth = chain_np(np.zeros(3), np.tile([0.5, 0.0, 0.01], (99, 1)))
-    jump = np.radians(5.0)
-    turned = compose_np(truth[50], compose_np(np.array([0.0, 0.0, jump]), between_np(truth[50], truth[50:])))
-    filter_poses = np.concatenate([truth[:50], turned])
-    origins = filter_poses[[0, 20]]  # submaps 0 and 1, placed before the jump
-    query = np.array([40, 44, 56, 60, 64, 66])
-    submap = np.array([1, 1, 1, 1, 1, 1])
-    measurement = between_np(truth[[20] * 6], truth[query])
-    measurement[4] = compose_np(measurement[4], np.array([2.0, 0.0, 0.0]))  # the slide
-    measurement[5, 2] += np.radians(20.0)  # the turned alias
-    agree, disagree = consistency_votes(query, submap, measurement, filter_poses, origins, ClosureConfig())
-    np.testing.assert_array_equal(agree[:4], [3, 3, 3, 3])
-    np.testing.assert_array_equal(disagree[:4], [2, 2, 2, 2])
-    np.testing.assert_array_equal(agree[4:], [0, 0])
-    np.testing.assert_array_equal(disagree[4:], [5, 5])

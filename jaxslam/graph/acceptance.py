@@ -107,18 +107,8 @@ def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.nda
     """For each loop, how many other loops agree with it and how many disagree: loops whose
     queries lie within ``consistency_nodes`` nodes and whose submaps are the same or adjacent
     are compared through the filter's relative poses (a loop's query pose is its submap's
-    origin composed with its measurement); they agree when they predict the relative heading of
-    the two queries within ``consistency_jump`` of the filter's, and the relative position
-    within ``consistency_xy`` plus what that heading difference moves it by over the path
-    between them.
-
-    The filter's heading can jump between two queries (a scan matched a few degrees off: MIT
-    Killian seed 1, 4-6 degrees between nodes 3,435 and 3,438): every loop after the jump then
-    disagrees in heading with every loop before it, and the many before outvoted the few after
-    and refused them until the return was out of every window. A jump turns the rest of the path
-    about the node where it happened, so it moves the later query by at most the jump times the
-    path between the queries; an alias (a corridor's slide, the twin room) moves it by metres at
-    the same heading, which nothing in the filter's steps explains.
+    origin composed with its measurement); they agree when they predict the relative pose of
+    the two queries within ``consistency_xy`` and ``consistency_theta`` of the filter's.
 
     Returns:
         ``(agree (C,), disagree (C,))`` counts.
@@ -130,10 +120,7 @@ def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.nda
     through_loops = between_np(implied[a], implied[b])
     through_filter = between_np(poses[query[a]], poses[query[b]])
     diff = between_np(through_filter, through_loops)
-    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
-    turn = np.abs(diff[:, 2])
-    allowed_xy = config.consistency_xy + turn * np.abs(travelled[query[b]] - travelled[query[a]])
-    agree = (np.hypot(diff[:, 0], diff[:, 1]) <= allowed_xy) & (turn <= config.consistency_jump)
+    agree = (np.hypot(diff[:, 0], diff[:, 1]) <= config.consistency_xy) & (np.abs(diff[:, 2]) <= config.consistency_theta)
     return np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
 
 

@@ -18,9 +18,8 @@ the filter"):
    heading under ``max_std_theta`` (a corridor's matches slide along it and fail here);
 5. **consistency**: the loops that close near it (queries within ``consistency_nodes`` nodes,
    submaps within one; earlier kept loops vote too) are compared with it through the filter's
-   local relative poses, up to what a jump of the filter's heading between them explains: at
-   least ``min_support`` agree, and more agree than disagree (a slide along a corridor agrees
-   with its own kind, but the loops before it disagree).
+   local relative poses: at least ``min_support`` agree, and more agree than disagree (a slide
+   along a corridor agrees with its own kind, but the loops before it disagree).
 
 The queries are taken in time order, ``query_block`` nodes at a time, each block searched from
 the graph as solved so far; after a block that kept loops the graph is solved
@@ -126,11 +125,9 @@ class ClosureConfig:
     consistency_nodes: int = 40
     """Loops whose queries are at most this many nodes apart check each other."""
     consistency_xy: float = 0.3
-    """Loops agree when they predict each other's query within this (m), plus what their heading
-    difference moves it by over the path between them ..."""
-    consistency_jump: float = 0.15
-    """... and their relative heading within this (rad): the filter's heading may jump between
-    two queries (:func:`jaxslam.graph.acceptance.consistency_votes`)."""
+    """Loops agree when they predict each other's query within this (m) ..."""
+    consistency_theta: float = 0.05
+    """... and this (rad)."""
     min_support: int = 1
     """Other loops a loop must agree with."""
     loop_phi: float = 5.0
@@ -162,7 +159,7 @@ class ClosureConfig:
                   "min_drift_loops")
         lengths = ("search_range", "sigma", "window_min_xy", "window_max_xy", "window_min_theta", "window_max_theta",
                    "angular_step", "near_window_xy", "max_std_xy", "max_std_theta", "consistency_xy",
-                   "consistency_jump", "loop_phi", "max_chi2", "max_parting")
+                   "consistency_theta", "loop_phi", "max_chi2", "max_parting")
         for name in counts:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
