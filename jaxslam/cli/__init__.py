@@ -45,6 +45,7 @@ LOG_CLOCK_HELP = ("the log the trajectory came from, for relations written on an
                   "the log's timestamps, as MIT Killian's bag): each relation timestamp is found among its scans by "
                   "the time gaps and the odometry")
 
+
 def make_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="jaxslam", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
