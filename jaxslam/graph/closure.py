@@ -412,7 +412,7 @@ def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, par
     pairs = 0
     share, chain, heading_rate = 0.0, local, None
     everything = Loops.empty()  # every pass's candidates, in pass order
-    parted = parting_pass = searched_parting = False  # a pass from the odometry's chain for a parting: run, next, last
+    parting_pass = searched_parting = False  # the next pass, the pass just run: the parting's (at most one)
     bar = None
     for done in range(1, config.max_passes + 1):
         if progress:
@@ -435,15 +435,15 @@ def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, par
             share = 1.0
             chain, heading_rate = _weighed_chain(local, motions, None, jitter, submaps)
             continue
-        searched_parting, parting_pass = parting_pass, False  # this pass was the parting's: one, then stop
+        searched_parting = parting_pass  # the parting's pass settles the passes
         settled = abs(new_share - share) < config.min_share_change or searched_parting
-        parting_pass = (settled and not parted and done < config.max_passes and share < 1.0
+        # share < 1: the parting's pass searches the odometry's chain (share 1), so it runs once.
+        parting_pass = (settled and done < config.max_passes and share < 1.0
                         and _parted(everything, local, odometry_headings, rates, jitter, config))
         if (settled or done == config.max_passes) and not parting_pass:
             break
         # The rates did not settle, or the chains part after the last loop beyond what they allow:
         # nothing measured the filter there, and the odometry's chain is the other estimate.
-        parted = parted or parting_pass
         share = 1.0 if parting_pass else new_share
         chain, heading_rate = _weighed_chain(local, motions, None if parting_pass else rates, jitter, submaps)
     if searched_parting:
