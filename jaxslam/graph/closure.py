@@ -21,6 +21,13 @@ the filter"):
    local relative poses: at least ``min_support`` agree, and more agree than disagree (a slide
    along a corridor agrees with its own kind, but the loops before it disagree).
 
+A pair whose best match lies on its window's edge is searched again in a wider window
+(:func:`jaxslam.graph.acceptance.widen_edge_peaks`). Where the chain searched is the filter's
+own, a block's loops that the vote refused but that agree among themselves are put to the graph:
+kept if a solve with them in leaves every loop's chi2 under ``max_chi2``
+(:func:`jaxslam.graph.acceptance.graph_judges_refused_group`; a jump of the filter's heading
+between two queries sets the loops on its two sides against each other).
+
 The queries are taken in time order, ``query_block`` nodes at a time, each block searched from
 the graph as solved so far; after a block that kept loops the graph is solved
 (:func:`jaxslam.graph.pose_graph.optimize`): plain least squares, the loops still in conflict
@@ -148,6 +155,10 @@ class ClosureConfig:
     """The passes stop when the odometry's share of the heading changes by less than this."""
     min_drift_loops: int = 3
     """Kept loops needed to measure the drift rates (fewer: one pass)."""
+    max_widenings: int = 2
+    """Times a pair whose best match lies on its window's edge is searched again in a window twice
+    as wide (:func:`jaxslam.graph.acceptance.widen_edge_peaks`; up to ``window_max_xy`` and
+    ``window_max_theta``)."""
     max_parting: float = 3.0
     """Standard deviations by which the filter's and the odometry's headings may part after the
     last kept loop (:func:`jaxslam.graph.drift.parting`); beyond, one pass searches from the
@@ -164,6 +175,8 @@ class ClosureConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ClosureConfig: {name} must be a positive integer, got {value!r}")
+        if isinstance(self.max_widenings, bool) or not isinstance(self.max_widenings, int) or self.max_widenings < 0:
+            raise ValueError(f"ClosureConfig: max_widenings must be an integer >= 0, got {self.max_widenings!r}")
         for name in lengths + ("min_separation", "max_node_distance", "window_xy_per_metre",
                                "window_theta_per_metre", "min_score", "max_second_ratio", "min_share_change"):
             value = getattr(self, name)
@@ -418,7 +431,7 @@ def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, par
         if progress:
             bar = tqdm(total=int(local.shape[0]), desc=f"loop closure, pass {done}", unit="node")
         closed = _close_pass(chain, heading_rate, motions, submaps, ranges, points, valid, sensor, params, config,
-                             bar)
+                             bar, filter_chain=chain is local)
         if bar is not None:
             bar.close()
         pairs += closed.pairs
@@ -522,7 +535,7 @@ class _Pass(NamedTuple):
 
 
 def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, valid, sensor, params,
-                config: ClosureConfig, bar) -> _Pass:
+                config: ClosureConfig, bar, filter_chain: bool = True) -> _Pass:
     """The search in time order from ``chain`` ((S, 3) local frame) and the optimisations
     (:func:`close_trajectory_loops`' one pass)."""
     sequential = sequential_edges(chain, motions, params.motion, heading_rate)
@@ -544,11 +557,18 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, 
         pairs += int(searched.query.size)
         t_b = time.perf_counter()
         new = acceptance.accept(submaps, searched, ranges, sensor, likelihood, estimate, found, config)
-        found = found.extend(new)
         t_c = time.perf_counter()
+        new, widened_pairs = acceptance.widen_edge_peaks(new, searched, submaps, ranges, points, valid, sensor,
+                                                         likelihood, estimate, found, config)
+        pairs += widened_pairs
+        if filter_chain:
+            new = acceptance.graph_judges_refused_group(new, found, submaps, estimate, sequential, config)
+        found = found.extend(new)
+        t_d = time.perf_counter()
         if np.any(new.refused == ""):
             estimate = _solve(found, submaps, sequential, chain, estimate, block_end, config)
-        for stage, seconds_taken in (("search", t_b - t_a), ("accept", t_c - t_b), ("optimize", time.perf_counter() - t_c)):
+        for stage, seconds_taken in (("search", t_b - t_a + t_d - t_c), ("accept", t_c - t_b),
+                                     ("optimize", time.perf_counter() - t_d)):
             seconds[stage] += seconds_taken
         if bar is not None:
             bar.update(block_end - block_start)
