@@ -320,35 +320,6 @@ def test_twin_rooms_a_peak_on_the_window_edge_is_searched_again_wider(twin_rooms
         dataclasses.replace(ClosureConfig(), max_widenings=-1)
 
 
-def test_twin_rooms_loops_after_a_jump_of_the_filter_are_judged_by_the_graph(twin_rooms, monkeypatch):
-    """The input is the true path with one heading jump of 0.08 rad at node 150, in the middle of
-    the revisit of room A. Through the jumped chain the loops after it disagree with the loops
-    before it, which outvote them; solved with them in, the graph holds every loop, so they are
-    kept, none off the truth, and the path comes nearer the truth than the vote alone leaves it
-    (measured: 28 loops against 18, 0.017 against 0.104 m)."""
-    from jaxslam.graph import acceptance
-
-    scenario, selection, truth, _ = twin_rooms
-    steps = between_np(truth[:-1], truth[1:])
-    steps[150, 2] += 0.08
-    jumped = chain_np(truth[0], steps)
-    one_pass = dataclasses.replace(ClosureConfig(), max_passes=1)
-
-    def close():
-        return close_trajectory_loops(scenario.log, selection.indices, jumped, selection.motions, default_params(),
-                                      SlamConfig(), np.zeros(2), one_pass)
-
-    judged = close()
-    monkeypatch.setattr(acceptance, "graph_judges_refused_group", lambda new, *args, **kwargs: new)
-    voted = close()
-    path_error = lambda poses: np.mean(np.hypot(*(poses - truth)[:, :2].T))
-    assert np.sum(voted.loops.refused == "consistency") >= 8
-    kept = judged.loops.refused == ""
-    assert kept.sum() >= voted.num_loops + 6 and np.sum(kept & (judged.loops.query > 150)) >= 10
-    assert np.all(_loop_errors(judged, truth)[kept] < 0.3)
-    assert path_error(judged.poses) < 0.5 * path_error(voted.poses)
-
-
 def test_close_loops_refuses_mismatched_input(twin_rooms):
     scenario, selection, _, drifted = twin_rooms
     with pytest.raises(ValueError, match="must agree"):

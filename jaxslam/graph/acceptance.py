@@ -1,8 +1,7 @@
 """Which of the loop search's matches become loop edges: the five tests of
 :mod:`jaxslam.graph.closure` (score, window, uniqueness, information, consistency), each match
-refined below the search's cell first, and the record of every candidate (:class:`Loops`); a
-match on its window's edge searched again wider (:func:`widen_edge_peaks`), and loops the vote
-refused put to the graph (:func:`graph_judges_refused_group`).
+refined below the search's cell first, and the record of every candidate (:class:`Loops`); and
+a match on its window's edge searched again wider (:func:`widen_edge_peaks`).
 """
 
 from __future__ import annotations
@@ -17,7 +16,7 @@ import numpy as np
 from jaxslam.geometry import between_np, compose_np, wrap_angle_np
 from jaxslam.grid import GridSpec
 from jaxslam.graph.loop_search import SearchResult, search_pairs
-from jaxslam.graph.pose_graph import LOOP, Edges, PoseGraph, concat_edges, optimize
+from jaxslam.graph.pose_graph import LOOP, Edges
 from jaxslam.graph.submaps import Submaps
 from jaxslam.laser import within_usable_range
 from jaxslam.map_view import MapView
@@ -211,37 +210,6 @@ def widen_edge_peaks(new: Loops, searched: Searched, submaps: Submaps, ranges, p
         latest = new.query.size
         new = new.extend(again)
     return new, retried
-
-
-def graph_judges_refused_group(new: Loops, found: Loops, submaps: Submaps, estimate, sequential: Edges,
-                               config) -> Loops:
-    """The block's loops, those the vote refused kept after all where they agree among themselves
-    and the graph holds them with every loop kept so far (``found``): a plain least-squares solve
-    from ``estimate`` ((S, 3), local frame) over ``sequential`` and every kept loop leaves no loop's
-    chi2 above ``max_chi2``.
-
-    The vote compares loops through the chain's relative poses, rigidly. Where the filter's heading
-    jumped between two queries (MIT Killian seed 1: 4-6 degrees at nodes 3,435-3,438), the loops
-    after the jump disagree with the loops kept before it, which outnumber them, and the return
-    that followed was refused. The graph bends the chain at the jump within its sequential
-    edges' covariance and tests every loop at once. Only on the filter's own chain
-    (:func:`jaxslam.graph.closure.close_trajectory_loops`' first pass): on another, the filter's
-    submaps may be bent against the chain (the twin rooms' input that turns 0.012 rad a step), and
-    loops into a bent submap agree among themselves as well."""
-    group = np.nonzero(new.refused == "consistency")[0]
-    if group.size > config.min_support:
-        agree, _ = consistency_votes(new.query[group], new.submap[group], new.measurement[group], estimate,
-                                     estimate[submaps.first_node], config)
-        group = group[agree >= config.min_support]
-    if group.size <= config.min_support:
-        return new
-    refused = new.refused.copy()
-    refused[group] = ""
-    trial = found.extend(new._replace(refused=refused))
-    solved = optimize(PoseGraph(estimate, concat_edges(sequential, loop_edges(trial, submaps))), loop_phi=None)
-    if np.all(solved.chi2[sequential.count:] <= config.max_chi2):
-        return new._replace(refused=refused)
-    return new
 
 
 def loop_edges(loops: Loops, submaps: Submaps) -> Edges:

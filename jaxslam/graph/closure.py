@@ -22,11 +22,7 @@ the filter"):
    along a corridor agrees with its own kind, but the loops before it disagree).
 
 A pair whose best match lies on its window's edge is searched again in a wider window
-(:func:`jaxslam.graph.acceptance.widen_edge_peaks`). Where the chain searched is the filter's
-own, a block's loops that the vote refused but that agree among themselves are put to the graph:
-kept if a solve with them in leaves every loop's chi2 under ``max_chi2``
-(:func:`jaxslam.graph.acceptance.graph_judges_refused_group`; a jump of the filter's heading
-between two queries sets the loops on its two sides against each other).
+(:func:`jaxslam.graph.acceptance.widen_edge_peaks`).
 
 The queries are taken in time order, ``query_block`` nodes at a time, each block searched from
 the graph as solved so far; after a block that kept loops the graph is solved
@@ -431,7 +427,7 @@ def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, par
         if progress:
             bar = tqdm(total=int(local.shape[0]), desc=f"loop closure, pass {done}", unit="node")
         closed = _close_pass(chain, heading_rate, motions, submaps, ranges, points, valid, sensor, params, config,
-                             bar, filter_chain=chain is local)
+                             bar)
         if bar is not None:
             bar.close()
         pairs += closed.pairs
@@ -535,7 +531,7 @@ class _Pass(NamedTuple):
 
 
 def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, valid, sensor, params,
-                config: ClosureConfig, bar, filter_chain: bool = True) -> _Pass:
+                config: ClosureConfig, bar) -> _Pass:
     """The search in time order from ``chain`` ((S, 3) local frame) and the optimisations
     (:func:`close_trajectory_loops`' one pass)."""
     sequential = sequential_edges(chain, motions, params.motion, heading_rate)
@@ -561,8 +557,6 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, 
         new, widened_pairs = acceptance.widen_edge_peaks(new, searched, submaps, ranges, points, valid, sensor,
                                                          likelihood, estimate, found, config)
         pairs += widened_pairs
-        if filter_chain:
-            new = acceptance.graph_judges_refused_group(new, found, submaps, estimate, sequential, config)
         found = found.extend(new)
         t_d = time.perf_counter()
         if np.any(new.refused == ""):
