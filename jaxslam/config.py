@@ -91,6 +91,11 @@ class SlamConfig:
     figures: docs/notes/2026-11-22-bilinear-matcher.md)."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
+    free_space_samples: int = 0
+    """Cells checked along each beam's free path for the free-space evidence in the SLAM weights
+    (:func:`jaxslam.likelihood_field.see_through_log_likelihood`, one sample a cell from the laser
+    out: ``max_insert_range / resolution`` covers every inserted beam); 0: none (the endpoint
+    model alone)."""
     resampler: str = "systematic"
     """Resampling scheme: systematic, stratified, multinomial or residual."""
     match_iterations: int = 24
@@ -166,6 +171,7 @@ class SlamConfig:
             (self.match_lookup in FIELD_LOOKUPS,
              f"match_lookup must be one of {FIELD_LOOKUPS}, got {self.match_lookup!r}"),
             (self.beam_stride >= 1, f"beam_stride must be >= 1, got {self.beam_stride}"),
+            (self.free_space_samples >= 0, f"free_space_samples must be >= 0, got {self.free_space_samples}"),
             (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}, got {self.resampler!r}"),
             (self.match_iterations >= 0, f"match_iterations must be >= 0, got {self.match_iterations}"),
             (self.window_cells >= 1, f"window_cells must be >= 1, got {self.window_cells}"),

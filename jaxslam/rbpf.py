@@ -27,10 +27,11 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
 from jaxslam import maps as paged
-from jaxslam import motion, particle_filter
+from jaxslam import motion, occupancy, particle_filter
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, SlamParams
 from jaxslam.grid import in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
+from jaxslam.likelihood_field import see_through_log_likelihood
 from jaxslam.laserlog import LaserLog, UpdateSelection, local_frame_offset, local_log, select_updates
 from jaxslam.maps import PagedMaps, PoolSize
 from jaxslam.proposals import PROPOSALS
@@ -265,15 +266,24 @@ def propose(key: PRNGKeyArray, state: SlamState, inputs: StepInputs, sensor: Sen
             config: SlamConfig, step_motion: motion.MotionParams | None = None) -> ProposalOutput:
     """Every particle's new pose and log-weight increment, (N,)-batched: the configured proposal
     (``PROPOSALS[config.proposal].propose_fn``) in each particle's map, with the particle's key
-    of ``split(key, N)``. ``inputs`` and ``sensor`` as the likelihoods see them
+    of ``split(key, N)``, and with ``config.free_space_samples`` the free-space evidence at the
+    drawn pose added to the increment. ``inputs`` and ``sensor`` as the likelihoods see them
     (:func:`likelihood_inputs`); ``step_motion``: the motion model for this step (None:
     ``params.motion``; the slip search's :func:`jaxslam.slip_search.slip_motion`)."""
     propose_fn = PROPOSALS[config.proposal].propose_fn
     field = paged.fields(state.maps)
+    free_lengths = occupancy.free_lengths(inputs.ranges, sensor, params.insertion, config.max_insert_range)
 
     def propose_one(particle):
         key, pose, directory = particle
-        return propose_fn(key, pose, field._replace(directory=directory), inputs, sensor, params, config, step_motion)
+        own = field._replace(directory=directory)
+        out = propose_fn(key, pose, own, inputs, sensor, params, config, step_motion)
+        if config.free_space_samples:
+            # The free-space evidence weighs the drawn pose, not the draw: every proposal's target
+            # gains the factor, and the increment (an importance weight) is multiplied by it.
+            out = out._replace(log_weight_increment=out.log_weight_increment + see_through_log_likelihood(
+                config.grid, own, out.pose, free_lengths, sensor, params.likelihood, config.free_space_samples))
+        return out
 
     # No gradient reaches the previous poses: the maps they built do not move with them (the
     # insertion is not differentiable), and a pose moved against a fixed map is a biased and

@@ -36,7 +36,7 @@ def cell_centre(r, c, spec=SPEC):
 
 def np_loglik(spec, hit, pose, ranges, angles, range_min, range_max, laser_pose, params, margin=1e-3):
     """Beam by beam, in float64."""
-    sigma, z_hit, z_rand, gain = (float(v) for v in params)
+    sigma, z_hit, z_rand, gain = (float(v) for v in params[:4])
     o = np_compose(pose, laser_pose)
     h, w = spec.shape
     total = 0.0
@@ -202,7 +202,7 @@ def test_uniform_beams_and_subsample():
 def np_bilinear_loglik(spec, hit, pose, ranges, angles, range_min, range_max, laser_pose, params):
     """Beam by beam, in float64: the per-beam term interpolated between the four cells whose
     centres surround the endpoint (cells outside the map count as FAR)."""
-    sigma, z_hit, z_rand, gain = (float(v) for v in params)
+    sigma, z_hit, z_rand, gain = (float(v) for v in params[:4])
     o = np_compose(pose, laser_pose)
     h, w = spec.shape
 
@@ -288,7 +288,7 @@ def test_normalizer_counts_the_scored_beams_and_makes_a_density_over_cells():
     cell the constant tends to -log(cell), where a half-normal's would grow without bound."""
     _, ranges, sensor = setup()
     counted = np.sum((ranges >= RANGE_MIN) & (ranges < RANGE_MAX))
-    sigma, _, _, gain = (float(v) for v in PARAMS)
+    sigma, _, _, gain = (float(v) for v in PARAMS[:4])
     cell = 0.05
     k = np.arange(100_000)
 
@@ -311,7 +311,7 @@ def test_normalizer_counts_the_scored_beams_and_makes_a_density_over_cells():
 def np_cell_loglik(spec, hit, pose, ranges, angles, laser_pose, params, reach_xy, reach_theta, field_radius):
     """The cell log-likelihood beam by beam in float64: the centre's distance, the Gaussian
     widened by the reach of the beam's endpoint over the cell."""
-    sigma, z_hit, z_rand, gain = (float(v) for v in params)
+    sigma, z_hit, z_rand, gain = (float(v) for v in params[:4])
     o = np_compose(pose, laser_pose)
     arm0 = math.hypot(float(laser_pose[0]), float(laser_pose[1]))
     h, w = spec.shape
