@@ -31,8 +31,8 @@ from jaxslam import motion, occupancy, particle_filter
 from jaxslam.config import ConfigError, RunSettings, SlamConfig, SlamParams
 from jaxslam.grid import in_bounds, world_to_cell
 from jaxslam.laser import SensorSpec, subsample_beams
-from jaxslam.likelihood_field import see_through_log_likelihood
 from jaxslam.laserlog import LaserLog, UpdateSelection, local_frame_offset, local_log, select_updates
+from jaxslam.likelihood_field import see_through_log_likelihood
 from jaxslam.maps import PagedMaps, PoolSize
 from jaxslam.proposals import PROPOSALS
 from jaxslam.proposals.base import ProposalOutput, StepInputs
