@@ -272,7 +272,8 @@ def propose(key: PRNGKeyArray, state: SlamState, inputs: StepInputs, sensor: Sen
     ``params.motion``; the slip search's :func:`jaxslam.slip_search.slip_motion`)."""
     propose_fn = PROPOSALS[config.proposal].propose_fn
     field = paged.fields(state.maps)
-    free_lengths = occupancy.free_lengths(inputs.ranges, sensor, params.insertion, config.max_insert_range)
+    if config.free_space_samples:  # how far each beam clears: the same at every particle's pose
+        free_lengths = occupancy.free_lengths(inputs.ranges, sensor, params.insertion, config.max_insert_range)
 
     def propose_one(particle):
         key, pose, directory = particle
