@@ -1,10 +1,11 @@
 """What the loop closure costs against the filter it follows, in one process, one after the other.
 
 For each log: ``slam.run`` (the SMP at the library's defaults, seed 0, ``--max-scans`` scans),
-then :func:`jaxslam.graph.close_loops` on its result twice (the second timed, compiled), and the
-loop search's pairs per second on that log's pairs (the search alone, compiled). Prints and writes
-(``--out``, JSON) the filter's wall, the closure's wall and stages, their ratio, and the
-pairs per second with the device JAX ran on; on a machine with a GPU, run it there and on the
+then the back end ``jaxslam map`` runs after it twice (the second timed, compiled):
+:func:`jaxslam.graph.close_loops`, the map drawn again at the closed poses, and the refinement
+on it (:func:`jaxslam.refine.refine_trajectory`). Prints and writes (``--out``, JSON) the
+filter's wall, each stage's wall (the closure's by its own stages), their ratios to the
+filter's, and the loop search's pairs per second with the device JAX ran on; on a machine with a GPU, run it there and on the
 CPU (``JAX_PLATFORMS=cpu``) for the GPU's ratio. Ratios are meaningful within one invocation
 only (the machine is shared).
 
@@ -30,6 +31,8 @@ def bench(path: Path, max_scans: int | None) -> dict:
     from jaxslam.config import build_setup
     from jaxslam.graph import ClosureConfig, close_loops
     from jaxslam.io import read_log
+    from jaxslam.laserlog import grid_to_world
+    from jaxslam.refine import refine_trajectory
 
     log = read_log(path)
     if max_scans:
@@ -38,13 +41,27 @@ def bench(path: Path, max_scans: int | None) -> dict:
     t0 = time.perf_counter()
     result = slam.run(jax.random.key(0), log, config, params, settings, progress=False)
     filter_s = time.perf_counter() - t0
-    close_loops(log, result, params, ClosureConfig())  # compiles
-    t0 = time.perf_counter()
-    closure = close_loops(log, result, params, ClosureConfig())
-    closure_s = time.perf_counter() - t0
+
+    def back_end():
+        t0 = time.perf_counter()
+        closure = close_loops(log, result, params, ClosureConfig())
+        t1 = time.perf_counter()
+        closed = result._replace(closure=closure)
+        _, field, grid = closed.closed_map(log, params)
+        t2 = time.perf_counter()
+        refined = refine_trajectory(grid_to_world(grid, -result.frame_offset), field,
+                                    result.to_local(closure.trajectory), log.ranges, log.sensor, params,
+                                    result.config, odometry=result.to_local(log.odometry))
+        np.asarray(refined.poses)
+        return closure, t1 - t0, t2 - t1, time.perf_counter() - t2
+
+    back_end()  # compiles
+    closure, closure_s, redraw_s, refine_s = back_end()
     search_s = closure.timings["search"]
+    back_s = closure_s + redraw_s + refine_s
     return {"log": path.name, "scans": int(log.num_scans), "nodes": int(closure.node_scans.size),
             "filter_s": filter_s, "closure_s": closure_s, "ratio": closure_s / filter_s,
+            "redraw_s": redraw_s, "refine_s": refine_s, "back_end_s": back_s, "back_end_ratio": back_s / filter_s,
             "stages_s": closure.timings, "pairs": closure.pairs_searched,
             "pairs_per_s": closure.pairs_searched / search_s if search_s > 0 else None,
             "loops_kept": closure.num_loops, "device": str(jax.devices()[0])}

@@ -98,6 +98,49 @@ def test_optimize_closes_a_square_and_a_robust_kernel_refuses_a_false_loop():
     assert robust.loop_scales[-1] < 0.05 and np.all(robust.loop_scales[chain.count:-1] > 0.5)
 
 
+def test_normal_equations_match_a_dense_sum_over_the_edges():
+    # Repeated pairs, an edge into node 0 (the gauge) and weights: the sparse assembly against
+    # J^T W Omega J and J^T W Omega e summed edge by edge into dense arrays.
+    rng = np.random.default_rng(2)
+    poses = rng.normal(size=(7, 3)) * [3.0, 3.0, 1.0]
+    edges = _random_edges(rng, poses, [(0, 1), (1, 2), (2, 3), (4, 2), (4, 2), (6, 0), (3, 5), (5, 6)], LOOP)
+    edges = edges._replace(measurement=edges.measurement + rng.normal(scale=0.1, size=edges.measurement.shape),
+                           information=edges.information + 0.3 * np.eye(3)[[1, 0, 2]][None])
+    weights = rng.uniform(0.1, 1.0, edges.count)
+    h, g, _ = pose_graph._normal_equations(poses, edges, weights, pose_graph._sparsity(edges, poses.shape[0]))
+    error, jac_a, jac_b = pose_graph._jacobians(poses, edges)
+    dense_h, dense_g = np.zeros((21, 21)), np.zeros(21)
+    for e in range(edges.count):
+        jac = np.zeros((3, 21))
+        jac[:, 3 * edges.first[e]:3 * edges.first[e] + 3] += jac_a[e]
+        jac[:, 3 * edges.second[e]:3 * edges.second[e] + 3] += jac_b[e]
+        dense_h += weights[e] * jac.T @ edges.information[e] @ jac
+        dense_g += weights[e] * jac.T @ edges.information[e] @ error[e]
+    np.testing.assert_allclose(h.toarray(), dense_h[3:, 3:], rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(g, dense_g[3:], rtol=1e-12, atol=1e-9)
+
+
+def test_a_tail_of_sequential_edges_leaves_the_solution_before_it():
+    # Why the closure solves only the searched nodes: nodes that hang off the last one by
+    # sequential edges alone are free to satisfy them, so the rest is solved as without them.
+    rng = np.random.default_rng(3)
+    truth, measured = _square_walk(rng)
+    num, lap, solved_until = truth.shape[0], 32, 48
+    dead_reckoned = chain_np(truth[0], measured)
+    info = np.zeros((num - 1, 3, 3))
+    info[:, [0, 1, 2], [0, 1, 2]] = 1.0 / np.array([0.03, 0.03, 0.01]) ** 2
+    chain = Edges(np.arange(num - 1), np.arange(1, num), measured, info, np.full(num - 1, SEQUENTIAL))
+    loops = _random_edges(rng, truth, [(i, i + lap) for i in range(0, solved_until - lap, 2)], LOOP)
+    whole = pose_graph.optimize(PoseGraph(dead_reckoned, pose_graph.concat_edges(chain, loops)), loop_phi=None,
+                                max_iterations=100, tolerance=1e-12)
+    head = Edges(*(field[:solved_until - 1] for field in chain))
+    part = pose_graph.optimize(PoseGraph(dead_reckoned[:solved_until], pose_graph.concat_edges(head, loops)),
+                               loop_phi=None, max_iterations=100, tolerance=1e-12)
+    assert np.abs(whole.poses[:solved_until] - dead_reckoned[:solved_until]).max() > 0.1
+    np.testing.assert_allclose(part.poses, whole.poses[:solved_until], atol=1e-6)
+    np.testing.assert_allclose(whole.chi2[solved_until - 1:num - 1], 0.0, atol=1e-8)
+
+
 def test_optimize_refuses_bad_input():
     poses = np.zeros((3, 3))
     edges = Edges(np.array([0]), np.array([3]), np.zeros((1, 3)), np.eye(3)[None], np.array([LOOP]))

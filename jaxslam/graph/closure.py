@@ -298,7 +298,11 @@ def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray,
     the filter's steps. Plain least squares first: a true loop after a long drift has a chi2 of
     thousands at the filter's poses, where a robust kernel would switch it off; loops still in
     conflict after the solve are refused and the graph solved again; the kernel then polishes."""
-    initial = estimate.copy()
+    # Only the searched nodes are solved: the later ones hang off them by sequential edges
+    # alone, which any solution satisfies exactly, so they change nothing but the solve's size.
+    initial = estimate[:solved_until].copy()
+    chain = sequential.second < solved_until
+    sequential = Edges(*(field[chain] for field in sequential))
 
     def solve(loop_phi, start):
         kept = np.nonzero(found.refused == "")[0]
@@ -314,8 +318,10 @@ def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray,
         if conflict.size == 0:
             break
         found.refused[conflict] = "chi2"
-    _, poses = solve(config.loop_phi, poses)
+    _, solved = solve(config.loop_phi, poses)
     # The nodes not yet searched follow the last searched one rigidly (their filter steps).
+    poses = estimate.copy()
+    poses[:solved_until] = solved
     if solved_until < poses.shape[0]:
         anchor = solved_until - 1
         poses[solved_until:] = compose_np(poses[anchor], between_np(local[anchor], local[solved_until:]))

@@ -124,27 +124,61 @@ def dcs_scales(chi2_values: np.ndarray, kind: np.ndarray, phi: float | None) -> 
     return np.where(kind == LOOP, s, 1.0)
 
 
-def _normal_equations(poses, edges, weights):
+class _Sparsity(NamedTuple):
+    """The Gauss-Newton matrix's CSC structure over nodes 1..S-1, fixed while the edges are:
+    built once per :func:`optimize` so that each iteration only sums the blocks' values into
+    it (``np.bincount``) instead of sorting a COO matrix again."""
+
+    slot: np.ndarray
+    """(4 E 9,) int: each block entry's index into the CSC data (-1: a row or column of node 0)."""
+    indices: np.ndarray
+    """CSC row indices."""
+    indptr: np.ndarray
+    """CSC column pointers."""
+    size: int
+    """Unknowns: 3 (S - 1)."""
+
+
+def _sparsity(edges: Edges, num_nodes: int) -> _Sparsity:
+    """The structure of the blocks (first, first), (first, second), (second, first), (second,
+    second) of every edge, in that order, each 3 x 3 row-major."""
+    size = 3 * (num_nodes - 1)
+    rows, cols = [], []
+    for i_nodes, k_nodes in ((edges.first, edges.first), (edges.first, edges.second),
+                             (edges.second, edges.first), (edges.second, edges.second)):
+        rows.append(np.broadcast_to((3 * i_nodes - 3)[:, None, None] + np.arange(3)[None, :, None], (i_nodes.size, 3, 3)).ravel())
+        cols.append(np.broadcast_to((3 * k_nodes - 3)[:, None, None] + np.arange(3)[None, None, :], (k_nodes.size, 3, 3)).ravel())
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    inside = (rows >= 0) & (cols >= 0)  # node 0 is the gauge: its rows and columns are dropped
+    entries, slot = np.unique(np.where(inside, cols * size + rows, -1), return_inverse=True)
+    # np.unique sorts, so the entries come column-major (CSC order); -1 is first where present.
+    shift = int(entries.size > 0 and entries[0] < 0)
+    entries = entries[shift:]
+    slot = np.where(inside, slot.ravel() - shift, -1)
+    indptr = np.searchsorted(entries // size, np.arange(size + 1)).astype(np.int32)
+    return _Sparsity(slot, (entries % size).astype(np.int32), indptr, size)
+
+
+def _normal_equations(poses, edges, weights, sparsity: _Sparsity):
     """The Gauss-Newton system H dx = -g over nodes 1..S-1 (node 0 fixed) with each edge's
     information times ``weights`` (E,)."""
     num = poses.shape[0]
     error, ja, jb = _jacobians(poses, edges)
     omega = edges.information * weights[:, None, None]
-    rows, cols, vals = [], [], []
-    g = np.zeros((num, 3))
-    for (i_nodes, ji), (k_nodes, jk) in (((edges.first, ja), (edges.first, ja)), ((edges.first, ja), (edges.second, jb)),
-                                         ((edges.second, jb), (edges.first, ja)), ((edges.second, jb), (edges.second, jb))):
-        block = np.einsum("eji,ejk,ekl->eil", ji, omega, jk)  # J_i^T Omega J_k (E, 3, 3)
-        r = (3 * i_nodes)[:, None, None] + np.arange(3)[None, :, None]
-        c = (3 * k_nodes)[:, None, None] + np.arange(3)[None, None, :]
-        rows.append(np.broadcast_to(r, block.shape).ravel())
-        cols.append(np.broadcast_to(c, block.shape).ravel())
-        vals.append(block.ravel())
-    np.add.at(g, edges.first, np.einsum("eji,ejk,ek->ei", ja, omega, error))
-    np.add.at(g, edges.second, np.einsum("eji,ejk,ek->ei", jb, omega, error))
-    h = scipy.sparse.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                                shape=(3 * num, 3 * num)).tocsc()
-    return h[3:, 3:], g.ravel()[3:], error
+    # Batched 3 x 3 products (matmul, not a three-operand einsum: that one is not contracted
+    # pairwise and was half the closure's solve time on Intel).
+    ja_omega = np.swapaxes(ja, 1, 2) @ omega  # J_a^T Omega (E, 3, 3)
+    jb_omega = np.swapaxes(jb, 1, 2) @ omega
+    blocks = np.concatenate([(ja_omega @ ja).ravel(), (ja_omega @ jb).ravel(),
+                             (jb_omega @ ja).ravel(), (jb_omega @ jb).ravel()])
+    inside = sparsity.slot >= 0
+    data = np.bincount(sparsity.slot[inside], blocks[inside], minlength=sparsity.indices.size)
+    h = scipy.sparse.csc_matrix((data, sparsity.indices, sparsity.indptr), shape=(sparsity.size, sparsity.size))
+    ga = (ja_omega @ error[..., None])[..., 0]
+    gb = (jb_omega @ error[..., None])[..., 0]
+    g = np.stack([np.bincount(edges.first, ga[:, k], num) + np.bincount(edges.second, gb[:, k], num)
+                  for k in range(3)], axis=-1)
+    return h, g.ravel()[3:], error
 
 
 def optimize(graph: PoseGraph, loop_phi: float | None = 1.0, max_iterations: int = 30, tolerance: float = 1e-6,
@@ -157,7 +191,9 @@ def optimize(graph: PoseGraph, loop_phi: float | None = 1.0, max_iterations: int
             least squares). Small phi trusts loops less.
         max_iterations: iterations at most.
         tolerance: stop when the cost falls by less than this fraction.
-        initial_damping: the first damping, times the mean diagonal of H.
+        initial_damping: the first damping lambda: each step solves (H + lambda diag(H)) dx = -g
+            (Marquardt's scaling; lambda falls by 3 after a step that lowers the cost, rises by 10
+            until one does).
 
     Returns:
         :class:`OptimizeResult`.
@@ -176,13 +212,12 @@ def optimize(graph: PoseGraph, loop_phi: float | None = 1.0, max_iterations: int
         return float(np.sum(s**2 * c)), s
 
     cost, scales = robust_cost(poses)
-    damping = None
+    sparsity = _sparsity(edges, poses.shape[0])
+    damping = initial_damping
     it = 0
     for it in range(1, max_iterations + 1):
-        h, g, _ = _normal_equations(poses, edges, scales**2)
+        h, g, _ = _normal_equations(poses, edges, scales**2, sparsity)
         diag = h.diagonal()
-        if damping is None:
-            damping = initial_damping * float(np.mean(diag))
         improved = False
         for _ in range(10):
             lhs = h + scipy.sparse.diags(damping * np.maximum(diag, 1e-9))

@@ -72,15 +72,16 @@ def _fit_table(resolution: float, sigma: float) -> np.ndarray:
 
 def square_bounds(fit: np.ndarray, levels: int) -> list[np.ndarray]:
     """The bounds of :class:`Submaps` from (..., H, W) fits: level h holds at cell (r, c) the
-    largest fit over cells [r, r + 2^h) x [c, c + 2^h) (0 beyond the grid), built by doubling."""
+    largest fit over cells [r, r + 2^h) x [c, c + 2^h) (0 beyond the grid), built by doubling,
+    rows then columns (the fits are at least 0, so a window cut by the grid's edge keeps its
+    cells' maximum)."""
     out, current = [], fit
     for level in range(1, levels + 1):
         step = 2 ** (level - 1)
-        pad = [(0, 0)] * (fit.ndim - 2) + [(0, step), (0, step)]
-        padded = np.pad(current, pad)
-        h, w = fit.shape[-2:]
-        current = np.maximum(np.maximum(padded[..., :h, :w], padded[..., step:, :w]),
-                             np.maximum(padded[..., :h, step:], padded[..., step:, step:]))
+        rows = current.copy()
+        np.maximum(rows[..., :-step, :], current[..., step:, :], out=rows[..., :-step, :])
+        current = rows.copy()
+        np.maximum(current[..., :, :-step], rows[..., :, step:], out=current[..., :, :-step])
         out.append(current)
     return out
 
