@@ -227,11 +227,14 @@ def smooth_with_odometry(
 
 
 def _solve_block_tridiagonal(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve the symmetric positive definite block-tridiagonal system.
+    """Solve the symmetric block-tridiagonal system.
 
-    Its n x n blocks make a band of n + (n - 1) diagonals on either side of the main one, which
+    Its n x n blocks make a band of 2n - 1 diagonals on either side of the main one, which
     LAPACK's banded Cholesky (``scipy.linalg.solveh_banded``) solves in one call: on Intel's
-    13,630 scans 0.01 s a step, where a block Thomas recursion in Python took 0.2-0.3 s.
+    13,630 scans 0.01 s a step, where a block Thomas recursion in Python took 0.2-0.3 s. A
+    matrix that rounding leaves short of positive definite (a pose that only the smoother's
+    1e-9 regularisation pins) goes to the banded LU (``scipy.linalg.solve_banded``) instead, so
+    that the refinement never stops where the recursion would have solved it.
 
     Args:
       diag: (T, n, n) diagonal blocks; upper: (T-1, n, n) blocks (t, t+1) (the lower ones are
@@ -241,13 +244,17 @@ def _solve_block_tridiagonal(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarra
       (T, n) the solution.
     """
     num, n = diag.shape[0], diag.shape[1]
-    width = 2 * n - 1  # the upper band: a block's own upper triangle and the next block
-    band = np.zeros((width + 1, num * n))
+    half = 2 * n - 1
+    # LAPACK's band layout: entry (i, j) of the matrix at row half + i - j, column j.
+    band = np.zeros((2 * half + 1, num * n))
     a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     start = n * np.arange(num)[:, None, None]
-    on = a <= b
-    band[(width + a - b)[on][None].repeat(num, 0), (start + b)[:, on]] = diag[:, on]
+    band[half + a - b, start + b] = diag
     if num > 1:
-        band[(width + a - b - n).ravel()[None].repeat(num - 1, 0), (start[:-1] + n + b).reshape(num - 1, -1)] = \
-            upper.reshape(num - 1, -1)
-    return scipy.linalg.solveh_banded(band, rhs.reshape(-1)).reshape(num, n)
+        band[half + a - b - n, start[:-1] + n + b] = upper
+        band[half + a - b + n, start[:-1] + b] = np.swapaxes(upper, 1, 2)
+    flat = rhs.reshape(-1)
+    try:
+        return scipy.linalg.solveh_banded(band[:half + 1], flat).reshape(num, n)  # the upper half
+    except np.linalg.LinAlgError:
+        return scipy.linalg.solve_banded((half, half), band, flat).reshape(num, n)

@@ -81,21 +81,27 @@ def _arc(num=60):
     return np.column_stack([4.0 * np.cos(t), 4.0 * np.sin(t), t + np.pi / 2])
 
 
-def test_block_tridiagonal_solve_matches_a_dense_solve():
+@pytest.mark.parametrize("shift", [4.0, -1.5])
+def test_block_tridiagonal_solve_matches_a_dense_solve(shift):
+    # shift 4: positive definite (the banded Cholesky); -1.5: symmetric but indefinite, which
+    # the Cholesky refuses and the banded LU solves.
     rng = np.random.default_rng(1)
     num, n = 7, 3
     dense = np.zeros((num * n, num * n))
     for t in range(num):
         a = rng.normal(size=(n, n))
-        dense[t * n:(t + 1) * n, t * n:(t + 1) * n] = a @ a.T + 4.0 * np.eye(n)
+        dense[t * n:(t + 1) * n, t * n:(t + 1) * n] = a @ a.T + shift * np.eye(n)
     upper = rng.normal(size=(num - 1, n, n))
     for t in range(num - 1):
         dense[t * n:(t + 1) * n, (t + 1) * n:(t + 2) * n] = upper[t]
         dense[(t + 1) * n:(t + 2) * n, t * n:(t + 1) * n] = upper[t].T
+    assert (np.linalg.eigvalsh(dense).min() > 0) == (shift > 0)
     rhs = rng.normal(size=(num, n))
     diag = np.stack([dense[t * n:(t + 1) * n, t * n:(t + 1) * n] for t in range(num)])
     got = _solve_block_tridiagonal(diag, upper, rhs)
     np.testing.assert_allclose(got.reshape(-1), np.linalg.solve(dense, rhs.reshape(-1)), rtol=1e-10, atol=1e-12)
+    single = _solve_block_tridiagonal(diag[:1], upper[:0], rhs[:1])
+    np.testing.assert_allclose(single[0], np.linalg.solve(diag[0], rhs[0]), rtol=1e-10, atol=1e-12)
 
 
 def test_exact_odometry_averages_the_measurement_noise():
