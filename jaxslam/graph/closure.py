@@ -301,8 +301,8 @@ def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray,
     # Only the searched nodes are solved: the later ones hang off them by sequential edges
     # alone, which any solution satisfies exactly, so they change nothing but the solve's size.
     initial = estimate[:solved_until].copy()
-    chain = sequential.second < solved_until
-    sequential = Edges(*(field[chain] for field in sequential))
+    searched = sequential.second < solved_until
+    sequential = Edges(*(field[searched] for field in sequential))
 
     def solve(loop_phi, start):
         kept = np.nonzero(found.refused == "")[0]

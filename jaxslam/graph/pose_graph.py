@@ -129,8 +129,10 @@ class _Sparsity(NamedTuple):
     built once per :func:`optimize` so that each iteration only sums the blocks' values into
     it (``np.bincount``) instead of sorting a COO matrix again."""
 
+    entry: np.ndarray
+    """(K,) int: the block entries (of 4 E 9, the blocks' order) off node 0's rows and columns."""
     slot: np.ndarray
-    """(4 E 9,) int: each block entry's index into the CSC data (-1: a row or column of node 0)."""
+    """(K,) int: each such entry's index into the CSC data."""
     indices: np.ndarray
     """CSC row indices."""
     indptr: np.ndarray
@@ -149,14 +151,11 @@ def _sparsity(edges: Edges, num_nodes: int) -> _Sparsity:
         rows.append(np.broadcast_to((3 * i_nodes - 3)[:, None, None] + np.arange(3)[None, :, None], (i_nodes.size, 3, 3)).ravel())
         cols.append(np.broadcast_to((3 * k_nodes - 3)[:, None, None] + np.arange(3)[None, None, :], (k_nodes.size, 3, 3)).ravel())
     rows, cols = np.concatenate(rows), np.concatenate(cols)
-    inside = (rows >= 0) & (cols >= 0)  # node 0 is the gauge: its rows and columns are dropped
-    entries, slot = np.unique(np.where(inside, cols * size + rows, -1), return_inverse=True)
-    # np.unique sorts, so the entries come column-major (CSC order); -1 is first where present.
-    shift = int(entries.size > 0 and entries[0] < 0)
-    entries = entries[shift:]
-    slot = np.where(inside, slot.ravel() - shift, -1)
+    entry = np.nonzero((rows >= 0) & (cols >= 0))[0]  # node 0 is the gauge: its rows and columns are dropped
+    # np.unique sorts, so the distinct entries come column-major: the CSC order.
+    entries, slot = np.unique(cols[entry] * size + rows[entry], return_inverse=True)
     indptr = np.searchsorted(entries // size, np.arange(size + 1)).astype(np.int32)
-    return _Sparsity(slot, (entries % size).astype(np.int32), indptr, size)
+    return _Sparsity(entry, slot.ravel(), (entries % size).astype(np.int32), indptr, size)
 
 
 def _normal_equations(poses, edges, weights, sparsity: _Sparsity):
@@ -171,8 +170,7 @@ def _normal_equations(poses, edges, weights, sparsity: _Sparsity):
     jb_omega = np.swapaxes(jb, 1, 2) @ omega
     blocks = np.concatenate([(ja_omega @ ja).ravel(), (ja_omega @ jb).ravel(),
                              (jb_omega @ ja).ravel(), (jb_omega @ jb).ravel()])
-    inside = sparsity.slot >= 0
-    data = np.bincount(sparsity.slot[inside], blocks[inside], minlength=sparsity.indices.size)
+    data = np.bincount(sparsity.slot, blocks[sparsity.entry], minlength=sparsity.indices.size)
     h = scipy.sparse.csc_matrix((data, sparsity.indices, sparsity.indptr), shape=(sparsity.size, sparsity.size))
     ga = (ja_omega @ error[..., None])[..., 0]
     gb = (jb_omega @ error[..., None])[..., 0]
