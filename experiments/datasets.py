@@ -208,6 +208,10 @@ def run_seeds_batched(dataset: str, proposal: str, seeds: list[int], out: Path, 
     for seed, run_dir, args, result in zip(seeds, run_dirs, runs, results):
         if result is None:  # another process's
             continue
+        if not getattr(args, "no_close_loops", False):  # as `jaxslam map` does (run_batch runs the filters)
+            from jaxslam.graph import ClosureConfig, close_loops
+
+            result = result._replace(closure=close_loops(log, result, params, ClosureConfig()))
         cli.write_map_outputs(run_dir, log, result, params, seed, args.log, refine=args.refine)
         records.append(score_run(dataset, proposal, seed, run_dir, data, wall / len(seeds), batch=batch))
     return records

@@ -343,8 +343,9 @@ def _simulated_dataset(folder: Path, name: str = "sim") -> tuple[str, str]:
 
 def test_datasets_batched_seeds_are_the_cli_runs(tmp_path, monkeypatch, capsys):
     """--batch-seeds: a log's seeds as one batch in the process (one device here) give each
-    seed's ``jaxslam map`` run (the same trajectory), scored and stored as the subprocess runs
-    are; a second call finds them done; --jobs does not go with it."""
+    seed's ``jaxslam map`` run (the same trajectory, its loops closed after the filter as the
+    command closes them), scored and stored as the subprocess runs are; a second call finds them
+    done; --jobs does not go with it."""
     import numpy as np
 
     from jaxslam.cli import main as cli_main
@@ -363,8 +364,9 @@ def test_datasets_batched_seeds_are_the_cli_runs(tmp_path, monkeypatch, capsys):
     settings = {**datasets.SETTINGS, "set": small[1::2]}
     alone = tmp_path / "alone"
     assert cli_main(datasets.map_arguments("sim", "op", 1, alone, data, settings)) == 0
-    batched, single = (np.loadtxt(folder / "trajectory.txt") for folder in (out / "sim" / "op-seed1", alone))
-    np.testing.assert_allclose(batched, single, rtol=0, atol=1e-6)  # the same particles; the text rounds
+    for name in ("trajectory_filter.txt", "trajectory.txt"):  # the filter's, then closed as `jaxslam map` closes it
+        batched, single = (np.loadtxt(folder / name) for folder in (out / "sim" / "op-seed1", alone))
+        np.testing.assert_allclose(batched, single, rtol=0, atol=1e-6)  # the same particles; the text rounds
     capsys.readouterr()
     assert datasets.main(base + ["--batch-seeds"]) == 0  # nothing left to run
     assert json.loads((out / "results.json").read_text())["runs"] == runs

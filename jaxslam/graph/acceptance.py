@@ -6,6 +6,7 @@ a match on its window's edge searched again wider (:func:`widen_edge_peaks`).
 
 from __future__ import annotations
 
+import math
 from functools import partial
 from typing import NamedTuple
 
@@ -114,6 +115,17 @@ def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.nda
     Returns:
         ``(agree (C,), disagree (C,))`` counts.
     """
+    a, _, agree, _ = _pair_agreement(query, submap, measurement, poses, origins, config)
+    return np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
+
+
+def _pair_agreement(query, submap, measurement, poses, origins, config):
+    """The vote's pairs (both orders) and whether each agrees: :func:`consistency_votes`' rule.
+
+    Returns:
+        ``(a (P,), b (P,), agree (P,) bool, turn (P,))``: row indices of each pair's two loops,
+        and the heading by which the loops' relative pose turns from the chain's (rad).
+    """
     implied = compose_np(origins[submap], measurement)  # each query's pose through its loop
     near = ((np.abs(query[:, None] - query[None]) <= config.consistency_nodes)
             & (np.abs(submap[:, None] - submap[None]) <= 1) & ~np.eye(query.size, dtype=bool))
@@ -122,7 +134,7 @@ def consistency_votes(query: np.ndarray, submap: np.ndarray, measurement: np.nda
     through_filter = between_np(poses[query[a]], poses[query[b]])
     diff = between_np(through_filter, through_loops)
     agree = (np.hypot(diff[:, 0], diff[:, 1]) <= config.consistency_xy) & (np.abs(diff[:, 2]) <= config.consistency_theta)
-    return np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
+    return a, b, agree, diff[:, 2]
 
 
 def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, estimate, kept_before: Loops,
@@ -210,6 +222,95 @@ def widen_edge_peaks(new: Loops, searched: Searched, submaps: Submaps, ranges, p
         latest = new.query.size
         new = new.extend(again)
     return new, retried
+
+
+def one_jump_explains_refused_group(new: Loops, found: Loops, submaps: Submaps, estimate: np.ndarray,
+                                    config) -> Loops:
+    """The block's loops, with those the vote refused kept after all where one jump of the
+    chain's heading explains every disagreement.
+
+    The vote compares loops through the chain's relative poses, rigidly. Where the filter's
+    heading jumped between two queries (MIT Killian seed 1: 4-6 degrees at nodes 3,435-3,438, a
+    turn of 15-20 degrees a step), the loops after the jump disagree with the loops kept before
+    it, which outnumber them, and they were refused until the return was out of every window.
+    A jump is one turn ``delta`` at one node ``c``: every later pose, the later submaps with them,
+    turns rigidly about node ``c``. For each node ``c`` over the span of the block's loops (and the
+    kept loops they are compared with), ``delta`` is the median heading disagreement of the pairs
+    that straddle it, and the vote is taken again through the chain so turned. The best such
+    chain (most of the block's loops kept) replaces the vote's verdict when:
+
+    - ``|delta| <= consistency_jump``;
+    - it keeps more of the block's loops, and every loop the rigid vote kept;
+    - every kept loop of the blocks before that it compares agrees with more loops than it
+      disagrees with.
+
+    A heading that drifts steadily (a bent chain, a bent submap) puts the disagreement of a pair in
+    proportion to the nodes between its queries, which one turn does not explain.
+
+    Args:
+        new: the block's candidates (``refused`` as :func:`accept` left it).
+        found: the loops of the blocks before (their kept ones take part).
+        submaps: the submaps.
+        estimate: (S, 3) the estimate the block was searched from (local frame).
+        config: the closure's :class:`~jaxslam.graph.closure.ClosureConfig`.
+    """
+    if config.consistency_jump <= 0 or not np.any(new.refused == "consistency"):
+        return new
+    passed = np.nonzero((new.refused == "") | (new.refused == "consistency"))[0]
+    earlier = np.nonzero(found.refused == "")[0]
+    query = np.concatenate([new.query[passed], found.query[earlier]])
+    submap = np.concatenate([new.submap[passed], found.submap[earlier]])
+    measurement = np.concatenate([new.measurement[passed], found.measurement[earlier]])
+    # The earlier loops that take part: near some loop of the block.
+    near = ((np.abs(query[:, None] - query[None, :passed.size]) <= config.consistency_nodes)
+            & (np.abs(submap[:, None] - submap[None, :passed.size]) <= 1)).any(axis=1)
+    query, submap, measurement = query[near], submap[near], measurement[near]
+    block = np.arange(query.size) < passed.size  # the block's rows come first, all near themselves
+    rigid_kept = new.refused[passed] == ""
+
+    implied = compose_np(estimate[submaps.first_node][submap], measurement)
+    best, best_kept = None, int(rigid_kept.sum())
+    for centre in range(int(query.min()), int(query.max())):
+        a, b = np.nonzero((query[:, None] <= centre) & (query[None] > centre)
+                          & (np.abs(query[:, None] - query[None]) <= config.consistency_nodes)
+                          & (np.abs(submap[:, None] - submap[None]) <= 1))
+        if a.size == 0:
+            continue
+        # The pairs' heading disagreement: through the loops against through the chain.
+        turn = wrap_angle_np(between_np(implied[a], implied[b])[:, 2]
+                             - between_np(estimate[query[a]], estimate[query[b]])[:, 2])
+        delta = float(np.median(turn))
+        if abs(delta) > config.consistency_jump:
+            continue
+        turned = estimate.copy()  # every pose after the centre turned about it, rigidly
+        turned[centre + 1:] = compose_np(compose_np(estimate[centre], [0.0, 0.0, delta]),
+                                         between_np(estimate[centre], estimate[centre + 1:]))
+        ok, has_votes, explained = _vote_across(query, submap, measurement, turned, submaps.first_node, centre,
+                                                config)
+        kept = int(ok[block].sum())
+        if (explained and kept > best_kept and np.all(ok[block][rigid_kept])
+                and np.all(ok[~block] | ~has_votes[~block])):
+            best, best_kept = ok[block], kept
+    if best is None:
+        return new
+    refused = new.refused.copy()
+    refused[passed] = np.where(best, "", "consistency")
+    return new._replace(refused=refused)
+
+
+def _vote_across(query, submap, measurement, poses, first_node, centre: int, config):
+    """The vote (:func:`consistency_votes`' rule) through ``poses``, a chain turned at node
+    ``centre``: each loop's verdict, whether it had any pair, and whether every kept pair that
+    straddles the centre agrees in heading."""
+    a, b, agree, turn = _pair_agreement(query, submap, measurement, poses, poses[first_node], config)
+    agreeing, disagreeing = np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
+    ok = (agreeing >= config.min_support) & (disagreeing < agreeing)
+    # One jump turns every later pose by the same angle: through the turned chain, every pair of
+    # loops it keeps that straddles the jump agrees in heading (their positions by the vote's
+    # majority, as anywhere).
+    straddles = (query[a] <= centre) != (query[b] <= centre)
+    explained = not np.any(straddles & ok[a] & ok[b] & (np.abs(turn) > config.consistency_theta))
+    return ok, agreeing + disagreeing > 0, explained
 
 
 def loop_edges(loops: Loops, submaps: Submaps) -> Edges:

@@ -131,6 +131,10 @@ class ClosureConfig:
     """Loops agree when they predict each other's query within this (m) ..."""
     consistency_theta: float = 0.05
     """... and this (rad)."""
+    consistency_jump: float = 0.15
+    """Largest jump of the chain's heading (rad) that may explain why a block's loops disagree with
+    the loops kept before them (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`;
+    0: never)."""
     min_support: int = 1
     """Other loops a loop must agree with."""
     loop_phi: float = 5.0
@@ -181,6 +185,8 @@ class ClosureConfig:
         for name in lengths:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ClosureConfig: {name} must be > 0, got {getattr(self, name)!r}")
+        if not self.consistency_jump >= 0:
+            raise ValueError(f"ClosureConfig: consistency_jump must be >= 0, got {self.consistency_jump!r}")
         if self.window_min_xy > self.window_max_xy or self.window_min_theta > self.window_max_theta:
             raise ValueError("ClosureConfig: a window's minimum exceeds its maximum (window_min_xy > window_max_xy "
                              "or window_min_theta > window_max_theta)")
@@ -432,8 +438,10 @@ def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, par
     for done in range(1, config.max_passes + 1):
         if progress:
             bar = tqdm(total=int(local.shape[0]), desc=f"loop closure, pass {done}", unit="node")
+        # The odometry's chain turns every node, not every submap: the filter's submaps are bent
+        # against it, and one jump of its heading no longer carries them rigidly.
         closed = _close_pass(chain, heading_rate, motions, submaps, ranges, points, valid, sensor, params, config,
-                             bar)
+                             bar, jumps=chain is local or heading_rate is not None)
         if bar is not None:
             bar.close()
         pairs += closed.pairs
@@ -537,9 +545,11 @@ class _Pass(NamedTuple):
 
 
 def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, valid, sensor, params,
-                config: ClosureConfig, bar) -> _Pass:
+                config: ClosureConfig, bar, jumps: bool = True) -> _Pass:
     """The search in time order from ``chain`` ((S, 3) local frame) and the optimisations
-    (:func:`close_trajectory_loops`' one pass)."""
+    (:func:`close_trajectory_loops`' one pass); ``jumps``: whether one jump of the chain's heading
+    may explain loops the vote refused (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`;
+    only where the chain carries the submaps rigidly)."""
     sequential = sequential_edges(chain, motions, params.motion, heading_rate)
     seconds = {"search": 0.0, "accept": 0.0, "optimize": 0.0}
     travelled = path_distances(chain)
@@ -563,6 +573,8 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, 
         new, widened_pairs = acceptance.widen_edge_peaks(new, searched, submaps, ranges, points, valid, sensor,
                                                          likelihood, estimate, found, config)
         pairs += widened_pairs
+        if jumps:
+            new = acceptance.one_jump_explains_refused_group(new, found, submaps, estimate, config)
         found = found.extend(new)
         t_d = time.perf_counter()
         if np.any(new.refused == ""):
