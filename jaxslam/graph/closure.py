@@ -19,7 +19,10 @@ the filter"):
 5. **consistency**: the loops that close near it (queries within ``consistency_nodes`` nodes,
    submaps within one; earlier kept loops vote too) are compared with it through the filter's
    local relative poses: at least ``min_support`` agree, and more agree than disagree (a slide
-   along a corridor agrees with its own kind, but the loops before it disagree).
+   along a corridor agrees with its own kind, but the loops before it disagree). Where the chain
+   carries the submaps rigidly, a block's refused loops are voted again through the chain turned
+   at one node by one angle, and kept where that one jump explains every disagreement
+   (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`).
 
 A pair whose best match lies on its window's edge is searched again in a wider window
 (:func:`jaxslam.graph.acceptance.widen_edge_peaks`).
