@@ -6,7 +6,6 @@ a match on its window's edge searched again wider (:func:`widen_edge_peaks`).
 
 from __future__ import annotations
 
-import math
 from functools import partial
 from typing import NamedTuple
 
@@ -242,10 +241,13 @@ def one_jump_explains_refused_group(new: Loops, found: Loops, submaps: Submaps, 
     - ``|delta| <= consistency_jump``;
     - it keeps more of the block's loops, and every loop the rigid vote kept;
     - every kept loop of the blocks before that it compares agrees with more loops than it
-      disagrees with.
+      disagrees with;
+    - every pair of loops it keeps that straddles ``c`` agrees in heading through the turned
+      chain (within ``consistency_theta``).
 
-    A heading that drifts steadily (a bent chain, a bent submap) puts the disagreement of a pair in
-    proportion to the nodes between its queries, which one turn does not explain.
+    The last test tells a jump from a drift: a jump turns every later pose by the same angle, a
+    heading that drifts (a bent chain, a bent submap) turns a pair by the nodes between its
+    queries. The caller applies the rule only where the chain carries the submaps rigidly.
 
     Args:
         new: the block's candidates (``refused`` as :func:`accept` left it).
