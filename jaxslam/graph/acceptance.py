@@ -270,28 +270,28 @@ def one_jump_explains_refused_group(new: Loops, found: Loops, submaps: Submaps, 
     block = np.arange(query.size) < passed.size  # the block's rows come first, all near themselves
     rigid_kept = new.refused[passed] == ""
 
+    # The vote's pairs, each once (earlier query first), and their heading disagreement: through
+    # the loops against through the chain. A centre's straddling pairs are a subset.
+    a, b = np.nonzero((query[:, None] < query[None]) & (query[None] - query[:, None] <= config.consistency_nodes)
+                      & (np.abs(submap[:, None] - submap[None]) <= 1))
     implied = compose_np(estimate[submaps.first_node][submap], measurement)
+    turn = wrap_angle_np(between_np(implied[a], implied[b])[:, 2]
+                         - between_np(estimate[query[a]], estimate[query[b]])[:, 2])
     best, best_kept = None, int(rigid_kept.sum())
     for centre in range(int(query.min()), int(query.max())):
-        a, b = np.nonzero((query[:, None] <= centre) & (query[None] > centre)
-                          & (np.abs(query[:, None] - query[None]) <= config.consistency_nodes)
-                          & (np.abs(submap[:, None] - submap[None]) <= 1))
-        if a.size == 0:
+        straddling = (query[a] <= centre) & (query[b] > centre)
+        if not np.any(straddling):
             continue
-        # The pairs' heading disagreement: through the loops against through the chain.
-        turn = wrap_angle_np(between_np(implied[a], implied[b])[:, 2]
-                             - between_np(estimate[query[a]], estimate[query[b]])[:, 2])
-        delta = float(np.median(turn))
+        delta = float(np.median(turn[straddling]))
         if abs(delta) > config.consistency_jump:
             continue
         turned = estimate.copy()  # every pose after the centre turned about it, rigidly
         turned[centre + 1:] = compose_np(compose_np(estimate[centre], [0.0, 0.0, delta]),
                                          between_np(estimate[centre], estimate[centre + 1:]))
-        ok, has_votes, explained = _vote_across(query, submap, measurement, turned, submaps.first_node, centre,
-                                                config)
+        ok, explained = _vote_across(query, submap, measurement, turned, submaps.first_node, centre, config)
         kept = int(ok[block].sum())
-        if (explained and kept > best_kept and np.all(ok[block][rigid_kept])
-                and np.all(ok[~block] | ~has_votes[~block])):
+        # Every earlier loop here is near a block's loop, so it has a vote to keep.
+        if explained and kept > best_kept and np.all(ok[block][rigid_kept]) and np.all(ok[~block]):
             best, best_kept = ok[block], kept
     if best is None:
         return new
@@ -302,8 +302,8 @@ def one_jump_explains_refused_group(new: Loops, found: Loops, submaps: Submaps, 
 
 def _vote_across(query, submap, measurement, poses, first_node, centre: int, config):
     """The vote (:func:`consistency_votes`' rule) through ``poses``, a chain turned at node
-    ``centre``: each loop's verdict, whether it had any pair, and whether every kept pair that
-    straddles the centre agrees in heading."""
+    ``centre``: each loop's verdict, and whether every kept pair that straddles the centre
+    agrees in heading."""
     a, b, agree, turn = _pair_agreement(query, submap, measurement, poses, poses[first_node], config)
     agreeing, disagreeing = np.bincount(a[agree], minlength=query.size), np.bincount(a[~agree], minlength=query.size)
     ok = (agreeing >= config.min_support) & (disagreeing < agreeing)
@@ -312,7 +312,7 @@ def _vote_across(query, submap, measurement, poses, first_node, centre: int, con
     # majority, as anywhere).
     straddles = (query[a] <= centre) != (query[b] <= centre)
     explained = not np.any(straddles & ok[a] & ok[b] & (np.abs(turn) > config.consistency_theta))
-    return ok, agreeing + disagreeing > 0, explained
+    return ok, explained
 
 
 def loop_edges(loops: Loops, submaps: Submaps) -> Edges:
