@@ -3,7 +3,7 @@
 For each log: ``slam.run`` (the SMP at the library's defaults, seed 0, ``--max-scans`` scans),
 then the back end ``jaxslam map`` runs after it twice (the second timed, compiled):
 :func:`jaxslam.graph.close_loops`, the map drawn again at the closed poses, and the refinement
-on it (:func:`jaxslam.refine.refine_trajectory`). Prints and writes (``--out``, JSON) the
+on it (:func:`jaxslam.refine.refine_in_rounds`). Prints and writes (``--out``, JSON) the
 filter's wall, each stage's wall (the closure's by its own stages), their ratios to the
 filter's, and the loop search's pairs per second with the device JAX ran on; on a machine with a GPU, run it there and on the
 CPU (``JAX_PLATFORMS=cpu``) for the GPU's ratio. Ratios are meaningful within one invocation
@@ -32,7 +32,7 @@ def bench(path: Path, max_scans: int | None) -> dict:
     from jaxslam.graph import ClosureConfig, close_loops
     from jaxslam.io import read_log
     from jaxslam.laserlog import grid_to_world
-    from jaxslam.refine import refine_trajectory
+    from jaxslam.refine import refine_in_rounds
 
     log = read_log(path)
     if max_scans:
@@ -49,9 +49,9 @@ def bench(path: Path, max_scans: int | None) -> dict:
         closed = result._replace(closure=closure)
         _, field, grid = closed.closed_map(log, params)
         t2 = time.perf_counter()
-        refined = refine_trajectory(grid_to_world(grid, -result.frame_offset), field,
-                                    result.to_local(closure.trajectory), log.ranges, log.sensor, params,
-                                    result.config, odometry=result.to_local(log.odometry))
+        refined = refine_in_rounds(grid_to_world(grid, -result.frame_offset), field,
+                                   result.to_local(closure.trajectory), log.ranges, log.sensor, params,
+                                   result.config, result.selection.indices, odometry=result.to_local(log.odometry))
         np.asarray(refined.poses)
         return closure, t1 - t0, t2 - t1, time.perf_counter() - t2
 

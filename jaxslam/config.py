@@ -100,6 +100,11 @@ class SlamConfig:
     """Resampling scheme: systematic, stratified, multinomial or residual."""
     match_iterations: int = 24
     """Fixed iteration budget of the refinement's hill-climbing scan matcher."""
+    refine_rounds: int = 2
+    """Rounds of the refinement (:func:`jaxslam.refine.refine_in_rounds`): the first localises
+    every scan in the final map, each later one in the map drawn again from the processed scans
+    at the last round's poses. 1: the final map only (the figures:
+    docs/notes/2026-11-29-the-map-drawn-again.md)."""
     window_cells: int = 5
     """Coarse cells per axis of the window posterior (:mod:`jaxslam.window_posterior`): the
     window is cut into this cubed, each scored once."""
@@ -174,6 +179,7 @@ class SlamConfig:
             (self.free_space_samples >= 0, f"free_space_samples must be >= 0, got {self.free_space_samples}"),
             (self.resampler in RESAMPLERS, f"resampler must be one of {sorted(RESAMPLERS)}, got {self.resampler!r}"),
             (self.match_iterations >= 0, f"match_iterations must be >= 0, got {self.match_iterations}"),
+            (self.refine_rounds >= 1, f"refine_rounds must be >= 1, got {self.refine_rounds}"),
             (self.window_cells >= 1, f"window_cells must be >= 1, got {self.window_cells}"),
             (self.window_levels >= 1, f"window_levels must be >= 1, got {self.window_levels}"),
             (1 <= self.window_modes <= self.window_cells**3,

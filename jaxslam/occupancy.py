@@ -27,8 +27,10 @@ A dense :class:`GridMap` with :func:`insert_scan` is a single map (tests, tools)
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt8
@@ -303,3 +305,39 @@ def insert_scan(
         jnp.where(cells.returned, end_cell_idx, spec.num_cells),
         jnp.where(cells.returned[:, None], splat_idx, spec.num_cells), d2, params)
     return GridMap(logodds.reshape(spec.shape), hit_dist2.reshape(spec.shape)), outside
+
+
+@partial(jax.jit, static_argnames=("spec", "max_insert_range", "field_radius"))
+def _insert_scans(poses, ranges, sensor, params, spec: GridSpec, max_insert_range: float, field_radius: int) -> GridMap:
+    def body(grid_map, xs):
+        grid_map, _ = insert_scan(spec, grid_map, xs[0], xs[1], sensor, params, max_insert_range, field_radius)
+        return grid_map, None
+
+    grid_map, _ = jax.lax.scan(body, empty_map(spec), (poses, ranges))
+    return grid_map
+
+
+def map_from_scans(
+    poses: Float[np.ndarray, "S 3"],
+    ranges: Float[np.ndarray, "S B"],
+    sensor: SensorSpec,
+    params: InsertionParams,
+    resolution: float,
+    max_insert_range: float,
+    field_radius: int,
+) -> tuple[GridMap, GridSpec]:
+    """One dense map of scans at known poses: each inserted in turn with :func:`insert_scan`
+    (one compiled ``lax.scan``) into a grid of ``resolution`` (m) that covers every pose plus
+    ``max_insert_range`` and a metre. Returns ``(map, grid)``, the grid in the poses' frame
+    (metres, radians). This is how a map is drawn again at optimised or refined poses
+    (:func:`jaxslam.graph.draw_map`, :func:`jaxslam.refine.refine_in_rounds`)."""
+    poses = np.asarray(poses, np.float64)
+    if poses.ndim != 2 or poses.shape[1] != 3 or poses.shape[0] == 0 or np.shape(ranges)[0] != poses.shape[0]:
+        raise ValueError(f"map_from_scans: poses {poses.shape} and ranges {np.shape(ranges)} do not match")
+    reach = max_insert_range + 1.0
+    lo = np.floor((poses[:, :2].min(axis=0) - reach) / resolution) * resolution
+    hi = poses[:, :2].max(axis=0) + reach
+    spec = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], resolution)
+    grid_map = _insert_scans(jnp.asarray(poses, jnp.float32), jnp.asarray(ranges), sensor, params, spec,
+                             float(max_insert_range), int(field_radius))
+    return grid_map, spec

@@ -23,6 +23,11 @@ solution of that chain, by Gauss-Newton on its block-tridiagonal normal equation
 Huber weights on the matches so that a match caught in a wrong optimum cannot pull the
 chain far. Where the match is weak (along a corridor) the odometry carries the trajectory;
 where it is sharp the match does.
+
+The final map was drawn at poses each good only to the filter's or the pose graph's accuracy, and
+those errors blur it. :func:`refine_in_rounds` therefore repeats the localisation: after the
+first round, the map is drawn again from the processed scans at their refined poses, and every
+scan is localised in that sharper map (``SlamConfig.refine_rounds``, two by default).
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from jaxslam.grid import GridSpec
 from jaxslam.driver import run_in_chunks
 from jaxslam.laser import SensorSpec, subsample_beams
 from jaxslam.map_view import MapView
+from jaxslam.occupancy import map_from_scans
 from jaxslam.sensor_model import SENSOR_MODELS
 from jaxslam.scan_matching import match
 from jaxslam.window_posterior import stencil_poses
@@ -117,6 +123,56 @@ def refine_trajectory(
     if odometry is not None:
         refined = smooth_with_odometry(poses, matched_pose, covariances, ok, odometry, params.motion)
     return RefinedTrajectory(refined, ok, scores, matched_pose, covariances)
+
+
+def refine_in_rounds(
+    spec: GridSpec,
+    hit_dist2: UInt8[Array, "H W"],
+    poses: Float[np.ndarray, "T 3"],
+    ranges: Float[np.ndarray, "T B"],
+    sensor: SensorSpec,
+    params,
+    config,
+    map_scans: np.ndarray,
+    odometry: Float[np.ndarray, "T 3"] | None = None,
+    chunk_size: int = 256,
+) -> RefinedTrajectory:
+    """``config.refine_rounds`` rounds of :func:`refine_trajectory`: the first in the given map,
+    each later one in the map drawn again (:func:`jaxslam.occupancy.map_from_scans`, the filter's
+    insertion and resolution) from the scans ``map_scans`` at the last round's poses, starting
+    from those poses.
+
+    Why: a map drawn at poses good to the filter's or the graph's few centimetres is blurred by
+    them; the refined poses are better, so the map they draw is sharper and a scan localised in
+    it lands closer. Drawn from the processed scans only: the map from every scan was measured
+    worse (its walls thicken with the many nearby scans' small errors; the figures:
+    docs/notes/2026-11-29-the-map-drawn-again.md).
+
+    Args:
+      spec, hit_dist2, poses, ranges, sensor, params, odometry, chunk_size: as
+        :func:`refine_trajectory` (the map, its grid and the poses in one frame).
+      config: ``SlamConfig``: as :func:`refine_trajectory`, and ``refine_rounds``, ``resolution``,
+        ``max_insert_range`` and ``field_radius`` for the maps drawn again.
+      map_scans: (S,) int indices into ``poses`` of the scans that draw the later rounds' maps
+        (the processed scans: ``SlamResult.selection.indices``).
+
+    Returns:
+      The last round's :class:`RefinedTrajectory`.
+    """
+    map_scans = np.asarray(map_scans)
+    num = np.shape(poses)[0]
+    if (map_scans.ndim != 1 or map_scans.size == 0 or not np.issubdtype(map_scans.dtype, np.integer)
+            or map_scans.min() < 0 or map_scans.max() >= num):
+        raise ValueError(f"refine_in_rounds: map_scans must be a non-empty 1-D array of scan indices in [0, {num}), "
+                         f"got shape {map_scans.shape}, dtype {map_scans.dtype}")
+    refined = refine_trajectory(spec, hit_dist2, poses, ranges, sensor, params, config, odometry, chunk_size)
+    for _ in range(config.refine_rounds - 1):
+        grid_map, spec = map_from_scans(refined.poses[map_scans], np.asarray(ranges)[map_scans], sensor,
+                                        params.insertion, config.resolution, config.max_insert_range,
+                                        config.field_radius)
+        refined = refine_trajectory(spec, grid_map.hit_dist2, refined.poses, ranges, sensor, params, config,
+                                    odometry, chunk_size)
+    return refined
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))

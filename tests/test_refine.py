@@ -1,5 +1,7 @@
 """Localising every scan in a fixed map (jaxslam.refine)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -194,3 +196,106 @@ def test_bilinear_matcher_lands_closer_than_a_cell(mapped_office):
                                     params, config)
         errors[lookup] = np.median(np.hypot(*(refined.matched_poses[:, :2] - truth[:, :2]).T))
     assert errors["bilinear"] < 0.8 * errors["nearest"], errors
+
+
+# --- rounds: the map drawn again at the refined poses ---------------------------------------
+
+from jaxslam.config import ConfigError  # noqa: E402
+from jaxslam.geometry import between_np  # noqa: E402
+from jaxslam.occupancy import map_from_scans  # noqa: E402
+from jaxslam.refine import refine_in_rounds  # noqa: E402
+
+
+def _relative_error(poses, truth, lag=10):
+    """Mean translation error of the relative poses ``lag`` scans apart (as the logs' relations)."""
+    error = between_np(poses[:-lag], poses[lag:]) - between_np(truth[:-lag], truth[lag:])
+    return float(np.mean(np.hypot(error[:, 0], error[:, 1])))
+
+
+@pytest.fixture(scope="module")
+def drifted_office():
+    """120 scans of the simulated office and a trajectory that drifts from the truth (a random walk
+    of 5 mm and 2.5 mrad a scan plus 1 cm of jitter), as a filter's or a pose graph's does."""
+    scenario = office_scenario(jax.random.key(0), num_scans=120)
+    truth = np.asarray(scenario.true_poses, np.float64)
+    return scenario, truth, default_params(), SlamConfig(beam_stride=1, max_insert_range=10.0)
+
+
+def _drifted(truth, seed):
+    rng = np.random.default_rng(seed)
+    return (truth + np.cumsum(rng.normal(0.0, [0.005, 0.005, 0.0025], truth.shape), axis=0)
+            + rng.normal(0.0, [0.01, 0.01, 0.005], truth.shape))
+
+
+def test_map_from_scans_is_the_scans_inserted_one_by_one(drifted_office):
+    scenario, truth, params, _ = drifted_office
+    scans = np.arange(0, 30, 3)
+    grid_map, spec = map_from_scans(truth[scans], scenario.log.ranges[scans], scenario.log.sensor, params.insertion,
+                                    0.05, 10.0, 4)
+    # The grid covers every pose with the insertion range and a metre to spare.
+    assert spec.origin[0] <= truth[scans, 0].min() - 11.0 and spec.origin[1] <= truth[scans, 1].min() - 11.0
+    reference = empty_map(spec)
+    for pose, ranges in zip(truth[scans], scenario.log.ranges[scans]):
+        reference, _ = insert_scan(spec, reference, jnp.asarray(pose, jnp.float32), jnp.asarray(ranges),
+                                   scenario.log.sensor, params.insertion, 10.0, 4)
+    np.testing.assert_array_equal(np.asarray(grid_map.hit_dist2), np.asarray(reference.hit_dist2))
+    np.testing.assert_array_equal(np.asarray(grid_map.logodds), np.asarray(reference.logodds))
+    with pytest.raises(ValueError, match="map_from_scans: poses"):
+        map_from_scans(truth[scans], scenario.log.ranges[:3], scenario.log.sensor, params.insertion, 0.05, 10.0, 4)
+
+
+def test_the_map_drawn_again_sharpens_a_drifted_trajectory(drifted_office):
+    """The first round localises every scan in a map drawn at drifted poses; the second in the map
+    drawn again at the first round's poses. Measured (relative error 10 scans apart, seeds 0-3):
+    0.065, 0.138, 0.037, 0.032 m after one round, 0.063, 0.134, 0.032, 0.029 after two; the
+    drifted input 0.11, 0.19, 0.058, 0.049."""
+    scenario, truth, params, config = drifted_office
+    scans = np.arange(0, truth.shape[0], 3)
+    errors = []
+    for seed in range(4):
+        drifted = _drifted(truth, seed)
+        grid_map, spec = map_from_scans(drifted[scans], scenario.log.ranges[scans], scenario.log.sensor,
+                                        params.insertion, config.resolution, config.max_insert_range,
+                                        config.field_radius)
+        errors.append([_relative_error(refine_in_rounds(
+            spec, grid_map.hit_dist2, drifted, scenario.log.ranges, scenario.log.sensor, params,
+            dataclasses.replace(config, refine_rounds=rounds), scans, odometry=np.asarray(scenario.log.odometry),
+            chunk_size=64).poses, truth) for rounds in (1, 2)] + [_relative_error(drifted, truth)])
+    errors = np.array(errors)
+    assert np.all(errors[:, 0] < errors[:, 2]), errors  # one round already gains on the drift
+    assert np.all(errors[:, 1] < errors[:, 0]), errors  # and the map drawn again gains in every seed
+    assert np.mean(errors[:, 1] / errors[:, 0]) < 0.97, errors
+
+
+def test_rounds_compose_the_single_refinement(drifted_office):
+    scenario, truth, params, config = drifted_office
+    drifted = _drifted(truth, 0)
+    scans = np.arange(0, truth.shape[0], 3)
+    ranges, sensor = scenario.log.ranges, scenario.log.sensor
+    grid_map, spec = map_from_scans(drifted[scans], ranges[scans], sensor, params.insertion, 0.05, 10.0, 4)
+    once = refine_trajectory(spec, grid_map.hit_dist2, drifted, ranges, sensor, params, config, chunk_size=64)
+    one_round = refine_in_rounds(spec, grid_map.hit_dist2, drifted, ranges, sensor, params,
+                                 dataclasses.replace(config, refine_rounds=1), scans, chunk_size=64)
+    np.testing.assert_array_equal(one_round.poses, once.poses)
+    redrawn, redrawn_spec = map_from_scans(once.poses[scans], ranges[scans], sensor, params.insertion, 0.05, 10.0, 4)
+    twice = refine_trajectory(redrawn_spec, redrawn.hit_dist2, once.poses, ranges, sensor, params, config,
+                              chunk_size=64)
+    two_rounds = refine_in_rounds(spec, grid_map.hit_dist2, drifted, ranges, sensor, params, config, scans,
+                                  chunk_size=64)
+    assert config.refine_rounds == 2  # the default
+    np.testing.assert_array_equal(two_rounds.poses, twice.poses)
+    np.testing.assert_array_equal(two_rounds.scores, twice.scores)
+
+
+@pytest.mark.parametrize("map_scans", [np.array([], int), np.array([0.0, 3.0]), np.array([0, 120]),
+                                       np.array([-1, 3]), np.zeros((2, 2), int)])
+def test_bad_map_scans_are_named_before_any_work(drifted_office, map_scans):
+    scenario, truth, params, config = drifted_office
+    with pytest.raises(ValueError, match="refine_in_rounds: map_scans"):
+        refine_in_rounds(SPEC, jnp.zeros(SPEC.shape, jnp.uint8), truth, scenario.log.ranges, scenario.log.sensor,
+                         params, config, map_scans)
+
+
+def test_refine_rounds_below_one_is_refused():
+    with pytest.raises(ConfigError, match="refine_rounds must be >= 1"):
+        SlamConfig(refine_rounds=0)

@@ -25,7 +25,7 @@ from jaxslam.proposals import PROPOSALS
 from jaxslam.outputs import expected_output_bytes, write_slam_outputs
 from jaxslam.laserlog import grid_to_world
 from jaxslam.rbpf import check_config_for_log, first_scan_tiles, prepare
-from jaxslam.refine import refine_trajectory
+from jaxslam.refine import refine_in_rounds
 from jaxslam.resources import available_memory_bytes, estimate_run_bytes, map_cells, state_bytes
 from jaxslam.slam import RunInterrupted, run
 
@@ -189,8 +189,8 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
 
 def write_map_outputs(out, log, result, params, seed: int, source: str, refine: bool = False, world=None) -> dict:
     """``jaxslam map``'s outputs of one finished run (:func:`jaxslam.outputs.write_slam_outputs`);
-    with ``refine``, every scan first localised in the final map (``trajectory_refined.txt``,
-    :mod:`jaxslam.refine`). Returns the summary as written."""
+    with ``refine``, every scan first localised in the final map and then in the map drawn again at
+    those poses (``trajectory_refined.txt``, :func:`jaxslam.refine.refine_in_rounds`). Returns the summary as written."""
     refined, refine_seconds = None, None
     if refine:
         # In the filter's local frame (result.frame_offset subtracted), as the map was built; on
@@ -202,8 +202,8 @@ def write_map_outputs(out, log, result, params, seed: int, source: str, refine: 
         else:
             (_, field, grid), start = result.dense_map(local=True), result.trajectory
         t0 = time.perf_counter()
-        refined = refine_trajectory(grid, field, result.to_local(start), log.ranges, log.sensor,
-                                    params, result.config, odometry=result.to_local(log.odometry))
+        refined = refine_in_rounds(grid, field, result.to_local(start), log.ranges, log.sensor, params, result.config,
+                                   result.selection.indices, odometry=result.to_local(log.odometry))
         refined = refined._replace(poses=result.to_world(refined.poses),
                                    matched_poses=result.to_world(refined.matched_poses))
         refine_seconds = time.perf_counter() - t0

@@ -4,43 +4,22 @@ graph as a NumPy archive (:func:`save_graph`, :func:`load_graph`, what ``jaxslam
 
 from __future__ import annotations
 
-from functools import partial
-
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxslam.graph import pose_graph
 from jaxslam.graph.closure import LoopClosure
 from jaxslam.grid import GridSpec
 from jaxslam.laserlog import grid_to_world, to_local
-from jaxslam.occupancy import GridMap, empty_map, insert_scan
-
-
-@partial(jax.jit, static_argnames=("grid", "max_insert_range", "field_radius"))
-def _draw(poses, ranges, sensor, params, grid: GridSpec, max_insert_range: float, field_radius: int) -> GridMap:
-    def body(grid_map, xs):
-        grid_map, _ = insert_scan(grid, grid_map, xs[0], xs[1], sensor, params, max_insert_range, field_radius)
-        return grid_map, None
-
-    grid_map, _ = jax.lax.scan(body, empty_map(grid), (poses, ranges))
-    return grid_map
+from jaxslam.occupancy import map_from_scans
 
 
 def draw_map(closure: LoopClosure, log, params, slam_config, frame_offset) -> tuple[np.ndarray, np.ndarray, GridSpec]:
     """The map drawn again at the optimised poses: every node's scan inserted into one dense grid
     with the filter's insertion. Returns ``(logodds (H, W) float16, hit_dist2 (H, W) uint8,
     grid)``, the grid in the world frame (as :meth:`jaxslam.slam.SlamResult.dense_map`)."""
-
-    local = to_local(closure.poses, frame_offset)
-    reach = slam_config.max_insert_range + 1.0
-    lo = local[:, :2].min(axis=0) - reach
-    hi = local[:, :2].max(axis=0) + reach
-    res = slam_config.resolution
-    lo = np.floor(lo / res) * res
-    grid = GridSpec.from_bounds(lo[0], lo[1], hi[0], hi[1], res)
-    grid_map = _draw(jnp.asarray(local, jnp.float32), jnp.asarray(log.ranges[closure.node_scans]), log.sensor,
-                     params.insertion, grid, float(slam_config.max_insert_range), int(slam_config.field_radius))
+    grid_map, grid = map_from_scans(to_local(closure.poses, frame_offset), log.ranges[closure.node_scans],
+                                    log.sensor, params.insertion, slam_config.resolution,
+                                    slam_config.max_insert_range, slam_config.field_radius)
     return np.asarray(grid_map.logodds), np.asarray(grid_map.hit_dist2), grid_to_world(grid, frame_offset)
 
 
