@@ -103,6 +103,7 @@ CASES = [
     ("set-zero-field-radius", [*MAP, *_sets("field_radius=0")], ["field_radius must be in 1..11", "got 0"], None),
     ("set-negative-match-iterations", [*MAP, *_sets("match_iterations=-1")], ["match_iterations must be >= 0"],
      None),
+    ("set-zero-refine-rounds", [*MAP, *_sets("refine_rounds=0")], ["refine_rounds must be >= 1, got 0"], None),
     ("set-zero-localizers", [*MAP, *_sets("num_localizers=0")], ["num_localizers must be >= 1, got 0"], None),
     ("set-zero-tile-size", [*MAP, *_sets("tile_size=0")], ["tile_size must be a power of two", "got 0"], None),
     # Physically invalid parameters.
