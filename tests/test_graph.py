@@ -15,7 +15,7 @@ from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
 from jaxslam.graph import ClosureConfig, close_trajectory_loops, load_graph, save_graph
 from jaxslam.graph import pose_graph
-from jaxslam.graph.loop_search import SearchWindow, search_batch
+from jaxslam.graph.loop_search import SearchWindow, class_shape, search_batch
 from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import square_bounds
 from jaxslam.laserlog import select_updates
@@ -186,9 +186,20 @@ def test_square_bounds_bound_every_shift():
                 assert bound[0, r, c] == padded[r:r + side, c:c + side].max()
 
 
-def test_branch_and_bound_finds_the_exhaustive_optimum_where_it_certifies():
+def test_class_shape_deepens_only_windows_wider_than_the_top_squares():
+    window = SearchWindow(half_cells=400, half_angles=3, angular_step=0.01, levels=5, keep=8, ambiguity_cells=1,
+                          ambiguity_angles=1, top_squares=9)
+    # Spans 65, 257, 513, 801 cells: 3, 9, 17 and 26 squares of 32 cells a side.
+    shapes = [class_shape(h, window) for h in (32, 128, 256, 400)]
+    assert [(s.half_cells, s.levels, s.keep) for s in shapes] == [(32, 5, 8), (128, 5, 8), (256, 6, 16), (400, 7, 32)]
+    assert [class_shape(h, window._replace(top_squares=0)).levels for h in (32, 400)] == [5, 5]
+    assert class_shape(400, window._replace(levels=8)).levels == 8  # never fewer than levels
+
+
+def _walls_and_scan(resolution=0.1):
+    """A submap's (64, 64) fit of a few walls and posts, and 40 of its wall cells seen as a scan
+    from a true pose: (fit, points (40, 2), valid (40,), true_pose (3,))."""
     rng = np.random.default_rng(3)
-    resolution = 0.1
     # A submap of a few walls and posts; the scan is the walls seen from a pose, shifted.
     fit = np.zeros((64, 64), np.uint8)
     fit[10, 5:60] = 255
@@ -204,8 +215,15 @@ def test_branch_and_bound_finds_the_exhaustive_optimum_where_it_certifies():
     c, s = np.cos(true_pose[2]), np.sin(true_pose[2])
     rel = world - true_pose[:2]
     points = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], -1).astype(np.float32)
-    valid = np.ones(len(points), bool)
-    window = SearchWindow(half_cells=8, half_angles=3, angular_step=0.025, levels=2, keep=16, ambiguity_cells=3,
+    return fit, points, np.ones(len(points), bool), true_pose
+
+
+@pytest.mark.parametrize("levels", [2, 4])
+def test_branch_and_bound_finds_the_exhaustive_optimum_where_it_certifies(levels):
+    resolution = 0.1
+    fit, points, valid, true_pose = _walls_and_scan(resolution)
+    # Four levels: the top node is the whole 17-cell window's square, as a deepened class's is.
+    window = SearchWindow(half_cells=8, half_angles=3, angular_step=0.025, levels=levels, keep=16, ambiguity_cells=3,
                           ambiguity_angles=2)
     bounds = tuple(jnp.asarray(b) for b in square_bounds(fit[None], window.levels))
     guesses = np.array([true_pose + [0.3, -0.2, 0.05], true_pose + [-0.5, 0.4, -0.05], true_pose])
@@ -221,6 +239,38 @@ def test_branch_and_bound_finds_the_exhaustive_optimum_where_it_certifies():
     assert np.any(np.asarray(result.certified))
     best = int(np.argmax(np.asarray(result.score)))
     np.testing.assert_allclose(np.asarray(result.pose[best])[:2], true_pose[:2], atol=2 * resolution)
+
+
+def test_a_deepened_class_screens_and_its_candidates_are_searched_again_at_the_base_levels():
+    from jaxslam.graph.loop_search import search_pairs
+    from jaxslam.graph.submaps import Submaps
+    from jaxslam.grid import GridSpec
+
+    resolution = 0.1
+    fit, points, valid, true_pose = _walls_and_scan(resolution)
+    base = SearchWindow(half_cells=8, half_angles=3, angular_step=0.025, levels=2, keep=4, ambiguity_cells=3,
+                        ambiguity_angles=2, top_squares=2, recheck_score=0.5)
+    deep = class_shape(8, base)
+    assert (deep.levels, deep.keep) == (4, 16)  # 17 cells: 5 squares of 4, 3 of 8, 2 of 16
+    bounds = tuple(jnp.asarray(b) for b in square_bounds(fit[None], deep.levels))
+    submaps = Submaps(np.zeros(1, int), np.zeros(1, int), np.zeros((1, 2)), GridSpec((64, 64), resolution, (0.0, 0.0)),
+                      None, jnp.asarray(fit[None]), bounds)
+    rng = np.random.default_rng(5)
+    num = 12
+    guess = (true_pose + rng.uniform(-1, 1, (num, 3)) * [1.6, 1.6, 0.07]).astype(np.float32)  # some windows miss it
+    args = (np.zeros(num, np.int32), np.repeat(points[None], num, 0), np.repeat(valid[None], num, 0), guess,
+            np.full(num, 8, np.int32), np.full(num, 0.08, np.float32))
+    found = search_pairs(submaps, *args, base, batch=5)
+
+    def alone(shape):
+        return search_batch(submaps.fit, bounds, *(jnp.asarray(a) for a in args), resolution, shape)
+
+    screened, searched_again = alone(deep), alone(base)
+    again = np.asarray(screened.score) >= base.recheck_score
+    assert 0 < again.sum() < num  # both kinds of pair occur
+    assert not np.array_equal(screened.dropped_bound, searched_again.dropped_bound)  # the two searches differ
+    for field, first, second in zip(found, screened, searched_again):
+        np.testing.assert_array_equal(field, np.where(again.reshape((-1,) + (1,) * (field.ndim - 1)), second, first))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -470,7 +520,8 @@ def test_closure_config_refuses_bad_values():
     for bad, words in (({"keep": 0}, "keep must be a positive integer"), ({"query_stride": 2.5}, "query_stride"),
                        ({"sigma": 0.0}, "sigma must be > 0"), ({"window_min_xy": 21.0}, "minimum exceeds"),
                        ({"min_score": 1.5}, "min_score and max_second_ratio"),
-                       ({"window_xy_per_metre": float("nan")}, "finite number")):
+                       ({"window_xy_per_metre": float("nan")}, "finite number"),
+                       ({"top_squares": -1}, "top_squares must be an integer >= 0")):
         with pytest.raises(ValueError, match=words):
             ClosureConfig(**bad)
 

@@ -142,7 +142,7 @@ def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, est
     score, window, uniqueness, information and consistency tests (``refused`` says which failed);
     ``config`` is the closure's :class:`~jaxslam.graph.closure.ClosureConfig`."""
     result = searched.result
-    promising = np.nonzero(result.score >= 0.8 * config.min_score)[0]
+    promising = np.nonzero(result.score >= config.candidate_score)[0]
     query, submap = searched.query[promising], searched.submap[promising]
     guess, half_xy, half_theta = (searched.guess[promising], searched.half_xy[promising],
                                   searched.half_theta[promising])

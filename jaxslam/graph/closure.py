@@ -60,7 +60,7 @@ from jaxslam.geometry import between_np, compose_np
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
 from jaxslam.graph import acceptance, drift, pose_graph
 from jaxslam.graph.acceptance import Loops, Searched, loop_edges
-from jaxslam.graph.loop_search import SearchWindow, search_pairs
+from jaxslam.graph.loop_search import SearchWindow, class_shape, search_pairs
 from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps, scan_points
 from jaxslam.graph.windows import candidate_pairs, graph_distances, path_distances
@@ -114,7 +114,10 @@ class ClosureConfig:
     """Angle between candidate headings (rad): a cell's side at 5 m; the hill climb refines
     the heading below it (static)."""
     levels: int = 5
-    """Levels of the search's bound (static)."""
+    """Levels of the search's bound (static), the least: see ``top_squares``."""
+    top_squares: int = 9
+    """A window wider than this many top squares a side is screened at more levels (``search_pairs``;
+    static; 0: never): 9 leaves those up to 6.4 m as they were (20 m took 9/10 of FR-clinic's search)."""
     keep: int = 128
     """Nodes the search keeps per level (static)."""
     batch: int = 16
@@ -178,8 +181,10 @@ class ClosureConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ClosureConfig: {name} must be a positive integer, got {value!r}")
-        if isinstance(self.max_widenings, bool) or not isinstance(self.max_widenings, int) or self.max_widenings < 0:
-            raise ValueError(f"ClosureConfig: max_widenings must be an integer >= 0, got {self.max_widenings!r}")
+        for name in ("max_widenings", "top_squares"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"ClosureConfig: {name} must be an integer >= 0, got {value!r}")
         for name in lengths + ("min_separation", "max_node_distance", "window_xy_per_metre",
                                "window_theta_per_metre", "min_score", "max_second_ratio", "min_share_change"):
             value = getattr(self, name)
@@ -207,7 +212,11 @@ class ClosureConfig:
             half_angles=int(math.ceil(self.window_max_theta / self.angular_step)),
             angular_step=float(self.angular_step), levels=int(self.levels), keep=int(self.keep),
             ambiguity_cells=int(math.ceil(0.5 / resolution)),
-            ambiguity_angles=int(math.ceil(math.radians(3.0) / self.angular_step)))
+            ambiguity_angles=int(math.ceil(math.radians(3.0) / self.angular_step)), top_squares=int(self.top_squares),
+            recheck_score=self.candidate_score)
+
+    candidate_score = property(lambda self: 0.8 * float(self.min_score),
+                               doc="Least search score of a pair the acceptance refines and judges.")
 
 
 class LoopClosure(NamedTuple):
@@ -387,8 +396,9 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     # placed by the filter's own steps, which its map held together; a chain that takes part of
     # its heading from the odometry takes the odometry's step-to-step noise too (the simulated
     # worlds' loops came out 3 degrees off against submaps drawn on it).
-    submaps = build_submaps(local, ranges, log.sensor, params.insertion, slam_config.resolution,
-                            slam_config.max_insert_range, config.nodes_per_submap, config.sigma, config.levels)
+    widest = config.window(slam_config.resolution)  # the bounds the deepest search reads
+    submaps = build_submaps(local, ranges, log.sensor, params.insertion, slam_config.resolution, slam_config.max_insert_range,
+                            config.nodes_per_submap, config.sigma, class_shape(widest.half_cells, widest).levels)
     seconds = {"submaps": time.perf_counter() - t0, "search": 0.0, "accept": 0.0, "optimize": 0.0}
     run = _passes(local, motions, submaps, ranges, points, valid, log.sensor, params, config, seconds, progress)
     closed, everything, share, chain, rates, done = run.closed, run.everything, run.share, run.chain, run.rates, run.done
