@@ -198,8 +198,9 @@ def class_shape(half_cells: int, window: SearchWindow) -> SearchWindow:
     fewest levels, and at least ``window.levels``, whose top level tiles the window with at most
     ``window.top_squares`` squares a side (``window.levels`` where that is 0), and twice the
     nodes kept for each level added. The top level's squares are coarser there and their bounds
-    flatter, so the best candidate's node ranks lower among them; with ``keep`` nodes a level
-    FR-clinic's widest searches lost a third of their promising matches (docs/notes)."""
+    flatter, so the best candidate's node ranks lower among them: with ``keep`` nodes a level, a
+    third of FR-clinic's promising 20 m matches came out elsewhere
+    (docs/notes/2026-11-30-wide-windows-screened.md)."""
     levels = int(window.levels)
     span = 2 * int(half_cells) + 1
     while window.top_squares and -(-span // 2**levels) > window.top_squares:
@@ -216,9 +217,9 @@ def search_pairs(submaps: Submaps, submap, points, valid, guess, half_cells, hal
 
     A deepened class's search screens: its pairs that score ``window.recheck_score`` or more are
     searched again at ``window.levels`` and ``window.keep``, and that search's result is
-    returned. The deeper search finds a different best in about one promising pair in ten
-    (FR-clinic), now and then a corridor's alias (MIT Killian), which the shallower search
-    scores lower than the true match; the acceptance was measured on the shallower search."""
+    returned. Even with ``keep`` doubled, the deeper search finds another best in about one
+    promising pair in eight (FR-clinic), now and then a corridor's alias where the shallower
+    search finds the true match (MIT Killian); the acceptance was measured on the shallower one."""
     num = len(submap)
     out = SearchResult(np.zeros((num, 3), np.float32), np.zeros(num, np.float32), np.zeros(num, np.float32),
                        np.zeros(num, np.float32))
