@@ -199,7 +199,7 @@ def class_shape(half_cells: int, window: SearchWindow) -> SearchWindow:
     ``window.top_squares`` squares a side (``window.levels`` where that is 0), and twice the
     nodes kept for each level added. The top level's squares are coarser there and their bounds
     flatter, so the best candidate's node ranks lower among them: with ``keep`` nodes a level, a
-    third of FR-clinic's promising 20 m matches came out elsewhere
+    third of FR-clinic's promising 12.8 and 20 m matches came out elsewhere
     (docs/notes/2026-11-30-wide-windows-screened.md)."""
     levels = int(window.levels)
     span = 2 * int(half_cells) + 1
