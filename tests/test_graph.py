@@ -529,7 +529,7 @@ def test_closure_config_refuses_bad_values():
 
 def test_scan_points_match_a_loop_over_the_scans():
     """The vectorised thinning against a slow reference: each scan's valid returns, evenly spread."""
-    from jaxslam.graph.submaps import scan_points
+    from jaxslam.laser import scan_points
     from jaxslam.laser import beam_endpoints
 
     log = twin_rooms_scenario(jax.random.key(0)).log

@@ -5,17 +5,19 @@ from __future__ import annotations
 
 import json
 
+import jax
 import numpy as np
 import pytest
 
 from jaxslam.cli import main
 from jaxslam.geometry import between_np, chain_np
 from jaxslam.io import write_carmen, write_trajectory
-from jaxslam.io.relation_clock import align_relations_clock
+from jaxslam.io.relation_clock import align_relations_clock, scan_misfit
 from jaxslam.io.relations import Relations
 from jaxslam.laser import make_sensor
 from jaxslam.laserlog import LaserLog, LogError
 from jaxslam.metrics import relation_error
+from jaxslam.sim import make_world, simulate_scans
 
 
 def _converted_log(seed: int = 0, num_scans: int = 500):
@@ -97,6 +99,68 @@ def test_eval_aligns_the_clock_from_the_log(tmp_path, capsys):
     table = json.loads(out.read_text())
     assert table["trans_mean"] < 1e-6 and table["clock_alignment"]["timestamps"] == np.unique(
         np.concatenate([relations.t1, relations.t2])).size
+    # The log's scans are all alike: they cannot choose a shift, and the odometry's alignment stands.
+    assert table["clock_alignment"]["laser_shift_scans"] == 0
+    assert len(table["clock_alignment"]["shift_misfit_m2"]) == 5
     assert "relation timestamps found among the log's scans" in capsys.readouterr().out
     assert main(args) == 2
     assert "need --log LOG" in capsys.readouterr().err
+
+
+def _laser_log_behind_odometry(seed: int = 0):
+    """The converted log of :func:`_converted_log` with scans of a cluttered world, the odometry
+    read where the laser was one scan later (as MIT Killian's bag): the laser's scan i was taken
+    at ``truth[i]``, the odometry at index i reads ``truth[i + 1]`` plus drift."""
+    truth, original, odometry, converted, relations, chosen = _converted_log(seed)
+    rng = np.random.default_rng(seed + 1)
+    low, high = truth[:, :2].min(0) - 6.0, truth[:, :2].max(0) + 6.0
+    starts = rng.uniform(low, high, size=(400, 2))
+    ends = starts + rng.uniform(0.5, 2.0, size=(400, 1)) * _unit(rng.uniform(0, np.pi, 400))
+    world = make_world(np.concatenate([starts, ends], axis=1))
+    sensor = make_sensor(np.linspace(-np.pi / 2, np.pi / 2, 91), range_max=8.0)
+    ranges = simulate_scans(jax.random.PRNGKey(seed), world, truth, sensor, range_noise_std=0.01)
+    leading = np.concatenate([odometry[1:], odometry[-1:]])
+    return truth, leading, converted, relations, chosen, ranges, sensor
+
+
+def _unit(angle):
+    return np.stack([np.cos(angle), np.sin(angle)], axis=1)
+
+
+def test_the_scans_find_a_laser_one_scan_behind_the_odometry():
+    truth, leading, converted, relations, chosen, ranges, sensor = _laser_log_behind_odometry()
+    standing = (chosen >= 200) & (chosen <= 230)
+    by_odometry = align_relations_clock(relations, converted, leading)
+    # The odometry alone lands a scan early wherever it pins the scan: it cannot see a lag.
+    np.testing.assert_array_equal(by_odometry.scan_index[~standing], chosen[~standing] - 1)
+    assert by_odometry.laser_shift == 0 and by_odometry.shift_misfit is None
+    aligned = align_relations_clock(relations, converted, leading, ranges=ranges, sensor=sensor)
+    assert aligned.laser_shift == 1 and int(np.argmin(aligned.shift_misfit)) == 3
+    np.testing.assert_array_equal(aligned.scan_index[~standing], chosen[~standing])
+    assert relation_error(converted, truth, aligned.relations).trans_mean < 0.2 * relation_error(
+        converted, truth, by_odometry.relations).trans_mean
+    # Scans that cannot tell the shifts apart (every one the same) leave the odometry's alignment.
+    flat = np.full_like(ranges, 5.0)
+    assert align_relations_clock(relations, converted, leading, ranges=flat, sensor=sensor).laser_shift == 0
+
+
+def test_scan_misfit_against_brute_force_nearest_points():
+    rng = np.random.default_rng(3)
+    first, second = rng.uniform(-3, 3, (60, 2)), rng.uniform(-3, 3, (45, 2))
+    motion = np.array([0.4, -0.2, 0.3])
+    cos, sin = np.cos(motion[2]), np.sin(motion[2])
+    moved = second @ np.array([[cos, -sin], [sin, cos]]).T + motion[:2]
+    nearest = np.sqrt(((moved[:, None] - first[None]) ** 2).sum(-1)).min(1)
+    expected = np.mean(np.minimum(nearest, 0.25) ** 2)
+    assert scan_misfit(motion, first, second, 0.25) == pytest.approx(expected, rel=1e-12)
+    assert scan_misfit(motion, first[:0], second, 0.25) == pytest.approx(0.0625)
+
+
+def test_scans_that_do_not_fit_the_log_are_refused_before_any_work():
+    truth, leading, converted, relations, chosen, ranges, sensor = _laser_log_behind_odometry()
+    with pytest.raises(LogError, match="scans and its sensor together"):
+        align_relations_clock(relations, converted, leading, ranges=ranges)
+    with pytest.raises(LogError, match=r"scans have shape \(499, 91\)"):
+        align_relations_clock(relations, converted, leading, ranges=ranges[:-1], sensor=sensor)
+    with pytest.raises(LogError, match="max_shift must be >= 0"):
+        align_relations_clock(relations, converted, leading, ranges=ranges, sensor=sensor, max_shift=-1)

@@ -50,7 +50,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
               f"(scan period {alignment.scan_period:.4f} s); {table['clock_alignment']['unpinned']} not pinned to "
               f"one scan (margin < 1); neighbour relations against the odometry: median "
               f"{table['clock_alignment']['residual_median_m']:.3f} m, largest "
-              f"{table['clock_alignment']['residual_max_m']:.3f} m")
+              f"{table['clock_alignment']['residual_max_m']:.3f} m; the laser's scans "
+              f"{alignment.laser_shift:+d} scans from the odometry's")
     print(f"{'relations':>22}: {table.get('count')}")
     for key, value in table.items():
         if key != "count" and not isinstance(value, (list, dict)):
@@ -72,7 +73,7 @@ def _read_relations(path, log_path):
     if not log_path:
         return relations, None
     log = read_log(log_path)
-    alignment = align_relations_clock(relations, log.timestamps, log.odometry)
+    alignment = align_relations_clock(relations, log.timestamps, log.odometry, ranges=log.ranges, sensor=log.sensor)
     return alignment.relations, alignment
 
 
@@ -81,7 +82,10 @@ def _alignment_summary(alignment) -> dict:
     return {"timestamps": int(alignment.times.size), "scan_period_s": float(alignment.scan_period),
             "unpinned": int(np.sum(alignment.margin < 1.0)),
             "residual_median_m": float(np.nanmedian(alignment.residual)),
-            "residual_max_m": float(np.nanmax(alignment.residual))}
+            "residual_max_m": float(np.nanmax(alignment.residual)),
+            "laser_shift_scans": int(alignment.laser_shift),
+            # Each shift's mean scan misfit from -max_shift on; None where the shift leaves the log.
+            "shift_misfit_m2": [float(v) if np.isfinite(v) else None for v in alignment.shift_misfit]}
 
 
 def _cmd_diagnose(args: argparse.Namespace) -> int:

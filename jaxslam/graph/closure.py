@@ -40,9 +40,9 @@ odometry's share of every heading change, which reaches loops the filter's chain
 every window, and measures the rates again from every loop kept so far, until the share moves by
 less than ``min_share_change`` (at most ``max_passes``). Where the filter's and the odometry's
 headings then part after the last kept loop by more than the rates allow (``max_parting``), one
-more pass searches from the odometry's chain. The final graph holds every pass's kept
-loops on the last chain. The submaps stay the filter's. :mod:`jaxslam.graph.output` draws the
-map again at the optimised poses and writes the graph.
+more pass searches from the odometry's chain. The final graph holds every pass's kept loops on
+the last chain. The submaps stay the filter's. :mod:`jaxslam.graph.output` draws the map again
+at the optimised poses and writes the graph.
 """
 
 from __future__ import annotations
@@ -57,12 +57,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxslam.geometry import between_np, compose_np
+from jaxslam.laser import scan_points
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
 from jaxslam.graph import acceptance, drift, pose_graph
 from jaxslam.graph.acceptance import Loops, Searched, loop_edges
 from jaxslam.graph.loop_search import SearchWindow, class_shape, search_pairs
 from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
-from jaxslam.graph.submaps import Submaps, build_submaps, scan_points
+from jaxslam.graph.submaps import Submaps, build_submaps
 from jaxslam.graph.windows import candidate_pairs, graph_distances, path_distances
 from jaxslam.motion import noise_std
 
@@ -570,9 +571,8 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, 
     found = Loops.empty()
     estimate = chain.copy()  # the current estimate: optimised up to the last block, then the chain's steps
     pairs = 0
-    # In time order, a block of queries at a time, as a robot would close them: the windows grow
-    # with the path since the last loop, not since the start, and the guesses come from the
-    # graph as optimised so far.
+    # In time order, a block of queries at a time, as a robot would close them: the windows grow with
+    # the path since the last loop, not since the start; the guesses come from the graph so far.
     for block_start in range(0, chain.shape[0], config.query_block):
         block_end = min(block_start + config.query_block, chain.shape[0])
         queries = np.arange(block_start, block_end)

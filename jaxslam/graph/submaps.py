@@ -30,7 +30,7 @@ import scipy.ndimage
 
 from jaxslam.geometry import between_np, compose_np
 from jaxslam.grid import GridSpec
-from jaxslam.laser import SensorSpec, beam_endpoints
+from jaxslam.laser import SensorSpec
 from jaxslam.occupancy import FAR, InsertionParams, empty_map, insert_scan
 
 
@@ -163,37 +163,6 @@ def build_submaps(poses: np.ndarray, ranges: np.ndarray, sensor: SensorSpec, ins
     fit = np.stack(fits)
     bounds = tuple(jnp.asarray(b) for b in square_bounds(fit, levels))
     return Submaps(first, last, corner, grid, jnp.asarray(field), jnp.asarray(fit), bounds)
-
-
-def scan_points(ranges: np.ndarray, sensor: SensorSpec, max_range: float, num_points: int
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Each scan's returns as points in the robot frame, thinned to ``num_points`` evenly spread
-    over the valid returns shorter than ``max_range`` (what the loop search matches).
-
-    Args:
-        ranges: (S, B) scans (m).
-        sensor: the laser (its beam angles and mounting).
-        max_range: longest return used (m).
-        num_points: points per scan (static shape of the search).
-
-    Returns:
-        ``(points (S, P, 2) float32, valid (S, P) bool)``.
-    """
-    ranges = np.asarray(ranges, np.float32)
-    ok = (ranges >= float(sensor.range_min)) & (ranges < min(float(sensor.range_max), max_range))
-    ends = np.asarray(jax.vmap(lambda r: beam_endpoints(jnp.zeros((1, 3)), r, sensor)[0][0])(
-        jnp.asarray(ranges)))  # (S, B, 2) in the robot frame
-    # Each scan's valid beams first, in beam order; then num_points ranks spread over them (all
-    # of them where there are fewer), vectorised over the scans.
-    count = ok.sum(axis=1)
-    used = np.minimum(count, num_points)
-    order = np.argsort(~ok, axis=1, kind="stable")
-    slot = np.arange(num_points)
-    rank = np.round(slot[None] * (count[:, None] - 1) / np.maximum(used[:, None] - 1, 1)).astype(np.int64)
-    valid = slot[None] < used[:, None]
-    beam = np.take_along_axis(order, np.where(valid, rank, 0), axis=1)
-    points = np.where(valid[..., None], np.take_along_axis(ends, beam[..., None], axis=1), 0.0).astype(np.float32)
-    return points, valid
 
 
 def submap_pose(submaps: Submaps, submap: int, world_pose: np.ndarray, origin_pose: np.ndarray) -> np.ndarray:

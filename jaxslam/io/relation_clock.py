@@ -24,6 +24,17 @@ the best alignment that moves that timestamp by one scan, above the best. A rela
 loop and ends at such a timestamp is off by that scan's motion (the robot's speed over one scan
 period), so a relation error measured through this alignment carries it; measure its spread over
 ``gap_cost`` before trusting the last centimetre.
+
+**The laser pins what the odometry cannot.** A relation is the motion that lays its second scan
+over its first. Where the odometry and the laser were stamped on clocks a scan apart (MIT
+Killian: the odometry read at a scan's stamp is where the laser was one scan later), the
+odometry's alignment is off by that scan everywhere, and a shift of every index by the same
+amount changes no neighbour relation's odometry. Given the log's scans, every relation's two
+scans are laid over each other under its motion at each shift of every index by ``-max_shift``
+to ``max_shift`` scans. The shift with the smallest mean misfit is taken (``laser_shift``) where
+it beats no shift by three standard errors of the relations' paired differences. It is one
+shift for the whole log, measured over all its relations: a single relation's scans are too
+noisy a witness to move one timestamp.
 """
 
 from __future__ import annotations
@@ -31,12 +42,14 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+import scipy.spatial
 
 from jaxslam.geometry import between_np, wrap_angle_np
 from jaxslam.io.relations import Relations
+from jaxslam.laser import SensorSpec, scan_points
 from jaxslam.laserlog import LogError
 
-__all__ = ["ClockAlignment", "align_relations_clock"]
+__all__ = ["ClockAlignment", "align_relations_clock", "scan_misfit"]
 
 
 class ClockAlignment(NamedTuple):
@@ -47,20 +60,28 @@ class ClockAlignment(NamedTuple):
     times: np.ndarray
     """(K,) float64: the relations' distinct timestamps on their own clock, increasing (s)."""
     scan_index: np.ndarray
-    """(K,) int: the log scan of each of ``times``."""
+    """(K,) int: the log scan of each of ``times`` (``laser_shift`` included)."""
     margin: np.ndarray
     """(K,) float64: the cost of the best alignment that moves this timestamp by one scan, above
     the best (chi-square units): small where the robot stood still or moved evenly."""
     residual: np.ndarray
-    """(R,) float64: each relation's translation error against the odometry at the aligned scans
-    (m); nan for a relation between timestamps that are not neighbours (a loop's)."""
+    """(R,) float64: each relation's translation error against the odometry at the scans the
+    odometry aligned, before ``laser_shift`` (m); nan for a relation between timestamps that are
+    not neighbours (a loop's)."""
     scan_period: float
     """The original log's scan period the nominal indices used (s)."""
+    laser_shift: int = 0
+    """Scans added to every index the odometry aligned, chosen by the scans (0 without them)."""
+    shift_misfit: np.ndarray | None = None
+    """(2 * max_shift + 1,) float64: the relations' mean scan misfit (m², :func:`scan_misfit`)
+    at each shift from ``-max_shift``, inf where a shift leaves the log; None without scans."""
 
 
 def align_relations_clock(relations: Relations, timestamps, odometry, scan_period: float | None = None,
                           max_offset: int = 40, gap_cost: float = 5.0, long_gap: float = 10.0,
-                          sigma_xy: float = 0.05, sigma_theta: float = 0.03, max_cost: float = 50.0) -> ClockAlignment:
+                          sigma_xy: float = 0.05, sigma_theta: float = 0.03, max_cost: float = 50.0,
+                          ranges=None, sensor: SensorSpec | None = None, max_shift: int = 2,
+                          misfit_radius: float = 0.3) -> ClockAlignment:
     """Find the log scan of every relation timestamp (see the module docstring).
 
     Args:
@@ -78,6 +99,13 @@ def align_relations_clock(relations: Relations, timestamps, odometry, scan_perio
         sigma_xy: the odometry's translation error over a neighbour relation (m).
         sigma_theta: ... and its heading error (rad).
         max_cost: largest chi-square one relation adds (a robust cap: odometry slips).
+        ranges: optional (T, B) the log's scans (m); with ``sensor``, the laser chooses one shift
+            of every index (see the module docstring). Without them the odometry's alignment
+            is returned as it is.
+        sensor: the log's laser (beam angles, mounting, valid ranges).
+        max_shift: largest shift the scans may choose (scans).
+        misfit_radius: a point's misfit is its squared distance to the nearest point of the
+            other scan, capped at this radius (m): the parts of a scan the other did not see.
 
     Returns:
         :class:`ClockAlignment`.
@@ -85,26 +113,14 @@ def align_relations_clock(relations: Relations, timestamps, odometry, scan_perio
     Raises:
         LogError: before any work, for a log whose arrays disagree, relations with more distinct
             timestamps than the log has scans or a time span longer than the log at
-            ``scan_period``; after the pass, for a best alignment that reaches ``max_offset``
+            ``scan_period``, scans that are not one per log scan or given without their sensor;
+            after the pass, for a best alignment that reaches ``max_offset``
             (the window was too narrow: its true offset may lie beyond).
     """
     times_log = np.asarray(timestamps, np.float64)
     odometry = np.asarray(odometry, np.float64)
-    num_scans = times_log.size
-    if times_log.ndim != 1 or odometry.shape != (num_scans, 3):
-        raise LogError(f"align_relations_clock: timestamps (T,) and odometry (T, 3) must agree, got "
-                       f"{times_log.shape} and {odometry.shape}")
-    if not (np.all(np.isfinite(odometry)) and np.all(np.diff(times_log) > 0)):
-        raise LogError("align_relations_clock: the log's timestamps must increase and its odometry be finite")
-    times = np.unique(np.concatenate([relations.t1, relations.t2]))
-    if times.size > num_scans:
-        raise LogError(f"align_relations_clock: the relations name {times.size} distinct scans, more than the "
-                       f"log's {num_scans}: they are not this log's")
-    span = float(times[-1] - times[0])
-    period = span / max(num_scans - 1, 1) if scan_period is None else float(scan_period)
-    if not period > 0 or round(span / period) > num_scans - 1:
-        raise LogError(f"align_relations_clock: the relations span {span:.1f} s, {span / period:.0f} scans at a "
-                       f"{period:.4f} s period, longer than the log's {num_scans} scans")
+    times, period = _checked_times(relations, times_log, odometry, scan_period, ranges, sensor, max_shift,
+                                   misfit_radius)
     first = np.searchsorted(times, relations.t1)
     second = np.searchsorted(times, relations.t2)
     neighbours = np.abs(first - second) == 1
@@ -131,8 +147,88 @@ def align_relations_clock(relations: Relations, timestamps, odometry, scan_perio
                        "could not tell them apart); give the scan period")
     moved = between_np(odometry[scan_index[first]], odometry[scan_index[second]])
     residual = np.where(neighbours, np.hypot(*(moved[:, :2] - relations.motion[:, :2]).T), np.nan)
+    laser_shift, shift_misfit = 0, None
+    if ranges is not None:
+        per_relation = _shift_misfits(relations.motion, scan_index[first], scan_index[second], ranges, sensor,
+                                      max_shift, misfit_radius)
+        shift_misfit = per_relation.mean(axis=1)
+        laser_shift = _chosen_shift(per_relation, max_shift)
+        scan_index = scan_index + laser_shift
     aligned = relations._replace(t1=times_log[scan_index[first]], t2=times_log[scan_index[second]])
-    return ClockAlignment(aligned, times, scan_index, margin, residual, period)
+    return ClockAlignment(aligned, times, scan_index, margin, residual, period, laser_shift, shift_misfit)
+
+
+def scan_misfit(motion, first_points, second_points, radius: float) -> float:
+    """How badly a relation's ``motion`` (3,) lays its second scan's points (P2, 2) over its first
+    scan's (P1, 2), both in their robot frames (m): the mean over the second scan's points of the
+    squared distance to the nearest first-scan point, capped at ``radius`` (m²)."""
+    if len(first_points) == 0 or len(second_points) == 0:
+        return radius ** 2
+    cos, sin = np.cos(motion[2]), np.sin(motion[2])
+    moved = second_points @ np.array([[cos, sin], [-sin, cos]]) + motion[:2]
+    distance = scipy.spatial.cKDTree(first_points).query(moved, distance_upper_bound=radius)[0]
+    return float(np.mean(np.minimum(distance, radius) ** 2))
+
+
+def _chosen_shift(per_relation, max_shift: int, z: float = 3.0) -> int:
+    """The shift whose mean misfit is smallest, where it beats no shift by ``z`` standard errors
+    of the relations' paired differences; else 0 (scans that cannot tell the shifts apart, as a
+    featureless corridor's, leave the odometry's alignment as it was)."""
+    best = int(np.argmin(per_relation.mean(axis=1)))
+    gain = per_relation[max_shift] - per_relation[best]
+    if best == max_shift or gain.size < 2:
+        return 0
+    standard_error = gain.std(ddof=1) / np.sqrt(gain.size)
+    return best - max_shift if gain.mean() > z * standard_error else 0
+
+
+def _shift_misfits(motion, first_index, second_index, ranges, sensor, max_shift, radius) -> np.ndarray:
+    """(2 * max_shift + 1, R) each relation's :func:`scan_misfit` with every index shifted by
+    -max_shift..max_shift scans; inf rows for a shift that moves an index out of the log."""
+    num_scans, num_beams = np.shape(ranges)
+    shifts = np.arange(-max_shift, max_shift + 1)
+    ends = np.concatenate([first_index, second_index])
+    needed = np.unique((ends[None] + shifts[:, None]).ravel())
+    needed = needed[(needed >= 0) & (needed < num_scans)]
+    points, valid = scan_points(np.asarray(ranges)[needed], sensor, float(sensor.range_max), num_beams)
+    row = {int(i): k for k, i in enumerate(needed)}
+    misfit = np.full((shifts.size, len(motion)), np.inf)
+    for j, shift in enumerate(shifts):
+        a, b = first_index + shift, second_index + shift
+        if min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= num_scans:
+            continue
+        misfit[j] = [scan_misfit(m, points[row[i]][valid[row[i]]], points[row[k]][valid[row[k]]], radius)
+                     for m, i, k in zip(motion, a, b)]
+    return misfit
+
+
+def _checked_times(relations, times_log, odometry, scan_period, ranges, sensor, max_shift, misfit_radius):
+    """The relations' distinct timestamps and the scan period, after every check that can be made
+    before any work (see :func:`align_relations_clock`'s Raises)."""
+    num_scans = times_log.size
+    if times_log.ndim != 1 or odometry.shape != (num_scans, 3):
+        raise LogError(f"align_relations_clock: timestamps (T,) and odometry (T, 3) must agree, got "
+                       f"{times_log.shape} and {odometry.shape}")
+    if not (np.all(np.isfinite(odometry)) and np.all(np.diff(times_log) > 0)):
+        raise LogError("align_relations_clock: the log's timestamps must increase and its odometry be finite")
+    if (ranges is None) != (sensor is None):
+        raise LogError("align_relations_clock: give the log's scans and its sensor together")
+    if ranges is not None and np.shape(ranges) != (num_scans, np.shape(sensor.beam_angles)[0]):
+        raise LogError(f"align_relations_clock: the scans have shape {np.shape(ranges)}, expected "
+                       f"({num_scans}, {np.shape(sensor.beam_angles)[0]}): one per log scan, one range per beam")
+    if not (max_shift >= 0 and misfit_radius > 0):
+        raise LogError(f"align_relations_clock: max_shift must be >= 0 and misfit_radius > 0, got {max_shift} "
+                       f"and {misfit_radius}")
+    times = np.unique(np.concatenate([relations.t1, relations.t2]))
+    if times.size > num_scans:
+        raise LogError(f"align_relations_clock: the relations name {times.size} distinct scans, more than the "
+                       f"log's {num_scans}: they are not this log's")
+    span = float(times[-1] - times[0])
+    period = span / max(num_scans - 1, 1) if scan_period is None else float(scan_period)
+    if not period > 0 or round(span / period) > num_scans - 1:
+        raise LogError(f"align_relations_clock: the relations span {span:.1f} s, {span / period:.0f} scans at a "
+                       f"{period:.4f} s period, longer than the log's {num_scans} scans")
+    return times, period
 
 
 def _min_marginals(step_cost, gap_costs, offsets, num_times) -> np.ndarray:
