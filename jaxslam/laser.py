@@ -12,6 +12,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.spatial
 from jaxtyping import Array, Bool, Float
 
 from jaxslam.geometry import compose
@@ -127,3 +128,17 @@ def scan_points(ranges: np.ndarray, sensor: SensorSpec, max_range: float, num_po
     beam = np.take_along_axis(order, np.where(valid, rank, 0), axis=1)
     points = np.where(valid[..., None], np.take_along_axis(ends, beam[..., None], axis=1), 0.0).astype(np.float32)
     return points, valid
+
+
+def scan_misfit(motion, first_points, second_points, radius: float) -> float:
+    """How badly ``motion`` (3,), the second scan's robot pose in the first's frame, lays the
+    second scan's points (P2, 2) over the first scan's (P1, 2), both in their robot frames (m, from
+    :func:`scan_points`): the mean over the second scan's points of the squared distance to the
+    nearest first-scan point, capped at ``radius`` (m²; a point the first scan did not see costs
+    ``radius ** 2``). NumPy and ``scipy.spatial.cKDTree``, on the host: a check, not the filter's."""
+    if len(first_points) == 0 or len(second_points) == 0:
+        return radius ** 2
+    cos, sin = np.cos(motion[2]), np.sin(motion[2])
+    moved = second_points @ np.array([[cos, sin], [-sin, cos]]) + motion[:2]
+    distance = scipy.spatial.cKDTree(first_points).query(moved, distance_upper_bound=radius)[0]
+    return float(np.mean(np.minimum(distance, radius) ** 2))

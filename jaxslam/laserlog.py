@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxslam.geometry import between, compose, interpolate, wrap_angle_np
-from jaxslam.laser import SensorSpec
+from jaxslam.laser import SensorSpec, scan_misfit, scan_points
 
 
 class LogError(ValueError):
@@ -360,3 +360,92 @@ def local_log(log: LaserLog, frame_offset) -> LaserLog:
         return log
     ground_truth = None if log.ground_truth is None else to_local(log.ground_truth, frame_offset)
     return dataclasses.replace(log, odometry=to_local(log.odometry, frame_offset), ground_truth=ground_truth)
+
+
+class OdometryLead(NamedTuple):
+    """What :func:`estimate_odometry_lead` measured."""
+
+    lead: float
+    """Seconds by which the odometry leads the laser: the odometry read at a scan's timestamp is
+    where the robot was ``lead`` s later. 0 where the scans cannot tell the leads apart."""
+    leads: np.ndarray
+    """(K,) float64: the leads tried (s), a quarter of the median scan interval apart."""
+    misfit: np.ndarray
+    """(K,) float64: the turning pairs' mean :func:`jaxslam.laser.scan_misfit` at each (m²)."""
+    num_pairs: int
+    """How many pairs of scans were laid over each other (0: too few turns to measure)."""
+
+
+def estimate_odometry_lead(log: LaserLog, max_lead_scans: float = 2.0, gap: int = 2, min_turn: float = 0.15,
+                           max_pairs: int = 800, radius: float = 0.3, z: float = 3.0) -> OdometryLead:
+    """How far the log's odometry runs ahead of its laser in time, from the log's own scans.
+
+    Pairs of scans ``gap`` apart over which the odometry turns at least ``min_turn`` are laid over
+    each other under the odometry's motion read ``lead`` seconds earlier, for leads from
+    ``-max_lead_scans`` to ``max_lead_scans`` median scan intervals. A turn is where a time offset
+    shows: 0.1 s at 1.4 rad/s is 0.14 rad. The least mean misfit, refined by a parabola through
+    its neighbours, is the lead, where it beats no lead by ``z`` standard errors of the pairs'
+    paired differences; else 0. At most ``max_pairs`` pairs, drawn with a fixed seed: the same
+    log gives the same lead.
+
+    Args:
+        log: the log (its timestamps, odometry, scans and sensor).
+        max_lead_scans: the largest lead tried, in median scan intervals.
+        gap: scans between the two of a pair.
+        min_turn: the odometry's turn over a pair that makes it a witness (rad).
+        max_pairs: the most pairs used.
+        radius: :func:`jaxslam.laser.scan_misfit`'s cap (m).
+        z: standard errors by which the best lead must beat none.
+
+    Returns:
+        :class:`OdometryLead`.
+    """
+    times = log.timestamps
+    interval = float(np.median(np.diff(times))) if log.num_scans > 1 else 0.0
+    steps = 4 * int(np.ceil(max_lead_scans))
+    leads = interval * np.arange(-steps, steps + 1) / 4.0
+    turn = np.abs(wrap_angle_np(log.odometry[gap:, 2] - log.odometry[:-gap, 2]))
+    witnesses = np.nonzero(turn >= min_turn)[0]
+    if interval <= 0 or witnesses.size < 20:
+        return OdometryLead(0.0, leads, np.full(leads.size, np.nan), 0)
+    rng = np.random.default_rng(0)
+    first = np.sort(rng.choice(witnesses, size=min(max_pairs, witnesses.size), replace=False))
+    second = first + gap
+    used = np.unique(np.concatenate([first, second]))
+    points, valid = scan_points(log.ranges[used], log.sensor, float(log.sensor.range_max), log.num_beams)
+    scans = [points[k][valid[k]] for k in range(used.size)]
+    row_first, row_second = np.searchsorted(used, first), np.searchsorted(used, second)
+    misfit = np.empty((leads.size, first.size))
+    for k, lead in enumerate(leads):
+        odometry = poses_at(np.clip(times - lead, times[0], times[-1]), times, log.odometry).poses
+        motion = np.asarray(between(odometry[first], odometry[second]), np.float64)
+        misfit[k] = [scan_misfit(m, scans[i], scans[j], radius) for m, i, j in zip(motion, row_first, row_second)]
+    return OdometryLead(_best_lead(leads, misfit, z), leads, misfit.mean(axis=1), int(first.size))
+
+
+def _best_lead(leads, misfit, z: float) -> float:
+    """The lead of least mean misfit, refined by a parabola through its two neighbours, where it
+    beats no lead by ``z`` standard errors of the paired differences; else 0."""
+    mean = misfit.mean(axis=1)
+    best, zero = int(np.argmin(mean)), leads.size // 2
+    gain = misfit[zero] - misfit[best]
+    if best == zero or gain.mean() <= z * gain.std(ddof=1) / np.sqrt(gain.size):
+        return 0.0
+    if 0 < best < leads.size - 1:
+        left, centre, right = mean[best - 1:best + 2]
+        curvature = left - 2.0 * centre + right
+        step = leads[1] - leads[0]
+        return float(leads[best] + (0.5 * step * (left - right) / curvature if curvature > 0 else 0.0))
+    return float(leads[best])
+
+
+def with_odometry_lead(log: LaserLog, lead: float) -> LaserLog:
+    """The log with its odometry read ``lead`` seconds earlier at every scan (:func:`poses_at`;
+    the first scans, before the odometry begins, take its first pose); ``lead == 0`` returns the
+    log itself, bit for bit."""
+    if lead == 0:
+        return log
+    times = log.timestamps
+    odometry = poses_at(np.clip(times - lead, times[0], times[-1]), times, log.odometry).poses
+    note = f"the odometry read {lead:.3f} s earlier at every scan: it leads the laser by that much"
+    return dataclasses.replace(log, odometry=odometry, notes=log.notes + (note,))

@@ -127,10 +127,13 @@ def test_progress_says_reading_and_compiling(tmp_path, small_log, capsys):
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=8)
     assert main(["map", str(log_path), "--particles", "2", "--proposal", "op", "--set", "linear_update=0.3",
-                 "--set", "max_insert_range=8", "--out", str(tmp_path / "o")]) == 0
+                 "--set", "max_insert_range=8", "--out", str(tmp_path / "o"), "--odometry-lead", "0.05"]) == 0
     err = capsys.readouterr().err
     assert f"reading {log_path} ..." in err
     assert "compiling..." in err and err.index("reading") < err.index("compiling...")
+    # --odometry-lead: the odometry read 0.05 s earlier, and the summary says so.
+    notes = json.loads((tmp_path / "o" / "summary.json").read_text())["log_notes"]
+    assert any("odometry read 0.050 s earlier" in note for note in notes), notes
 
 
 @pytest.mark.parametrize(
@@ -141,6 +144,8 @@ def test_progress_says_reading_and_compiling(tmp_path, small_log, capsys):
         (["--set", "num_particles=lots"], "num_particles"),
         (["--set", "lookahead.alpha=1.5"], "alpha"),
         (["--set", "lookahead.localizer_gain=0"], "localizer_gain"),
+        (["--odometry-lead", "soon"], "--odometry-lead 'soon': give auto or a number of seconds"),
+        (["--odometry-lead", "nan"], "--odometry-lead 'nan'"),
     ],
 )
 def test_bad_settings_name_the_problem(tmp_path, small_log, capsys, args, message):

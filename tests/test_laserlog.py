@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import re
 
+import jax
 import numpy as np
 import pytest
 
-from jaxslam.laserlog import LaserLog, LogError, select_updates
+from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
+from jaxslam.laserlog import (LaserLog, LogError, estimate_odometry_lead, poses_at, select_updates,
+                              with_odometry_lead)
 from jaxslam.laser import make_sensor
+from jaxslam.sim import make_world, simulate_scans
 
 SENSOR = make_sensor([-0.5, 0.0, 0.5], range_min=0.1, range_max=10.0)
 
@@ -233,3 +237,50 @@ def test_select_updates_far_from_the_origin():
     far_sel = select_updates(make_log(num_scans=len(odom), odometry=far), 0.5, 0.35)
     np.testing.assert_array_equal(far_sel.indices, near_sel.indices)
     np.testing.assert_allclose(far_sel.motions, near_sel.motions, atol=1e-5)
+
+
+def _log_with_odometry_ahead(lead: float, seed: int = 0, num_scans: int = 400):
+    """A robot weaving through a cluttered world, a scan every 0.1 s taken at the true pose, and
+    odometry (with a little drift) read where the robot was ``lead`` seconds later."""
+    rng = np.random.default_rng(seed)
+    times = 0.1 * np.arange(num_scans)
+    turn = 0.12 * np.sin(np.arange(num_scans) / 6.0)  # turns of up to 1.2 rad/s, both ways
+    steps = np.stack([np.full(num_scans, 0.08), np.zeros(num_scans), turn], axis=1)
+    truth = chain_np(np.zeros(3), steps[1:])
+    low, high = truth[:, :2].min(0) - 5.0, truth[:, :2].max(0) + 5.0
+    starts = rng.uniform(low, high, size=(300, 2))
+    angle = rng.uniform(0, np.pi, 300)
+    ends = starts + rng.uniform(0.5, 2.0, size=(300, 1)) * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    sensor = make_sensor(np.linspace(-np.pi / 2, np.pi / 2, 91), range_max=8.0)
+    ranges = simulate_scans(jax.random.PRNGKey(seed), make_world(np.concatenate([starts, ends], axis=1)), truth,
+                            sensor, range_noise_std=0.01)
+    ahead = poses_at(np.clip(times + lead, times[0], times[-1]), times, truth).poses
+    drift = chain_np(np.zeros(3), rng.normal(0.0, [0.002, 0.001, 0.001], size=(num_scans - 1, 3)))
+    odometry = np.asarray([compose_np(a, d) for a, d in zip(ahead, drift)])
+    return LaserLog(times, odometry, ranges, sensor, ground_truth=truth), truth
+
+
+@pytest.mark.parametrize("lead", [0.0, 0.15])
+def test_the_odometry_lead_is_measured_from_the_scans_and_taken_back(lead):
+    log, truth = _log_with_odometry_ahead(lead)
+    measured = estimate_odometry_lead(log)
+    assert measured.num_pairs >= 100 and measured.leads.size == measured.misfit.size == 17
+    # The quarter-scan grid and its parabola: within a fifth of a scan interval (0.02 s).
+    assert measured.lead == pytest.approx(lead, abs=0.02)
+    read_back = with_odometry_lead(log, measured.lead)
+    if lead == 0.0:
+        assert measured.lead == 0.0 and read_back is log  # bit for bit: nothing to take back
+    else:
+        def heading_error(odometry):
+            moved = between_np(odometry[:-2], odometry[2:])[:, 2] - between_np(truth[:-2], truth[2:])[:, 2]
+            return np.abs(wrap_angle_np(moved)).mean()
+        assert heading_error(read_back.odometry) < 0.3 * heading_error(log.odometry)
+        assert "leads the laser" in read_back.notes[-1]
+
+
+def test_a_log_without_turns_measures_no_lead():
+    log, _ = _log_with_odometry_ahead(0.15, num_scans=60)
+    straight = LaserLog(log.timestamps, np.column_stack([0.08 * np.arange(60), np.zeros(60), np.zeros(60)]),
+                        log.ranges, log.sensor)
+    measured = estimate_odometry_lead(straight)
+    assert measured.lead == 0.0 and measured.num_pairs == 0 and np.isnan(measured.misfit).all()

@@ -12,9 +12,9 @@ import pytest
 from jaxslam.cli import main
 from jaxslam.geometry import between_np, chain_np
 from jaxslam.io import write_carmen, write_trajectory
-from jaxslam.io.relation_clock import align_relations_clock, scan_misfit
+from jaxslam.io.relation_clock import align_relations_clock
 from jaxslam.io.relations import Relations
-from jaxslam.laser import make_sensor
+from jaxslam.laser import make_sensor, scan_misfit
 from jaxslam.laserlog import LaserLog, LogError
 from jaxslam.metrics import relation_error
 from jaxslam.sim import make_world, simulate_scans

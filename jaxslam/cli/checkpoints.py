@@ -26,6 +26,8 @@ def _run_identity(args, log, setup, source: str) -> dict:
     identity = {"seed": args.seed, "config": config_to_dict(config), "settings": config_to_dict(settings),
                 "params": params_to_dict(params), "log": where, "scans_in_log": log.num_scans,
                 "chunk_size": args.chunk_size}
+    if getattr(args, "odometry_lead", None) is not None:  # auto is the same lead for the same log
+        identity["odometry_lead"] = args.odometry_lead
     return json.loads(json.dumps(identity, sort_keys=True, default=str))
 
 

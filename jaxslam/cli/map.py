@@ -20,7 +20,7 @@ from jaxslam.config import ConfigError
 from jaxslam.io import read_log
 from jaxslam.io.files import OutputError, check_free_space
 from jaxslam.io.rosbag import check_laser_pose
-from jaxslam.laserlog import check_log
+from jaxslam.laserlog import check_log, estimate_odometry_lead, with_odometry_lead
 from jaxslam.proposals import PROPOSALS
 from jaxslam.outputs import expected_output_bytes, write_slam_outputs
 from jaxslam.laserlog import grid_to_world
@@ -32,6 +32,7 @@ from jaxslam.slam import RunInterrupted, run
 
 def _cmd_map(args: argparse.Namespace) -> int:
     _log_reader_kwargs(args)  # a bad --laser-pose is refused first
+    args.odometry_lead = parse_odometry_lead(getattr(args, "odometry_lead", None))  # ... and a bad lead
     _check_filter_args(args)
     _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
     setup = build_setup_from_args(args, MAP_DEFAULTS)
@@ -66,7 +67,28 @@ def read_map_log(args: argparse.Namespace):
     log = read_log(args.log, **kwargs)
     if args.max_scans is not None:
         log = log.subset(np.arange(min(args.max_scans, log.num_scans)))
-    return check_log(log)  # repeated timestamps (the last kept), dead scans, gaps: log.warnings
+    log = check_log(log)  # repeated timestamps (the last kept), dead scans, gaps: log.warnings
+    lead = getattr(args, "odometry_lead", None)
+    if lead == "auto":
+        measured = estimate_odometry_lead(log)
+        lead = measured.lead
+        print(f"odometry lead: {lead:.3f} s, measured on {measured.num_pairs} turning pairs of scans",
+              file=sys.stderr, flush=True)
+    return with_odometry_lead(log, float(lead)) if lead is not None else log
+
+
+def parse_odometry_lead(text: str | None) -> str | float | None:
+    """``--odometry-lead``: ``auto``, a finite number of seconds, or None; anything else is a
+    :class:`ConfigError` before the log is read."""
+    if text is None or text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value):
+        raise ConfigError(f"--odometry-lead {text!r}: give auto or a number of seconds, e.g. 0.14")
+    return value
 
 
 def parse_laser_pose(text: str) -> tuple[float, float, float]:

@@ -42,14 +42,13 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import scipy.spatial
 
 from jaxslam.geometry import between_np, wrap_angle_np
 from jaxslam.io.relations import Relations
-from jaxslam.laser import SensorSpec, scan_points
+from jaxslam.laser import SensorSpec, scan_misfit, scan_points
 from jaxslam.laserlog import LogError
 
-__all__ = ["ClockAlignment", "align_relations_clock", "scan_misfit"]
+__all__ = ["ClockAlignment", "align_relations_clock"]
 
 
 class ClockAlignment(NamedTuple):
@@ -73,8 +72,9 @@ class ClockAlignment(NamedTuple):
     laser_shift: int = 0
     """Scans added to every index the odometry aligned, chosen by the scans (0 without them)."""
     shift_misfit: np.ndarray | None = None
-    """(2 * max_shift + 1,) float64: the relations' mean scan misfit (m², :func:`scan_misfit`)
-    at each shift from ``-max_shift``, inf where a shift leaves the log; None without scans."""
+    """(2 * max_shift + 1,) float64: the relations' mean scan misfit (m²,
+    :func:`jaxslam.laser.scan_misfit`) at each shift from ``-max_shift``, inf where a shift leaves
+    the log; None without scans."""
 
 
 def align_relations_clock(relations: Relations, timestamps, odometry, scan_period: float | None = None,
@@ -156,18 +156,6 @@ def align_relations_clock(relations: Relations, timestamps, odometry, scan_perio
         scan_index = scan_index + laser_shift
     aligned = relations._replace(t1=times_log[scan_index[first]], t2=times_log[scan_index[second]])
     return ClockAlignment(aligned, times, scan_index, margin, residual, period, laser_shift, shift_misfit)
-
-
-def scan_misfit(motion, first_points, second_points, radius: float) -> float:
-    """How badly a relation's ``motion`` (3,) lays its second scan's points (P2, 2) over its first
-    scan's (P1, 2), both in their robot frames (m): the mean over the second scan's points of the
-    squared distance to the nearest first-scan point, capped at ``radius`` (m²)."""
-    if len(first_points) == 0 or len(second_points) == 0:
-        return radius ** 2
-    cos, sin = np.cos(motion[2]), np.sin(motion[2])
-    moved = second_points @ np.array([[cos, sin], [-sin, cos]]) + motion[:2]
-    distance = scipy.spatial.cKDTree(first_points).query(moved, distance_upper_bound=radius)[0]
-    return float(np.mean(np.minimum(distance, radius) ** 2))
 
 
 def _chosen_shift(per_relation, max_shift: int, z: float = 3.0) -> int:
