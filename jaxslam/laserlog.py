@@ -399,7 +399,14 @@ def estimate_odometry_lead(log: LaserLog, max_lead_scans: float = 2.0, gap: int 
 
     Returns:
         :class:`OdometryLead`.
+
+    Raises:
+        ValueError: before any work, for a ``gap`` or ``max_pairs`` under 1, or a ``max_lead_scans``,
+            ``radius`` or ``z`` that is not positive.
     """
+    if gap < 1 or max_pairs < 1 or not (max_lead_scans > 0 and radius > 0 and z > 0):
+        raise ValueError(f"estimate_odometry_lead: gap and max_pairs must be >= 1 and max_lead_scans, radius and z "
+                         f"positive, got {gap}, {max_pairs}, {max_lead_scans}, {radius}, {z}")
     times = log.timestamps
     interval = float(np.median(np.diff(times))) if log.num_scans > 1 else 0.0
     steps = 4 * int(np.ceil(max_lead_scans))

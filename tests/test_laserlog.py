@@ -284,3 +284,5 @@ def test_a_log_without_turns_measures_no_lead():
                         log.ranges, log.sensor)
     measured = estimate_odometry_lead(straight)
     assert measured.lead == 0.0 and measured.num_pairs == 0 and np.isnan(measured.misfit).all()
+    with pytest.raises(ValueError, match="gap and max_pairs must be >= 1"):
+        estimate_odometry_lead(straight, gap=0)
