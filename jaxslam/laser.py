@@ -130,15 +130,24 @@ def scan_points(ranges: np.ndarray, sensor: SensorSpec, max_range: float, num_po
     return points, valid
 
 
-def scan_misfit(motion, first_points, second_points, radius: float) -> float:
-    """How badly ``motion`` (3,), the second scan's robot pose in the first's frame, lays the
+def scan_misfit(motion, first_points, second_points, radius: float):
+    """How badly ``motion`` (..., 3), the second scan's robot pose in the first's frame, lays the
     second scan's points (P2, 2) over the first scan's (P1, 2), both in their robot frames (m, from
     :func:`scan_points`): the mean over the second scan's points of the squared distance to the
     nearest first-scan point, capped at ``radius`` (m²; a point the first scan did not see costs
-    ``radius ** 2``). NumPy and ``scipy.spatial.cKDTree``, on the host: a check, not the filter's."""
+    ``radius ** 2``). Several motions share one nearest-point tree. NumPy and
+    ``scipy.spatial.cKDTree``, on the host: a check, not the filter's.
+
+    Returns:
+        float for one motion (3,), else (...) float64.
+    """
+    motion = np.asarray(motion, np.float64)
     if len(first_points) == 0 or len(second_points) == 0:
-        return radius ** 2
-    cos, sin = np.cos(motion[2]), np.sin(motion[2])
-    moved = second_points @ np.array([[cos, sin], [-sin, cos]]) + motion[:2]
-    distance = scipy.spatial.cKDTree(first_points).query(moved, distance_upper_bound=radius)[0]
-    return float(np.mean(np.minimum(distance, radius) ** 2))
+        misfit = np.full(motion.shape[:-1], radius ** 2)
+    else:
+        cos, sin = np.cos(motion[..., 2, None]), np.sin(motion[..., 2, None])  # (..., 1)
+        x, y = second_points[:, 0], second_points[:, 1]
+        moved = np.stack([cos * x - sin * y + motion[..., 0, None], sin * x + cos * y + motion[..., 1, None]], -1)
+        distance = scipy.spatial.cKDTree(first_points).query(moved, distance_upper_bound=radius)[0]
+        misfit = np.mean(np.minimum(distance, radius) ** 2, axis=-1)
+    return float(misfit) if motion.ndim == 1 else misfit

@@ -422,21 +422,34 @@ def estimate_odometry_lead(log: LaserLog, max_lead_scans: float = 2.0, gap: int 
     points, valid = scan_points(log.ranges[used], log.sensor, float(log.sensor.range_max), log.num_beams)
     scans = [points[k][valid[k]] for k in range(used.size)]
     row_first, row_second = np.searchsorted(used, first), np.searchsorted(used, second)
-    misfit = np.empty((leads.size, first.size))
+    motions = np.empty((leads.size, first.size, 3))  # each pair's motion at each lead
     for k, lead in enumerate(leads):
         odometry = poses_at(np.clip(times - lead, times[0], times[-1]), times, log.odometry).poses
-        motion = np.asarray(between(odometry[first], odometry[second]), np.float64)
-        misfit[k] = [scan_misfit(m, scans[i], scans[j], radius) for m, i, j in zip(motion, row_first, row_second)]
+        motions[k] = np.asarray(between(odometry[first], odometry[second]), np.float64)
+    misfit = np.stack([scan_misfit(motions[:, n], scans[i], scans[j], radius)
+                       for n, (i, j) in enumerate(zip(row_first, row_second))], axis=1)  # (K, pairs)
     return OdometryLead(_best_lead(leads, misfit, z), leads, misfit.mean(axis=1), int(first.size))
 
 
+def least_misfit_over_none(misfit, none: int, z: float) -> int:
+    """The row of ``misfit`` (K, N) (K candidates, each scored on the same N witnesses) with the
+    least mean, where it beats row ``none`` (no correction) by ``z`` standard errors of the
+    witnesses' paired differences; else ``none``: witnesses that cannot tell the candidates apart
+    leave things as they were. Rows of inf (a candidate that cannot be scored) never win."""
+    best = int(np.argmin(np.mean(misfit, axis=1)))
+    gain = misfit[none] - misfit[best]
+    if best == none or gain.size < 2:
+        return none
+    return best if gain.mean() > z * gain.std(ddof=1) / np.sqrt(gain.size) else none
+
+
 def _best_lead(leads, misfit, z: float) -> float:
-    """The lead of least mean misfit, refined by a parabola through its two neighbours, where it
-    beats no lead by ``z`` standard errors of the paired differences; else 0."""
+    """The lead of :func:`least_misfit_over_none`, refined by a parabola through its two
+    neighbours; 0 where no lead wins."""
     mean = misfit.mean(axis=1)
-    best, zero = int(np.argmin(mean)), leads.size // 2
-    gain = misfit[zero] - misfit[best]
-    if best == zero or gain.mean() <= z * gain.std(ddof=1) / np.sqrt(gain.size):
+    zero = leads.size // 2
+    best = least_misfit_over_none(misfit, zero, z)
+    if best == zero:
         return 0.0
     if 0 < best < leads.size - 1:
         left, centre, right = mean[best - 1:best + 2]
@@ -447,9 +460,9 @@ def _best_lead(leads, misfit, z: float) -> float:
 
 
 def with_odometry_lead(log: LaserLog, lead: float) -> LaserLog:
-    """The log with its odometry read ``lead`` seconds earlier at every scan (:func:`poses_at`;
-    the first scans, before the odometry begins, take its first pose); ``lead == 0`` returns the
-    log itself, bit for bit."""
+    """The log with its odometry read ``lead`` seconds earlier at every scan (:func:`poses_at`; a
+    scan whose read time falls before the log's first scan or after its last takes that end's
+    pose); ``lead == 0`` returns the log itself, bit for bit."""
     if lead == 0:
         return log
     times = log.timestamps

@@ -12,7 +12,8 @@ from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
 from jaxslam.laserlog import (LaserLog, LogError, estimate_odometry_lead, poses_at, select_updates,
                               with_odometry_lead)
 from jaxslam.laser import make_sensor
-from jaxslam.sim import make_world, simulate_scans
+from jaxslam.sim import simulate_scans
+from logs import cluttered_world
 
 SENSOR = make_sensor([-0.5, 0.0, 0.5], range_min=0.1, range_max=10.0)
 
@@ -247,13 +248,9 @@ def _log_with_odometry_ahead(lead: float, seed: int = 0, num_scans: int = 400):
     turn = 0.12 * np.sin(np.arange(num_scans) / 6.0)  # turns of up to 1.2 rad/s, both ways
     steps = np.stack([np.full(num_scans, 0.08), np.zeros(num_scans), turn], axis=1)
     truth = chain_np(np.zeros(3), steps[1:])
-    low, high = truth[:, :2].min(0) - 5.0, truth[:, :2].max(0) + 5.0
-    starts = rng.uniform(low, high, size=(300, 2))
-    angle = rng.uniform(0, np.pi, 300)
-    ends = starts + rng.uniform(0.5, 2.0, size=(300, 1)) * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    world = cluttered_world(rng, truth[:, :2].min(0) - 5.0, truth[:, :2].max(0) + 5.0, 300)
     sensor = make_sensor(np.linspace(-np.pi / 2, np.pi / 2, 91), range_max=8.0)
-    ranges = simulate_scans(jax.random.PRNGKey(seed), make_world(np.concatenate([starts, ends], axis=1)), truth,
-                            sensor, range_noise_std=0.01)
+    ranges = simulate_scans(jax.random.PRNGKey(seed), world, truth, sensor, range_noise_std=0.01)
     ahead = poses_at(np.clip(times + lead, times[0], times[-1]), times, truth).poses
     drift = chain_np(np.zeros(3), rng.normal(0.0, [0.002, 0.001, 0.001], size=(num_scans - 1, 3)))
     odometry = np.asarray([compose_np(a, d) for a, d in zip(ahead, drift)])

@@ -17,7 +17,8 @@ from jaxslam.io.relations import Relations
 from jaxslam.laser import make_sensor, scan_misfit
 from jaxslam.laserlog import LaserLog, LogError
 from jaxslam.metrics import relation_error
-from jaxslam.sim import make_world, simulate_scans
+from jaxslam.sim import simulate_scans
+from logs import cluttered_world
 
 
 def _converted_log(seed: int = 0, num_scans: int = 500):
@@ -112,19 +113,11 @@ def _laser_log_behind_odometry(seed: int = 0):
     read where the laser was one scan later (as MIT Killian's bag): the laser's scan i was taken
     at ``truth[i]``, the odometry at index i reads ``truth[i + 1]`` plus drift."""
     truth, original, odometry, converted, relations, chosen = _converted_log(seed)
-    rng = np.random.default_rng(seed + 1)
-    low, high = truth[:, :2].min(0) - 6.0, truth[:, :2].max(0) + 6.0
-    starts = rng.uniform(low, high, size=(400, 2))
-    ends = starts + rng.uniform(0.5, 2.0, size=(400, 1)) * _unit(rng.uniform(0, np.pi, 400))
-    world = make_world(np.concatenate([starts, ends], axis=1))
+    world = cluttered_world(np.random.default_rng(seed + 1), truth[:, :2].min(0) - 6.0, truth[:, :2].max(0) + 6.0, 400)
     sensor = make_sensor(np.linspace(-np.pi / 2, np.pi / 2, 91), range_max=8.0)
     ranges = simulate_scans(jax.random.PRNGKey(seed), world, truth, sensor, range_noise_std=0.01)
     leading = np.concatenate([odometry[1:], odometry[-1:]])
     return truth, leading, converted, relations, chosen, ranges, sensor
-
-
-def _unit(angle):
-    return np.stack([np.cos(angle), np.sin(angle)], axis=1)
 
 
 def test_the_scans_find_a_laser_one_scan_behind_the_odometry():
@@ -154,6 +147,10 @@ def test_scan_misfit_against_brute_force_nearest_points():
     expected = np.mean(np.minimum(nearest, 0.25) ** 2)
     assert scan_misfit(motion, first, second, 0.25) == pytest.approx(expected, rel=1e-12)
     assert scan_misfit(motion, first[:0], second, 0.25) == pytest.approx(0.0625)
+    # Several motions at once share the tree and give each one's misfit.
+    both = scan_misfit(np.stack([motion, np.zeros(3)]), first, second, 0.25)
+    assert both.shape == (2,) and both[0] == pytest.approx(expected, rel=1e-12)
+    assert both[1] == pytest.approx(scan_misfit(np.zeros(3), first, second, 0.25), rel=1e-12)
 
 
 def test_scans_that_do_not_fit_the_log_are_refused_before_any_work():

@@ -46,7 +46,7 @@ import numpy as np
 from jaxslam.geometry import between_np, wrap_angle_np
 from jaxslam.io.relations import Relations
 from jaxslam.laser import SensorSpec, scan_misfit, scan_points
-from jaxslam.laserlog import LogError
+from jaxslam.laserlog import LogError, least_misfit_over_none
 
 __all__ = ["ClockAlignment", "align_relations_clock"]
 
@@ -152,22 +152,10 @@ def align_relations_clock(relations: Relations, timestamps, odometry, scan_perio
         per_relation = _shift_misfits(relations.motion, scan_index[first], scan_index[second], ranges, sensor,
                                       max_shift, misfit_radius)
         shift_misfit = per_relation.mean(axis=1)
-        laser_shift = _chosen_shift(per_relation, max_shift)
+        laser_shift = least_misfit_over_none(per_relation, max_shift, z=3.0) - max_shift
         scan_index = scan_index + laser_shift
     aligned = relations._replace(t1=times_log[scan_index[first]], t2=times_log[scan_index[second]])
     return ClockAlignment(aligned, times, scan_index, margin, residual, period, laser_shift, shift_misfit)
-
-
-def _chosen_shift(per_relation, max_shift: int, z: float = 3.0) -> int:
-    """The shift whose mean misfit is smallest, where it beats no shift by ``z`` standard errors
-    of the relations' paired differences; else 0 (scans that cannot tell the shifts apart, as a
-    featureless corridor's, leave the odometry's alignment as it was)."""
-    best = int(np.argmin(per_relation.mean(axis=1)))
-    gain = per_relation[max_shift] - per_relation[best]
-    if best == max_shift or gain.size < 2:
-        return 0
-    standard_error = gain.std(ddof=1) / np.sqrt(gain.size)
-    return best - max_shift if gain.mean() > z * standard_error else 0
 
 
 def _shift_misfits(motion, first_index, second_index, ranges, sensor, max_shift, radius) -> np.ndarray:
