@@ -25,7 +25,9 @@ the filter"):
    (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`).
 
 A pair whose best match lies on its window's edge is searched again in a wider window
-(:func:`jaxslam.graph.acceptance.widen_edge_peaks`).
+(:func:`jaxslam.graph.acceptance.widen_edge_peaks`). A query that keeps no loop is also searched
+by appearance (:mod:`jaxslam.graph.places`): against the submaps whose scans look most like it,
+beyond its window but within a bound that grows twice as fast, round their most alike node.
 
 The queries are taken in time order, ``query_block`` nodes at a time, each block searched from
 the graph as solved so far; after a block that kept loops the graph is solved
@@ -59,12 +61,12 @@ from tqdm.auto import tqdm
 from jaxslam.geometry import between_np, compose_np
 from jaxslam.laser import scan_points
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
-from jaxslam.graph import acceptance, drift, pose_graph
-from jaxslam.graph.acceptance import Loops, Searched, loop_edges
-from jaxslam.graph.loop_search import SearchWindow, class_shape, search_pairs
+from jaxslam.graph import acceptance, drift, places, pose_graph
+from jaxslam.graph.acceptance import Loops, loop_edges
+from jaxslam.graph.loop_search import SearchWindow, class_shape
 from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps
-from jaxslam.graph.windows import candidate_pairs, graph_distances, path_distances
+from jaxslam.graph.windows import path_distances, search_block
 from jaxslam.motion import noise_std
 
 
@@ -166,6 +168,18 @@ class ClosureConfig:
     """Times a pair whose best match lies on its window's edge is searched again in a window twice
     as wide (:func:`jaxslam.graph.acceptance.widen_edge_peaks`; up to ``window_max_xy`` and
     ``window_max_theta``)."""
+    places_per_query: int = 3
+    """Submaps a query whose windowed search kept no loop is also searched against by appearance:
+    those whose scans look most like it, beyond its window (:mod:`jaxslam.graph.places`; 0: never)."""
+    min_similarity: float = 0.6
+    """Least similarity of the scans' polar signatures for a search by appearance."""
+    place_window_xy: float = 3.0
+    """Translation window of a search by appearance (m either side of the alike node)."""
+    place_drift_per_metre: float = 0.06
+    """How far from its estimate a search by appearance may put a query, per metre of graph
+    distance to the submap (m/m): twice the window's growth."""
+    place_window_theta: float = 0.2
+    """Angular window of a search by appearance (rad either side of the signatures' heading)."""
     max_parting: float = 3.0
     """Standard deviations by which the filter's and the odometry's headings may part after the
     last kept loop (:func:`jaxslam.graph.drift.parting`); beyond, one pass searches from the
@@ -177,17 +191,18 @@ class ClosureConfig:
                   "min_drift_loops")
         lengths = ("search_range", "sigma", "window_min_xy", "window_max_xy", "window_min_theta", "window_max_theta",
                    "angular_step", "near_window_xy", "max_std_xy", "max_std_theta", "consistency_xy",
-                   "consistency_theta", "loop_phi", "max_chi2", "max_parting")
+                   "consistency_theta", "loop_phi", "max_chi2", "max_parting", "place_window_xy", "place_window_theta")
         for name in counts:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ClosureConfig: {name} must be a positive integer, got {value!r}")
-        for name in ("max_widenings", "top_squares"):
+        for name in ("max_widenings", "top_squares", "places_per_query"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"ClosureConfig: {name} must be an integer >= 0, got {value!r}")
         for name in lengths + ("min_separation", "max_node_distance", "window_xy_per_metre",
-                               "window_theta_per_metre", "min_score", "max_second_ratio", "min_share_change"):
+                               "window_theta_per_metre", "min_score", "max_second_ratio", "min_share_change",
+                               "min_similarity", "place_drift_per_metre"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"ClosureConfig: {name} must be a finite number >= 0, got {value!r}")
@@ -293,23 +308,6 @@ def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params, head
     return Edges(first, first + 1, measurement, information, np.full(first.size, SEQUENTIAL))
 
 
-def _search_block(queries, estimate, travelled, found: Loops, submaps: Submaps, points, valid,
-                  config: ClosureConfig) -> Searched:
-    """Search a block's queries against their candidate submaps, from the current estimate, in
-    windows grown over the graph's distance (through the loops kept so far)."""
-    kept = found.refused == ""
-    distance = graph_distances(travelled, queries, submaps.last_node, found.query[kept],
-                               submaps.last_node[found.submap[kept]])
-    query, submap, half_xy, half_theta = candidate_pairs(estimate, submaps, config, queries, travelled, distance)
-    rel = between_np(estimate[submaps.first_node][submap], estimate[query])
-    guess = np.concatenate([rel[:, :2] - submaps.corner[submap], rel[:, 2:]], axis=-1)
-    resolution = submaps.grid.resolution
-    result = search_pairs(submaps, submap, points[query], valid[query], guess,
-                          np.ceil(half_xy / resolution).astype(np.int32), half_theta, config.window(resolution),
-                          batch=config.batch)
-    return Searched(query, submap, guess, half_xy, half_theta, result)
-
-
 def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray, estimate: np.ndarray,
            solved_until: int, config: ClosureConfig) -> np.ndarray:
     """The graph optimised with the kept loops (their ``chi2`` written into ``found``; loops in
@@ -393,6 +391,8 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
         return _unclosed(log, node_scans, filter_poses, sequential_edges(local, motions, params.motion), t0)
     ranges = np.asarray(log.ranges[node_scans], np.float32)
     points, valid = scan_points(ranges, log.sensor, config.search_range, config.num_points)
+    contexts = places.scan_contexts(*scan_points(ranges, log.sensor, config.search_range, places.CONTEXT_POINTS),
+                                    config.search_range)
     # The submaps are the filter's, whatever chain a pass searches from: a submap's 20 scans are
     # placed by the filter's own steps, which its map held together; a chain that takes part of
     # its heading from the odometry takes the odometry's step-to-step noise too (the simulated
@@ -400,8 +400,9 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
     widest = config.window(slam_config.resolution)  # the bounds the deepest search reads
     submaps = build_submaps(local, ranges, log.sensor, params.insertion, slam_config.resolution, slam_config.max_insert_range,
                             config.nodes_per_submap, config.sigma, class_shape(widest.half_cells, widest).levels)
-    seconds = {"submaps": time.perf_counter() - t0, "search": 0.0, "accept": 0.0, "optimize": 0.0}
-    run = _passes(local, motions, submaps, ranges, points, valid, log.sensor, params, config, seconds, progress)
+    seconds = {"submaps": time.perf_counter() - t0, "search": 0.0, "accept": 0.0, "appearance": 0.0, "optimize": 0.0}
+    run = _passes(local, motions, submaps, ranges, (points, valid, contexts), log.sensor, params, config, seconds,
+                  progress)
     closed, everything, share, chain, rates, done = run.closed, run.everything, run.share, run.chain, run.rates, run.done
     if not np.all(np.isfinite(rates)):  # no pass kept enough loops: nothing says the odometry is better
         closed, share, chain = run.first_pass, 0.0, local
@@ -438,7 +439,7 @@ class _Passes(NamedTuple):
     pairs: int
 
 
-def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, params, config: ClosureConfig,
+def _passes(local, motions, submaps: Submaps, ranges, scans, sensor, params, config: ClosureConfig,
             seconds: dict, progress: bool) -> _Passes:
     """The closure's passes (:func:`close_trajectory_loops`), each from the chain the loops so far
     weigh; ``seconds`` gains each stage's time."""
@@ -454,7 +455,7 @@ def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, par
             bar = tqdm(total=int(local.shape[0]), desc=f"loop closure, pass {done}", unit="node")
         # The odometry's chain turns every node, not every submap: the filter's submaps are bent
         # against it, and one jump of its heading no longer carries them rigidly.
-        closed = _close_pass(chain, heading_rate, motions, submaps, ranges, points, valid, sensor, params, config,
+        closed = _close_pass(chain, heading_rate, motions, submaps, ranges, scans, sensor, params, config,
                              bar, jumps=chain is local or heading_rate is not None)
         if bar is not None:
             bar.close()
@@ -462,7 +463,7 @@ def _passes(local, motions, submaps: Submaps, ranges, points, valid, sensor, par
         for stage, taken in closed.seconds.items():
             seconds[stage] += taken
         everything = everything.extend(closed.loops)
-        new_share, rates = _measured_share(everything, submaps, local, odometry_headings, share, config)
+        new_share, rates = drift.measured_share(everything, submaps, local, odometry_headings, share, config)
         if done == 1:
             first_pass = closed
         if done == 1 and not np.all(np.isfinite(rates)) and done < config.max_passes:
@@ -524,28 +525,8 @@ def _unclosed(log, node_scans, filter_poses, sequential: Edges, t0: float) -> Lo
     """The closure of a path too short for any search: the filter's poses, no loop."""
     return LoopClosure(node_scans, filter_poses, filter_poses.copy(), trajectory_per_scan(log, node_scans, filter_poses),
                        sequential, Loops.empty()._replace(refused=np.zeros(0, str)), np.zeros(0, int), 0,
-                       {"submaps": 0.0, "search": 0.0, "accept": 0.0, "optimize": 0.0,
+                       {"submaps": 0.0, "search": 0.0, "accept": 0.0, "appearance": 0.0, "optimize": 0.0,
                         "total": time.perf_counter() - t0}, filter_poses.copy(), 0.0, (np.nan, np.nan), 0)
-
-
-def _measured_share(everything: Loops, submaps: Submaps, local: np.ndarray, odometry_headings: np.ndarray,
-                    share: float, config: ClosureConfig) -> tuple[float, tuple[float, float]]:
-    """The odometry's share of the heading that the loops kept so far measure (the filter's
-    drift rate over both: the minimum-variance weighing), and the rates; ``share`` unchanged
-    with fewer than ``min_drift_loops`` loops.
-
-    Every loop any pass kept measures both chains' drift, whether or not the last pass's chain
-    found it again (a loop's measurement is the query's scan against a filter submap: no chain
-    enters it), so the rates come from all of them, and so does the final graph."""
-    kept = acceptance.first_kept(everything)
-    rates = (np.nan, np.nan)
-    if kept.size >= config.min_drift_loops:
-        rates = drift.heading_drift_rates(submaps.first_node[everything.submap[kept]],
-                                          submaps.last_node[everything.submap[kept]], everything.query[kept],
-                                          everything.measurement[kept, 2], local[:, 2], odometry_headings)
-    if np.all(np.isfinite(rates)) and sum(rates) > 0:
-        return rates[0] / (rates[0] + rates[1]), rates
-    return share, rates
 
 
 class _Pass(NamedTuple):
@@ -558,14 +539,15 @@ class _Pass(NamedTuple):
     seconds: dict
 
 
-def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, valid, sensor, params,
+def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, scans, sensor, params,
                 config: ClosureConfig, bar, jumps: bool = True) -> _Pass:
     """The search in time order from ``chain`` ((S, 3) local frame) and the optimisations
     (:func:`close_trajectory_loops`' one pass); ``jumps``: whether one jump of the chain's heading
     may explain loops the vote refused (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`;
     only where the chain carries the submaps rigidly)."""
+    points, valid, _ = scans  # the search's points (S, P, 2), (S, P) and the signatures (S, R, A)
     sequential = sequential_edges(chain, motions, params.motion, heading_rate)
-    seconds = {"search": 0.0, "accept": 0.0, "optimize": 0.0}
+    seconds = {"search": 0.0, "accept": 0.0, "appearance": 0.0, "optimize": 0.0}
     travelled = path_distances(chain)
     likelihood = params.likelihood._replace(sigma=jnp.float32(config.sigma))
     found = Loops.empty()
@@ -577,8 +559,8 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, 
         block_end = min(block_start + config.query_block, chain.shape[0])
         queries = np.arange(block_start, block_end)
         t_a = time.perf_counter()
-        searched = _search_block(queries[queries % config.query_stride == 0], estimate, travelled, found, submaps,
-                                 points, valid, config)
+        todo = queries[queries % config.query_stride == 0]
+        searched, distance = search_block(todo, estimate, travelled, found, submaps, points, valid, config)
         pairs += int(searched.query.size)
         t_b = time.perf_counter()
         new = acceptance.accept(submaps, searched, ranges, sensor, likelihood, estimate, found, config)
@@ -588,12 +570,17 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, points, 
         pairs += widened_pairs
         if jumps:
             new = acceptance.one_jump_explains_refused_group(new, found, submaps, estimate, config)
+        t_e = time.perf_counter()
+        if config.places_per_query:
+            new, alike_pairs = places.add_appearance_loops(new, searched, distance, todo, estimate, travelled, found,
+                                                           submaps, scans, ranges, sensor, likelihood, config)
+            pairs += alike_pairs
         found = found.extend(new)
         t_d = time.perf_counter()
         if np.any(new.refused == ""):
             estimate = _solve(found, submaps, sequential, chain, estimate, block_end, config)
-        for stage, seconds_taken in (("search", t_b - t_a + t_d - t_c), ("accept", t_c - t_b),
-                                     ("optimize", time.perf_counter() - t_d)):
+        for stage, seconds_taken in (("search", t_b - t_a + t_e - t_c), ("accept", t_c - t_b),
+                                     ("appearance", t_d - t_e), ("optimize", time.perf_counter() - t_d)):
             seconds[stage] += seconds_taken
         if bar is not None:
             bar.update(block_end - block_start)

@@ -36,6 +36,7 @@ import numpy as np
 import scipy.linalg
 
 from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
+from jaxslam.graph.acceptance import first_kept
 
 
 def heading_drift_rates(first: np.ndarray, last: np.ndarray, second: np.ndarray, measured_heading: np.ndarray,
@@ -236,3 +237,24 @@ def fused_chain(filter_poses: np.ndarray, headings: np.ndarray, first_node: np.n
     steps = between_np(filter_poses[:-1], filter_poses[1:])
     steps[:, 2] += np.diff(turn)
     return chain_np(compose_np(filter_poses[0], np.array([0.0, 0.0, turn[0]])), steps)
+
+
+def measured_share(everything, submaps, local: np.ndarray, odometry_headings: np.ndarray, share: float,
+                   config) -> tuple[float, tuple[float, float]]:
+    """The odometry's share of the heading that the kept loops of ``everything`` (every pass's
+    :class:`~jaxslam.graph.acceptance.Loops` so far) measure (the filter's
+    drift rate over both: the minimum-variance weighing), and the rates; ``share`` unchanged
+    with fewer than ``min_drift_loops`` loops.
+
+    Every loop any pass kept measures both chains' drift, whether or not the last pass's chain
+    found it again (a loop's measurement is the query's scan against a filter submap: no chain
+    enters it), so the rates come from all of them, and so does the final graph."""
+    kept = first_kept(everything)
+    rates = (np.nan, np.nan)
+    if kept.size >= config.min_drift_loops:
+        rates = heading_drift_rates(submaps.first_node[everything.submap[kept]],
+                                    submaps.last_node[everything.submap[kept]], everything.query[kept],
+                                    everything.measurement[kept, 2], local[:, 2], odometry_headings)
+    if np.all(np.isfinite(rates)) and sum(rates) > 0:
+        return rates[0] / (rates[0] + rates[1]), rates
+    return share, rates

@@ -8,6 +8,9 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
+from jaxslam.geometry import between_np
+from jaxslam.graph.acceptance import Loops, Searched
+from jaxslam.graph.loop_search import search_pairs
 from jaxslam.graph.submaps import Submaps
 
 
@@ -82,3 +85,32 @@ def candidate_pairs(poses: np.ndarray, submaps: Submaps, config, queries: np.nda
     by_distance = np.lexsort((position[q_idx, j_idx], q_idx))  # per query, nearest first
     q_idx, j_idx = q_idx[by_distance], j_idx[by_distance]
     return queries[q_idx], j_idx, half_xy[q_idx, j_idx], half_theta[q_idx, j_idx]
+
+
+def search_block(queries: np.ndarray, estimate: np.ndarray, travelled: np.ndarray, found: Loops, submaps: Submaps,
+                 points: np.ndarray, valid: np.ndarray, config) -> tuple[Searched, np.ndarray]:
+    """Search a block's queries against their candidate submaps from the current estimate, in
+    windows grown over the graph's distance (through the loops kept so far).
+
+    Returns:
+        ``(searched, distance)``: the :class:`~jaxslam.graph.acceptance.Searched` pairs, and the
+        (Q, M) :func:`graph_distances` of the queries.
+    """
+    kept = found.refused == ""
+    distance = graph_distances(travelled, queries, submaps.last_node, found.query[kept],
+                               submaps.last_node[found.submap[kept]])
+    query, submap, half_xy, half_theta = candidate_pairs(estimate, submaps, config, queries, travelled, distance)
+    rel = between_np(estimate[submaps.first_node][submap], estimate[query])
+    return search_from(submaps, query, submap, rel, half_xy, half_theta, points, valid, config), distance
+
+
+def search_from(submaps: Submaps, query: np.ndarray, submap: np.ndarray, rel: np.ndarray, half_xy: np.ndarray,
+                half_theta: np.ndarray, points: np.ndarray, valid: np.ndarray, config) -> Searched:
+    """The pairs (P,) searched round ``rel`` (P, 3), the query's pose in its submap's first
+    node's frame, in windows ``half_xy`` (P,) m and ``half_theta`` (P,) rad."""
+    guess = np.concatenate([rel[:, :2] - submaps.corner[submap], rel[:, 2:]], axis=-1)
+    resolution = submaps.grid.resolution
+    result = search_pairs(submaps, submap, points[query], valid[query], guess,
+                          np.ceil(half_xy / resolution).astype(np.int32), half_theta, config.window(resolution),
+                          batch=config.batch)
+    return Searched(query, submap, guess, half_xy, half_theta, result)
