@@ -172,7 +172,8 @@ class ClosureConfig:
     """Submaps a query whose windowed search kept no loop is also searched against by appearance:
     those whose scans look most like it, beyond its window (:mod:`jaxslam.graph.places`; 0: never)."""
     min_similarity: float = 0.6
-    """Least similarity of the scans' polar signatures for a search by appearance."""
+    """Least similarity (the cosine of the scans' polar signatures, in [0, 1]) for a search by
+    appearance."""
     place_window_xy: float = 3.0
     """Translation window of a search by appearance (m either side of the alike node)."""
     place_drift_per_metre: float = 0.06

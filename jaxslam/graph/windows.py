@@ -1,6 +1,7 @@
 """Which scan-submap pairs the loop closure searches, and how wide: the path travelled along the
 chain (:func:`path_distances`), the distance over the graph through the kept loops that a window
-grows with (:func:`graph_distances`), and the pairs with their windows (:func:`candidate_pairs`)."""
+grows with (:func:`graph_distances`), the pairs with their windows (:func:`candidate_pairs`), and
+a block's search of them (:func:`search_block`, :func:`search_from`)."""
 
 from __future__ import annotations
 
