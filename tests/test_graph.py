@@ -417,9 +417,9 @@ def test_twin_rooms_a_peak_on_the_window_edge_is_searched_again_wider(twin_rooms
 def test_twin_rooms_a_loop_beyond_the_window_is_found_by_appearance_and_the_bound_is_the_defence(twin_rooms):
     """The input is the true path moved 5.8 m (5, 3) from node 100 on, before the return to
     room A: beyond the windows (1 + 0.03 m per metre of graph), within the appearance's bound
-    (0.06 m per metre, plus 3). Searched by appearance too, the closure keeps at least eight more
-    loops than without, none off by more than 0.5 m, and ends nearer the truth (17 loops against
-    5). The bound defends against the twin room as the window does: at 1 m per metre the drifted
+    (0.06 m per metre, plus 3). Searched by appearance too, the closure keeps at least six more
+    loops than without, none off by more than 0.5 m, and ends nearer the truth (13 loops against
+    5, 1.25 m against 1.51). The bound defends against the twin room as the window does: at 1 m per metre the drifted
     input's queries in room B are searched against room A too, and loops into it are kept."""
     scenario, selection, truth, drifted = twin_rooms
     jumped = chain_np(truth[0], between_np(truth[:-1], truth[1:]))
@@ -430,7 +430,7 @@ def test_twin_rooms_a_loop_beyond_the_window_is_found_by_appearance_and_the_boun
                                            dataclasses.replace(one_pass, places_per_query=places))
             for places in (0, 3)}
     kept = {places: run.loops.refused == "" for places, run in runs.items()}
-    assert kept[3].sum() >= kept[0].sum() + 8
+    assert kept[3].sum() >= kept[0].sum() + 6
     assert np.all(_loop_errors(runs[3], truth)[kept[3]] < 0.5)
     error = {places: np.mean(np.hypot(*(run.poses - truth)[:, :2].T)) for places, run in runs.items()}
     assert error[3] < error[0]

@@ -119,8 +119,8 @@ def appearance_pairs(contexts: np.ndarray, estimate: np.ndarray, queries: np.nda
         eligible = (last < query) & (travelled[query] - travelled[last] >= config.min_separation) & ~searched[row]
         if not np.any(eligible):
             continue
-        nodes = np.concatenate([np.arange(first[j], last[j] + 1) for j in np.nonzero(eligible)[0]])
-        owner = np.searchsorted(last, nodes)  # each node's submap
+        owner = np.searchsorted(last, np.arange(query))  # each earlier node's submap
+        nodes, owner = np.nonzero(eligible[owner])[0], owner[eligible[owner]]
         # Only where the drift could have put the query: a corridor's bays repeat (MIT Killian:
         # every 25 m), and a look-alike bay that far from a correct estimate passes every test.
         offset = np.hypot(*(estimate[nodes, :2] - estimate[query, :2]).T)
