@@ -138,7 +138,8 @@ def test_the_passes_loops_merge_each_pair_once_kept_where_any_pass_kept_it():
     def loops(query, submap, refused):
         c = len(query)
         return Loops(np.array(query), np.array(submap), np.arange(c * 3.0).reshape(c, 3), np.zeros((c, 3, 3)),
-                     np.ones(c), np.zeros(c), np.zeros(c, bool), np.array(refused, object), np.arange(c, dtype=float))
+                     np.ones(c), np.zeros(c), np.zeros(c, bool), np.array(refused, object), np.arange(c, dtype=float),
+                     np.zeros(c, bool))
 
     first_pass = loops([30, 33, 36], [1, 1, 2], ["", "score", ""])
     second_pass = loops([30, 33, 36, 90], [1, 1, 2, 3], ["chi2", "", "", "window"])

@@ -318,6 +318,7 @@ def test_twin_rooms_no_false_loop_is_kept_and_the_path_comes_closer(twin_rooms, 
     save_graph(tmp_path / "graph.npz", closure)
     graph = load_graph(tmp_path / "graph.npz")
     assert graph["loop_refused"].shape == kept.shape and int((graph["loop_refused"] == "").sum()) == kept.sum()
+    np.testing.assert_array_equal(graph["loop_appearance"], closure.loops.appearance)
     assert graph["edge_kind"].sum() == kept.sum()  # LOOP = 1, one edge per kept loop
 
 
@@ -432,6 +433,8 @@ def test_twin_rooms_a_loop_beyond_the_window_is_found_by_appearance_and_the_boun
     kept = {places: run.loops.refused == "" for places, run in runs.items()}
     assert kept[3].sum() >= kept[0].sum() + 6
     assert np.all(_loop_errors(runs[3], truth)[kept[3]] < 0.5)
+    # The loops found by appearance are marked (graph.npz's ``loop_appearance``); none without the search.
+    assert not runs[0].loops.appearance.any() and np.any(runs[3].loops.appearance & kept[3])
     error = {places: np.mean(np.hypot(*(run.poses - truth)[:, :2].T)) for places, run in runs.items()}
     assert error[3] < error[0]
     unbounded = close_trajectory_loops(scenario.log, selection.indices, drifted, selection.motions, default_params(),
@@ -492,7 +495,7 @@ def test_one_jump_explains_a_jump_and_not_a_steady_drift():
         n = query.size
         return Loops(query, np.zeros(n, int), between_np(truth[np.zeros(n, int)], truth[query]),
                      np.tile(np.eye(3) * 1e4, (n, 1, 1)), np.full(n, 0.6), np.full(n, 0.5), np.ones(n, bool),
-                     np.array([refused] * n, object), np.full(n, np.nan))
+                     np.array([refused] * n, object), np.full(n, np.nan), np.zeros(n, bool))
 
     found, group = loops(np.arange(130, 150, 3), ""), loops(np.arange(151, 160, 2), "consistency")
     jumped, drifted = steps.copy(), steps.copy()
@@ -535,6 +538,8 @@ def test_map_closes_loops_by_default_and_not_on_request(tmp_path, twin_rooms):
     summary = json.loads((closed / "summary.json").read_text())
     graph = load_graph(closed / "graph.npz")
     assert summary["closure"]["loops_kept"] == int((graph["loop_refused"] == "").sum()) > 0
+    assert summary["closure"]["loops_kept_by_appearance"] == int(((graph["loop_refused"] == "")
+                                                                   & graph["loop_appearance"]).sum())
     # The filter's trajectory is the same with and without the closure; the closed one differs.
     np.testing.assert_array_equal(np.loadtxt(closed / "trajectory_filter.txt"), np.loadtxt(alone / "trajectory.txt"))
     assert not np.array_equal(np.loadtxt(closed / "trajectory.txt"), np.loadtxt(alone / "trajectory.txt"))

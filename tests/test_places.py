@@ -58,11 +58,11 @@ def test_context_similarity_is_the_best_shift_and_says_the_heading_within_the_tu
     assert limited[0] < 0.6 * similarity[0]
 
 
-def _loops(query, submap, measurement, score, refused):
+def _loops(query, submap, measurement, score, refused, appearance=(True, False)):
     count = len(query)
     return Loops(np.array(query), np.array(submap), np.array(measurement, float), np.tile(np.eye(3), (count, 1, 1)),
                  np.array(score, float), np.zeros(count), np.ones(count, bool), np.array(refused, object),
-                 np.full(count, np.nan))
+                 np.full(count, np.nan), np.array(appearance, bool))
 
 
 def test_a_query_that_matches_two_places_as_well_is_refused_by_appearance():
@@ -71,14 +71,13 @@ def test_a_query_that_matches_two_places_as_well_is_refused_by_appearance():
     under 0.9 of it, or fell under the score test, row 0 stays."""
     config = ClosureConfig()
     origins = np.array([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0], [40.0, 0.0, 0.0]])
-    appearance = np.array([True, False])
     elsewhere = _loops([7, 7], [0, 2], [[1.0, 0.0, 0.0], [-34.0, 0.0, 0.0]], [0.8, 0.76], ["", "consistency"])
-    assert list(refuse_look_alikes(elsewhere, appearance, origins, config).refused) == ["ambiguous", "consistency"]
+    assert list(refuse_look_alikes(elsewhere, origins, config).refused) == ["ambiguous", "consistency"]
     same_place = elsewhere._replace(measurement=np.array([[1.0, 0.0, 0.0], [-39.0, 0.0, 0.0]]))
-    assert refuse_look_alikes(same_place, appearance, origins, config).refused[0] == ""
+    assert refuse_look_alikes(same_place, origins, config).refused[0] == ""
     weaker = elsewhere._replace(score=np.array([0.8, 0.7]))
-    assert refuse_look_alikes(weaker, appearance, origins, config).refused[0] == ""
+    assert refuse_look_alikes(weaker, origins, config).refused[0] == ""
     unmatched = elsewhere._replace(refused=np.array(["", "score"], object))
-    assert refuse_look_alikes(unmatched, appearance, origins, config).refused[0] == ""
+    assert refuse_look_alikes(unmatched, origins, config).refused[0] == ""
     # A windowed loop is never judged here, however alike another place.
-    assert refuse_look_alikes(elsewhere, ~appearance, origins, config).refused[0] == ""
+    assert refuse_look_alikes(elsewhere._replace(appearance=np.array([False, True])), origins, config).refused[0] == ""

@@ -46,12 +46,15 @@ class Loops(NamedTuple):
     "information", "consistency" or "chi2"."""
     chi2: np.ndarray
     """(C,) the loop's chi2 in the final graph (nan for one refused before the optimisation)."""
+    appearance: np.ndarray
+    """(C,) bool: found by the search by appearance (:mod:`jaxslam.graph.places`), not by the
+    windowed search."""
 
     @classmethod
     def empty(cls) -> "Loops":
         """No loops (``refused`` of dtype object while the closure collects them)."""
         return cls(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0),
-                   np.zeros(0), np.zeros(0, bool), np.zeros(0, object), np.zeros(0))
+                   np.zeros(0), np.zeros(0, bool), np.zeros(0, object), np.zeros(0), np.zeros(0, bool))
 
     def extend(self, other: "Loops") -> "Loops":
         """These loops, then ``other``'s."""
@@ -182,7 +185,8 @@ def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, est
     agree, disagree = agree[:passed.size], disagree[:passed.size]
     refused[passed[(agree < config.min_support) | (disagree >= agree)]] = "consistency"
     return Loops(query, submap, measurement, information, score, second_ratio,
-                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan))
+                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan),
+                 np.zeros(promising.size, bool))
 
 
 def widen_edge_peaks(new: Loops, searched: Searched, submaps: Submaps, ranges, points, valid, sensor, likelihood,

@@ -275,14 +275,16 @@ class LoopClosure(NamedTuple):
 
     def summary(self) -> dict:
         """Counts for ``summary.json``'s ``closure`` (its seconds go under ``timings``): pairs
-        searched, loops kept, refused by reason, the share of searches whose best was certified
-        exact, and the largest correction (m)."""
+        searched, loops kept (and those of them the search by appearance found), refused by
+        reason, the share of searches whose best was certified exact, and the largest correction
+        (m)."""
         refused = self.loops.refused[self.loops.refused != ""]
         reasons, counts = np.unique(refused, return_counts=True)
         shift = np.hypot(*(self.poses - self.filter_poses)[:, :2].T) if self.poses.size else np.zeros(1)
         return {"nodes": int(self.node_scans.size), "submaps": int(self.submap_first_node.size),
                 "pairs_searched": int(self.pairs_searched), "candidates": int(self.loops.query.size),
-                "loops_kept": self.num_loops, "refused": {str(r): int(c) for r, c in zip(reasons, counts)},
+                "loops_kept": self.num_loops,
+                "loops_kept_by_appearance": int(np.sum(self.loops.appearance & (self.loops.refused == ""))), "refused": {str(r): int(c) for r, c in zip(reasons, counts)},
                 "certified_share": float(np.mean(self.loops.certified)) if self.loops.query.size else None,
                 "largest_correction_m": float(shift.max()), "passes": int(self.passes),
                 "odometry_heading_share": float(self.odometry_share),

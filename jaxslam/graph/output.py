@@ -59,7 +59,8 @@ def load_graph(path) -> dict[str, np.ndarray]:
 def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None) -> None:
     """Draw a saved graph (:func:`load_graph`) on a map's axes (world frame): the filter's path,
     the optimised path, and every candidate loop as a line from its submap's first node to its
-    query at the optimised poses: kept in green, refused in red (thin), labelled by reason count."""
+    query at the optimised poses: kept in green (purple where the search by appearance found it),
+    refused in red (thin), each set labelled with its count."""
     poses, filt = graph["poses"], graph["filter_poses"]
     ax.plot(filt[:, 0], filt[:, 1], color="tab:red", lw=0.6, alpha=0.6, label="filter")
     share = float(graph.get("odometry_share", 0.0))
@@ -71,15 +72,17 @@ def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None
     if truth is not None:
         ax.plot(truth[:, 0], truth[:, 1], color="tab:green", lw=0.8, ls="--", label="ground truth")
     refused = graph["loop_refused"]
-    for kept, colour, lw in ((False, "tab:red", 0.4), (True, "tab:green", 0.8)):
-        mask = (refused == "") == kept
+    # Archives written before the search by appearance have no ``loop_appearance``.
+    appearance = graph.get("loop_appearance", np.zeros(refused.size, bool))
+    from matplotlib.collections import LineCollection
+
+    for mask, colour, lw, label in ((refused != "", "tab:red", 0.4, "loops refused"),
+                                    ((refused == "") & ~appearance, "tab:green", 0.8, "loops kept"),
+                                    ((refused == "") & appearance, "tab:purple", 0.8, "loops kept, found by appearance")):
         if not mask.any():
             continue
         a, b = poses[graph["loop_node"][mask]], poses[graph["loop_query"][mask]]
         segments = np.stack([a[:, :2], b[:, :2]], axis=1)
-        from matplotlib.collections import LineCollection
-
-        ax.add_collection(LineCollection(segments, colors=colour, linewidths=lw,
-                                         label=f"loops {'kept' if kept else 'refused'} ({int(mask.sum())})"))
+        ax.add_collection(LineCollection(segments, colors=colour, linewidths=lw, label=f"{label} ({int(mask.sum())})"))
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=7)

@@ -146,7 +146,7 @@ def appearance_pairs(contexts: np.ndarray, estimate: np.ndarray, queries: np.nda
     return np.array(out_query), np.array(out_submap), np.array(out_pose)
 
 
-def refuse_look_alikes(loops, appearance: np.ndarray, origins: np.ndarray, config):
+def refuse_look_alikes(loops, origins: np.ndarray, config):
     """``loops`` with each appearance loop refused as "ambiguous" where its query matched
     another place at least ``max_second_ratio`` as well: another candidate of the same query
     (found by the windowed search or by appearance) whose match puts the query more than
@@ -154,14 +154,14 @@ def refuse_look_alikes(loops, appearance: np.ndarray, origins: np.ndarray, confi
     place agree; twin rooms do not. A match under ``min_score`` does not count.
 
     Args:
-        loops: a block's :class:`~jaxslam.graph.acceptance.Loops`.
-        appearance: (C,) bool: the rows found by appearance.
+        loops: a block's :class:`~jaxslam.graph.acceptance.Loops` (``appearance`` marks the rows
+            found by appearance).
         origins: (M, 3) the submaps' first nodes' poses (the current estimate).
     """
     refused = loops.refused.copy()
     matched = loops.refused != "score"
     implied = compose_np(origins[loops.submap], loops.measurement)  # the query's pose through each match
-    for row in np.nonzero(appearance & (refused == ""))[0]:
+    for row in np.nonzero(loops.appearance & (refused == ""))[0]:
         others = matched & (loops.query == loops.query[row])
         apart = between_np(implied[row], implied[others])
         elsewhere = ((np.hypot(apart[:, 0], apart[:, 1]) > config.consistency_xy)
@@ -193,6 +193,5 @@ def add_appearance_loops(new: Loops, searched: Searched, distance: np.ndarray, q
                         np.full(query.size, config.place_window_theta), points, valid, config)
     kept = Loops(*(field[new.refused == ""] for field in new))
     more = acceptance.accept(submaps, alike, ranges, sensor, likelihood, estimate, found.extend(kept), config)
-    both = new.extend(more)
-    appearance = np.arange(both.query.size) >= new.query.size
-    return refuse_look_alikes(both, appearance, estimate[submaps.first_node], config), int(query.size)
+    both = new.extend(more._replace(appearance=np.ones(more.query.size, bool)))
+    return refuse_look_alikes(both, estimate[submaps.first_node], config), int(query.size)
