@@ -480,8 +480,9 @@ def test_one_jump_explains_a_jump_and_not_a_steady_drift():
     jumps 0.06 rad at node 149 the group disagrees with the kept loops, and one turn there
     explains every pair: all five kept. Through a chain whose heading drifts 0.004 rad a step
     from node 120 on, the disagreement grows with the nodes between two queries, and no single
-    turn explains every pair that straddles it: none kept. With ``consistency_jump`` 0 the rule
-    is off."""
+    turn explains every pair that straddles it: none kept. A jump of 0.5 rad is explained as well
+    (the default reaches the widest angular window, 45 degrees), not under a 0.15 rad cap. With
+    ``consistency_jump`` 0 the rule is off."""
     import types
 
     from jaxslam.graph.acceptance import Loops, one_jump_explains_refused_group
@@ -506,6 +507,11 @@ def test_one_jump_explains_a_jump_and_not_a_steady_drift():
                                                                     config).refused == ""
     assert np.all(kept(jumped, config))
     assert not np.any(kept(drifted, config))
+    # A filter whose map parted by 29 degrees at one step is one turn too, up to the widest angular window.
+    parted = steps.copy()
+    parted[149, 2] += 0.5
+    assert np.all(kept(parted, config))
+    assert not np.any(kept(parted, dataclasses.replace(config, consistency_jump=0.15)))
     assert not np.any(kept(jumped, dataclasses.replace(config, consistency_jump=0.0)))
     assert not np.any(kept(jumped, dataclasses.replace(config, consistency_jump=0.05)))
     with pytest.raises(ValueError, match="consistency_jump"):

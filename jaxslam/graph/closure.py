@@ -140,10 +140,10 @@ class ClosureConfig:
     """Loops agree when they predict each other's query within this (m) ..."""
     consistency_theta: float = 0.05
     """... and this (rad)."""
-    consistency_jump: float = 0.15
+    consistency_jump: float = math.radians(45.0)
     """Largest jump of the chain's heading (rad) that may explain why a block's loops disagree with
     the loops kept before them (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`;
-    0: never)."""
+    0: never). The widest angular window's: a larger turn leaves no loop to explain."""
     min_support: int = 1
     """Other loops a loop must agree with."""
     loop_phi: float = 5.0
