@@ -34,7 +34,7 @@ import numpy as np
 from _runs import ResultStore  # experiments/_runs.py: the shared resume helper
 
 FAULTS = ("jump:0.25:10", "jump:0.25:30", "jump:0.5:10", "jump:0.5:30", "jump:0.75:30", "bend:0.3:30:300",
-          "bend:0.5:60:600")
+          "bend:0.2:60:600")
 
 
 def parse_fault(text: str) -> tuple[str, float, float, int]:
@@ -132,8 +132,14 @@ def main(argv=None) -> int:
     slam_config, settings, params = build_setup({})
     selection = select_updates(log, settings.linear_update, settings.angular_update)
     filter_poses = lookup_poses(*read_trajectory(args.trajectory), log.timestamps[selection.indices])
-    store = ResultStore(args.out, {"log": Path(args.log).name, "trajectory": str(args.trajectory),
-                                   "align_clock": args.align_clock},
+    for fault in args.faults:  # every fault fits this path, before any closure runs
+        try:
+            turned(filter_poses, fault)
+        except ValueError as err:
+            parser.error(str(err))
+    trajectory = Path(args.trajectory).resolve()  # the run's folder and file name: no path outside it recorded
+    store = ResultStore(args.out, {"log": Path(args.log).name, "align_clock": args.align_clock,
+                                   "trajectory": f"{trajectory.parent.name}/{trajectory.name}"},
                         key=lambda r: r["fault"])
     for fault in tqdm(["none", *args.faults], desc="faults", unit="closure"):
         if not store.done(fault):
