@@ -19,8 +19,9 @@ over the log's relations (Kümmerle et al. 2009), of the turned input and of the
         --trajectory RUN/trajectory_filter.txt --out OUT/closure_stress_aces.json
 
 ``--align-clock`` finds the relations' timestamps among the log's scans where they were written on
-another clock (MIT Killian's bag; as ``jaxslam eval --log``). Faults are stored as they finish; a rerun into the same
-file skips them (experiments/_runs.py).
+another clock (MIT Killian's bag; as ``jaxslam eval --log``). The nodes are the scans the default
+update rule processes. Faults are stored as they finish; a rerun into the same file skips them
+(experiments/_runs.py).
 """
 
 from __future__ import annotations

@@ -185,7 +185,7 @@ def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, est
     agree, disagree = agree[:passed.size], disagree[:passed.size]
     refused[passed[(agree < config.min_support) | (disagree >= agree)]] = "consistency"
     return Loops(query, submap, measurement, information, score, second_ratio,
-                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan),
+                 (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan),
                  np.zeros(promising.size, bool))
 
 
