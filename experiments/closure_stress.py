@@ -70,7 +70,8 @@ def turned(poses: np.ndarray, fault: str) -> np.ndarray:
 
 def run_fault(log, relations, selection, filter_poses, fault: str, params, slam_config) -> dict:
     """One fault's record: the turned input's and the closed result's relation error (m), the
-    loops kept (and how many the search by appearance found), the passes and the closure's wall."""
+    loops kept (and how many the search by appearance found), the passes, the jumps of the filter's
+    heading tried (``LoopClosure.jumps``) and the closure's wall."""
     from jaxslam.graph import ClosureConfig, close_trajectory_loops
     from jaxslam.laserlog import local_frame_offset, trajectory_per_scan
     from jaxslam.metrics import relation_error
@@ -86,14 +87,18 @@ def run_fault(log, relations, selection, filter_poses, fault: str, params, slam_
                                       relations).trans_mean,
             "closed_m": relation_error(log.timestamps, closure.trajectory, relations).trans_mean,
             "kept": int(kept.sum()), "kept_by_appearance": int((kept & closure.loops.appearance).sum()),
-            "passes": int(closure.passes), "odometry_share": float(closure.odometry_share), "closure_s": wall}
+            "passes": int(closure.passes), "odometry_share": float(closure.odometry_share),
+            "jumps_tried": closure.summary()["jumps_tried"], "closure_s": wall}
 
 
 def table(runs: list[dict]) -> str:
-    lines = ["| fault | input [m] | closed [m] | loops kept (by appearance) | passes |", "|---|---|---|---|---|"]
+    lines = ["| fault | input [m] | closed [m] | loops kept (by appearance) | passes | jumps tried (given to the filter) |",
+             "|---|---|---|---|---|---|"]
     for r in runs:
+        tried = ", ".join(f"node {j['node']} {j['deg']:.1f} deg ({'yes' if j['given_to_filter'] else 'no'})"
+                          for j in r.get("jumps_tried", []))
         lines.append(f"| {r['fault']} | {r['input_m']:.3f} | {r['closed_m']:.4f} | {r['kept']} ({r['kept_by_appearance']}) "
-                     f"| {r['passes']} |")
+                     f"| {r['passes']} | {tried} |")
     return "\n".join(lines)
 
 

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from jaxslam.geometry import between_np, chain_np
+from jaxslam.graph.acceptance import Loops
 from jaxslam.graph.drift import fused_chain, heading_drift_rates, parting, smoothed_headings, step_noise
+from jaxslam.graph.jumps import loops_across, loops_side_with, spanned_nodes, undo_jump, unspanned_jumps
 
 
 def test_heading_drift_rates_recover_two_random_walks_whatever_the_submaps_first_node_jitters():
@@ -133,7 +135,7 @@ def test_fused_chain_keeps_each_submap_rigid_and_turns_it_by_its_mean_correction
 
 
 def test_the_passes_loops_merge_each_pair_once_kept_where_any_pass_kept_it():
-    from jaxslam.graph.acceptance import Loops, first_kept as _first_kept, merged as _merged
+    from jaxslam.graph.acceptance import first_kept as _first_kept, merged as _merged
 
     def loops(query, submap, refused):
         c = len(query)
@@ -171,3 +173,110 @@ def test_parting_is_a_standard_normal_where_the_rates_hold_and_large_after_a_tur
     share = np.mean(np.asarray(values) > 2.0)
     assert abs(share - 0.0455) < 4 * np.sqrt(0.0455 * 0.9545 / draws)
     assert np.mean(np.asarray(turned) > 3.0) > 0.99
+
+
+def _slow_jump_statistic(headings, turns, half_width):
+    """The jump statistic by a loop over the nodes: the mean filter-minus-odometry heading over
+    the ``half_width`` nodes from ``c`` less its mean over the ``half_width`` nodes before."""
+    parted = np.unwrap(headings) - np.concatenate([[0.0], np.cumsum(turns)])
+    return {c: parted[c:c + half_width].mean() - parted[c - half_width:c].mean()
+            for c in range(half_width, headings.size - half_width + 1)}
+
+
+def test_unspanned_jumps_find_the_filters_jumps_where_no_loop_spans_them():
+    """A filter that tracks the odometry with white jitter and drift, and jumps 0.4 rad at node
+    137 and -0.25 rad at node 240: found there, largest first, each to 0.02 rad (the jitter's
+    standard error over 2 x 5 nodes is about 0.006), far beyond 4 robust standard deviations;
+    the third largest is a noise draw at least two half widths from both. A steady drift of the
+    filter's heading changes nothing. Spanned at 137, the largest open jump is 240's; everything
+    spanned, none. The statistic matches a loop over the nodes."""
+    rng = np.random.default_rng(11)
+    nodes, half_width = 400, 5
+    turns = rng.normal(0.0, 0.05, nodes - 1)
+    headings = 0.3 + np.concatenate([[0.0], np.cumsum(turns + rng.normal(0.0, 0.002, nodes - 1))])
+    headings += rng.normal(0.0, 0.01, nodes)
+    headings[137:] += 0.4
+    headings[240:] -= 0.25
+    spanned = np.zeros(nodes, bool)
+    spanned[300:] = True
+    node, jump, sds = unspanned_jumps(headings, turns, spanned, half_width, 3)
+    assert node[:2].tolist() == [137, 240] and np.allclose(jump[:2], [0.4, -0.25], atol=0.02) and np.all(sds[:2] > 10)
+    slow = _slow_jump_statistic(headings, turns, half_width)
+    np.testing.assert_allclose(jump, [slow[c] for c in node], atol=1e-12)
+    far = [c for c in slow if not spanned[c] and abs(c - 137) > 2 * half_width and abs(c - 240) > 2 * half_width]
+    assert node[2] == max(far, key=lambda c: abs(slow[c])) and sds[2] < 6
+    drifting = unspanned_jumps(headings + 0.015 * np.arange(nodes), turns, spanned, half_width, 3)  # a steady drift
+    np.testing.assert_array_equal(drifting[0], node)  # moves every node's statistic alike: no jump
+    np.testing.assert_allclose(drifting[2], sds, rtol=1e-6)
+    spanned[120:160] = True
+    assert unspanned_jumps(headings, turns, spanned, half_width, 1)[0].tolist() == [240]
+    assert unspanned_jumps(headings, turns, np.ones(nodes, bool), half_width, 3)[0].size == 0
+    assert unspanned_jumps(headings[:9], turns[:8], np.zeros(9, bool), half_width, 3)[0].size == 0
+
+
+def test_undo_jump_takes_the_odometrys_turns_near_the_node_and_keeps_every_other_step():
+    rng = np.random.default_rng(2)
+    steps = np.column_stack([rng.uniform(0.2, 0.5, 59), rng.normal(0.0, 0.02, 59), rng.normal(0.0, 0.1, 59)])
+    filter_poses = chain_np(np.array([3.0, -1.0, 0.5]), steps)
+    turns = rng.normal(0.0, 0.1, 59)
+    undone = undo_jump(filter_poses, turns, 30, 4)
+    got = between_np(undone[:-1], undone[1:])
+    near = np.arange(59)
+    near = (near >= 26) & (near < 34)
+    np.testing.assert_allclose(got[near, 2], turns[near], atol=1e-9)
+    np.testing.assert_allclose(got[~near], steps[~near], atol=1e-9)
+    np.testing.assert_allclose(got[:, :2], steps[:, :2], atol=1e-9)
+    np.testing.assert_allclose(undone[0], filter_poses[0])
+
+
+def _loops(query, submap, refused, heading=None):
+    count = len(query)
+    measurement = np.zeros((count, 3))
+    if heading is not None:
+        measurement[:, 2] = heading
+    return Loops(np.array(query), np.array(submap), measurement, np.zeros((count, 3, 3)), np.ones(count),
+                 np.zeros(count), np.zeros(count, bool), np.array(refused, object), np.zeros(count), np.zeros(count, bool))
+
+
+def test_spanned_nodes_and_loops_across_count_the_kept_loops_as_a_loop_over_the_nodes_does():
+    rng = np.random.default_rng(5)
+    nodes, first_node = 200, np.arange(0, 200, 20)
+    submap = rng.integers(0, 8, 60)
+    query = np.minimum(first_node[submap] + 20 + rng.integers(0, 120, 60), nodes - 1)
+    refused = rng.choice(["", "", "score", "consistency"], 60)
+    loops = _loops(query, submap, refused).extend(_loops(query[:5], submap[:5], [""] * 5))  # a pair kept twice
+    loops = loops._replace(appearance=np.arange(65) % 7 == 3)  # found by appearance: no span counts
+    kept = {(q, m) for q, m, r in zip(loops.query, loops.submap, loops.refused) if r == ""}
+    first_rows = {}  # each kept pair once, by its first kept row; counted unless that row came by appearance
+    for q, m, r, a in zip(loops.query, loops.submap, loops.refused, loops.appearance):
+        if r == "":
+            first_rows.setdefault((q, m), a)
+    windowed = {pair for pair, by_appearance in first_rows.items() if not by_appearance}
+    count = np.array([sum(first_node[m] + 20 <= c <= q for q, m in windowed) for c in range(nodes)])
+    for min_loops in (1, 3):
+        spanned = spanned_nodes(loops, first_node, nodes, min_loops)
+        np.testing.assert_array_equal(spanned[20:], count[20:] >= min_loops)
+        assert spanned[:20].all()  # the first submap: no loop can span it
+    for node in (25, 90, 170):
+        across = loops_across(loops, first_node, node)
+        assert {(int(loops.query[k]), int(loops.submap[k])) for k in across} == {
+            (q, m) for q, m in kept if first_node[m] + 20 <= node <= q}
+
+
+def test_loops_side_with_the_chain_whose_heading_they_measure():
+    """Two chains that part by 0.3 rad at node 50: loops into the first submap measured on either
+    side with it, whatever the jitter of 0.02 rad; no loop sides with neither."""
+    rng = np.random.default_rng(8)
+    steps = np.column_stack([np.full(99, 0.4), np.zeros(99), rng.normal(0.0, 0.05, 99)])
+    right = chain_np(np.zeros(3), steps)
+    steps[49, 2] += 0.3
+    jumped = chain_np(np.zeros(3), steps)
+    first_node, query = np.arange(0, 100, 20), np.arange(60, 100, 5)
+    for chain, other in ((right, jumped), (jumped, right)):
+        loops = _loops(query, np.zeros(query.size, int), [""] * query.size,
+                       chain[query, 2] - chain[0, 2] + rng.normal(0.0, 0.02, query.size))
+        across = loops_across(loops, first_node, 50)
+        assert across.size == query.size
+        assert loops_side_with(loops, across, first_node, chain, other)
+        assert not loops_side_with(loops, across, first_node, other, chain)
+        assert not loops_side_with(loops, across[:0], first_node, chain, other)

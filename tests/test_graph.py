@@ -13,13 +13,14 @@ import pytest
 
 from jaxslam.config import SlamConfig, default_params
 from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
-from jaxslam.graph import ClosureConfig, close_trajectory_loops, load_graph, save_graph
+from jaxslam.graph import ClosureConfig, close_trajectory_loops, load_graph, plot_graph, save_graph
 from jaxslam.graph import pose_graph
 from jaxslam.graph.loop_search import SearchWindow, class_shape, search_batch
 from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import square_bounds
 from jaxslam.laserlog import select_updates
 from jaxslam.sim.aliasing import TWIN_OFFSET, twin_rooms_scenario
+from jaxslam.sim.scenarios import office_scenario
 
 # ---------------------------------------------------------------------------------------------
 # The pose graph.
@@ -474,6 +475,52 @@ def test_twin_rooms_loops_after_a_jump_of_the_chain_are_kept_where_one_turn_expl
     assert path_error(explained.poses) < 0.5 * path_error(voted.poses)
 
 
+def test_office_a_jump_no_loop_spans_is_given_to_the_filter_and_a_slip_the_filter_corrected_is_not(tmp_path):
+    """The office's true path turned 0.5 rad at node 101, against an odometry that did not turn:
+    the places seen again after it lie beyond every window, and the closure alone keeps loops on
+    either side but none across (measured: 2.93 m off, 14 loops). The jump is tried, the closure
+    of the chain with it given to the filter keeps loops across it that agree with that chain,
+    and it is taken (35 loops, 0.027 m). The same turn in the odometry (a slip the filter
+    corrected) with the true path: tried where no node is spanned enough, not given, and the
+    closure is the one without the try."""
+    scenario = office_scenario(jax.random.key(0))
+    selection = select_updates(scenario.log, 0.5, 0.25)
+    truth = scenario.true_poses[selection.indices]
+    steps = between_np(truth[:-1], truth[1:])
+    steps[100, 2] += 0.5
+    jumped = chain_np(truth[0], steps)
+
+    def close(poses, motions, **changes):
+        return close_trajectory_loops(scenario.log, selection.indices, poses, motions, default_params(), SlamConfig(),
+                                      np.zeros(2), dataclasses.replace(ClosureConfig(), **changes))
+
+    path_error = lambda poses: np.mean(np.hypot(*(poses - truth)[:, :2].T))
+    alone, tried = close(jumped, selection.motions, jump_tries=0), close(jumped, selection.motions)
+    assert alone.jumps == () and path_error(alone.poses) > 1.0
+    (node, jump, sds, given), = tried.jumps
+    assert node == 101 and abs(jump - 0.5) < 0.05 and sds > 4.0 and given
+    assert path_error(tried.poses) < 0.1 and tried.num_loops > alone.num_loops + 10
+    assert np.all(_loop_errors(tried, truth)[tried.loops.refused == ""] < 0.3)
+    np.testing.assert_allclose(tried.filter_poses, jumped)  # the filter's, not the undone chain
+    assert tried.summary()["jumps_tried"] == [{"node": 101, "deg": pytest.approx(np.degrees(jump)), "robust_stds": sds,
+                                               "given_to_filter": True}]
+    save_graph(tmp_path / "graph.npz", tried)
+    np.testing.assert_allclose(load_graph(tmp_path / "graph.npz")["jumps"], [[101, jump, sds, 1.0]])
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    plot_graph(ax, load_graph(tmp_path / "graph.npz"))  # graph.png marks the jump
+    labels = [text.get_text() for text in ax.get_legend().get_texts()]
+    assert f"jump of {np.degrees(jump):.0f} deg at node 101, given to the filter" in labels
+    plt.close(fig)
+    slipped = selection.motions.copy()
+    slipped[101, 2] += 0.5
+    assert close(truth, slipped).jumps == ()  # every node spanned by the true path's loops
+    forced = {tries: close(truth, slipped, min_drift_loops=1000, jump_tries=tries) for tries in (0, 1)}
+    assert forced[1].jumps[0][0] == 101 and not forced[1].jumps[0][3]
+    np.testing.assert_array_equal(forced[1].poses, forced[0].poses)
+
+
 def test_one_jump_explains_a_jump_and_not_a_steady_drift():
     """Loops measured on the true path (out 30 m, a U-turn, back), kept ones at queries 130-148
     and a refused group at 151-159, all into the first submap. Through a chain whose heading
@@ -559,7 +606,10 @@ def test_closure_config_refuses_bad_values():
                        ({"sigma": 0.0}, "sigma must be > 0"), ({"window_min_xy": 21.0}, "minimum exceeds"),
                        ({"min_score": 1.5}, "min_score and max_second_ratio"),
                        ({"window_xy_per_metre": float("nan")}, "finite number"),
-                       ({"top_squares": -1}, "top_squares must be an integer >= 0")):
+                       ({"top_squares": -1}, "top_squares must be an integer >= 0"),
+                       ({"jump_half_width": 0}, "jump_half_width must be a positive integer"),
+                       ({"jump_min_sds": -1.0}, "jump_min_sds must be a finite number >= 0"),
+                       ({"jump_tries": -1}, "jump_tries must be an integer >= 0")):
         with pytest.raises(ValueError, match=words):
             ClosureConfig(**bad)
 

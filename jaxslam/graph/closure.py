@@ -43,7 +43,9 @@ every window, and measures the rates again from every loop kept so far, until th
 less than ``min_share_change`` (at most ``max_passes``). Where the filter's and the odometry's
 headings then part after the last kept loop by more than the rates allow (``max_parting``), one
 more pass searches from the odometry's chain. The final graph holds every pass's kept loops on
-the last chain. The submaps stay the filter's. :mod:`jaxslam.graph.output` draws the map again
+the last chain. The submaps stay the filter's. Where too few loops span a jump of the filter's
+heading against the odometry's, the closure runs again with the jump given to the filter, and the
+loops across it choose (:mod:`jaxslam.graph.jumps`). :mod:`jaxslam.graph.output` draws the map again
 at the optimised poses and writes the graph.
 """
 
@@ -63,6 +65,7 @@ from jaxslam.laser import scan_points
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
 from jaxslam.graph import acceptance, drift, places, pose_graph
 from jaxslam.graph.acceptance import Loops, loop_edges
+from jaxslam.graph.jumps import try_jumps
 from jaxslam.graph.loop_search import SearchWindow, class_shape
 from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps
@@ -185,11 +188,20 @@ class ClosureConfig:
     """Standard deviations by which the filter's and the odometry's headings may part after the
     last kept loop (:func:`jaxslam.graph.drift.parting`); beyond, one pass searches from the
     odometry's chain, whatever the share."""
+    jump_tries: int = 2
+    """Jumps of the filter's heading against the odometry's that fewer than ``min_drift_loops``
+    loops span, tried largest first: each given to the filter and the closure run again from that
+    chain, taken where the loops across it choose it (:mod:`jaxslam.graph.jumps`;
+    0: never)."""
+    jump_min_sds: float = 4.0
+    """Least size of a jump tried (robust standard deviations of the jump statistic)."""
+    jump_half_width: int = 5
+    """Nodes averaged on either side of a jump (:mod:`jaxslam.graph.jumps`)."""
 
     def __post_init__(self):
         counts = ("nodes_per_submap", "query_stride", "submaps_per_query", "num_points", "levels", "keep", "batch",
                   "consistency_nodes", "max_rounds", "query_block", "match_iterations", "max_passes",
-                  "min_drift_loops")
+                  "min_drift_loops", "jump_half_width")
         lengths = ("search_range", "sigma", "window_min_xy", "window_max_xy", "window_min_theta", "window_max_theta",
                    "angular_step", "near_window_xy", "max_std_xy", "max_std_theta", "consistency_xy",
                    "consistency_theta", "loop_phi", "max_chi2", "max_parting", "place_window_xy", "place_window_theta")
@@ -197,13 +209,13 @@ class ClosureConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"ClosureConfig: {name} must be a positive integer, got {value!r}")
-        for name in ("max_widenings", "top_squares", "places_per_query"):
+        for name in ("max_widenings", "top_squares", "places_per_query", "jump_tries"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"ClosureConfig: {name} must be an integer >= 0, got {value!r}")
         for name in lengths + ("min_separation", "max_node_distance", "window_xy_per_metre",
                                "window_theta_per_metre", "min_score", "max_second_ratio", "min_share_change",
-                               "min_similarity", "place_drift_per_metre"):
+                               "min_similarity", "place_drift_per_metre", "jump_min_sds"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value < 0:
                 raise ValueError(f"ClosureConfig: {name} must be a finite number >= 0, got {value!r}")
@@ -267,6 +279,10 @@ class LoopClosure(NamedTuple):
     measured (:func:`jaxslam.graph.drift.heading_drift_rates`; nan with too few loops)."""
     passes: int
     """Closures run (:attr:`ClosureConfig.max_passes`)."""
+    jumps: tuple = ()
+    """The jumps of the filter's heading that too few loops spanned, tried in turn
+    (:attr:`ClosureConfig.jump_tries`): ``(node, rad, robust stds, given to the filter)`` each;
+    where the last was given, the closure is its chain's and ``filter_poses`` the filter's."""
 
     @property
     def num_loops(self) -> int:
@@ -289,6 +305,8 @@ class LoopClosure(NamedTuple):
                 "certified_share": float(np.mean(self.loops.certified)) if self.loops.query.size else None,
                 "largest_correction_m": float(shift.max()), "passes": int(self.passes),
                 "odometry_heading_share": float(self.odometry_share),
+                "jumps_tried": [{"node": node, "deg": float(np.degrees(jump)), "robust_stds": sds,
+                                 "given_to_filter": given} for node, jump, sds, given in self.jumps],
                 "heading_drift_deg_per_sqrt_step": {
                     name: (float(np.degrees(np.sqrt(rate))) if np.isfinite(rate) else None)
                     for name, rate in zip(("filter", "odometry"), self.drift_rates)}}
@@ -390,6 +408,19 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
         raise ValueError(f"close_loops: node_scans (S,), node_poses (S, 3) and motions (S, 3) must agree, got "
                          f"{node_scans.shape}, {filter_poses.shape} and {np.shape(motions)}")
     motions = np.asarray(motions, np.float64)
+    closure = _close_chain(log, node_scans, filter_poses, motions, params, slam_config, frame_offset, config, progress,
+                           t0)
+    if closure.passes == 0:
+        return closure
+    return try_jumps(closure, filter_poses, motions, lambda poses: _close_chain(
+        log, node_scans, poses, motions, params, slam_config, frame_offset, config, progress, time.perf_counter()),
+        config, t0)
+
+
+def _close_chain(log, node_scans, filter_poses, motions, params, slam_config, frame_offset, config: ClosureConfig,
+                 progress: bool, t0: float) -> LoopClosure:
+    """:func:`close_trajectory_loops` from one chain of the nodes (world frame), without the jump's
+    second try."""
     local = to_local(filter_poses, frame_offset)
     if path_distances(local)[-1] < config.min_separation:  # no submap can be searched: nothing to build
         return _unclosed(log, node_scans, filter_poses, sequential_edges(local, motions, params.motion), t0)
@@ -429,7 +460,7 @@ def close_trajectory_loops(log, node_scans, node_poses, motions, params, slam_co
 class _Passes(NamedTuple):
     """What :func:`_passes` leaves: the last pass and the first, every pass's candidates, the final
     chain, its share and heading rate, the rates measured, whether the last pass was the parting's
-    (:func:`_parted`), the passes run and the pairs searched."""
+    (:func:`jaxslam.graph.drift.parted`), the passes run and the pairs searched."""
 
     closed: _Pass
     first_pass: _Pass
@@ -475,54 +506,25 @@ def _passes(local, motions, submaps: Submaps, ranges, scans, sensor, params, con
             # window before the first revisit. The odometry's chain is the other estimate of where
             # the robot was; search once from it, and let its loops (if any) measure the rates.
             share = 1.0
-            chain, heading_rate = _weighed_chain(local, motions, None, jitter, submaps)
+            chain, heading_rate = drift.weighed_chain(local, motions, None, jitter, submaps)
             continue
         searched_parting = parting_pass  # the parting's pass settles the passes
         settled = abs(new_share - share) < config.min_share_change or searched_parting
         # share < 1: the parting's pass searches the odometry's chain (share 1), so it runs once.
         parting_pass = (settled and done < config.max_passes and share < 1.0
-                        and _parted(everything, local, odometry_headings, rates, jitter, config))
+                        and drift.parted(everything, local, odometry_headings, rates, jitter, config))
         if (settled or done == config.max_passes) and not parting_pass:
             break
         # The rates did not settle, or the chains part after the last loop beyond what they allow:
         # nothing measured the filter there, and the odometry's chain is the other estimate.
         share = 1.0 if parting_pass else new_share
-        chain, heading_rate = _weighed_chain(local, motions, None if parting_pass else rates, jitter, submaps)
+        chain, heading_rate = drift.weighed_chain(local, motions, None if parting_pass else rates, jitter, submaps)
     if searched_parting:
         # The last pass searched from the odometry's chain: the final graph weighs the headings by
         # the rates every pass's loops measure.
         share = new_share
-        chain, heading_rate = _weighed_chain(local, motions, rates, jitter, submaps)
+        chain, heading_rate = drift.weighed_chain(local, motions, rates, jitter, submaps)
     return _Passes(closed, first_pass, everything, share, chain, heading_rate, rates, searched_parting, done, pairs)
-
-
-def _parted(everything: Loops, local, odometry_headings, rates, jitter, config: ClosureConfig) -> bool:
-    """Whether the filter's and the odometry's headings part after the last kept loop by more than
-    ``max_parting`` standard deviations (:func:`jaxslam.graph.drift.parting`), over a path long
-    enough (``min_separation``) to hold a loop no window reached."""
-    kept = acceptance.first_kept(everything)
-    since = int(everything.query[kept].max()) if kept.size else local.shape[0] - 1
-    return bool(np.all(np.isfinite(rates)) and path_distances(local[since:])[-1] >= config.min_separation
-                and drift.parting(local[:, 2], odometry_headings, since, rates, jitter) > config.max_parting)
-
-
-def _weighed_chain(local: np.ndarray, motions: np.ndarray, rates, jitter: float,
-                   submaps: Submaps) -> tuple[np.ndarray, float | None]:
-    """The chain a pass searches from, and its sequential edges' heading variance per step.
-
-    With the drift rates ``(filter, odometry)``: the headings of both weighed by them and the
-    filter's jitter (:func:`jaxslam.graph.drift.smoothed_headings`), each submap rigid
-    (:func:`jaxslam.graph.drift.fused_chain`), at the rate the fused chain drifts. Without
-    (``None``): the odometry's headings, every node turned, not every submap (a filter that
-    drifted out of every window has drifted inside its submaps too), the motion model's
-    variance."""
-    if rates is None:
-        every_node = np.arange(local.shape[0])
-        odometry = local[0, 2] + np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
-        return drift.fused_chain(local, odometry, every_node, every_node), None
-    headings = drift.smoothed_headings(local[:, 2], motions[1:, 2], rates[0], rates[1], jitter)
-    fused_rate = rates[0] * rates[1] / (rates[0] + rates[1])
-    return drift.fused_chain(local, headings, submaps.first_node, submaps.last_node), fused_rate
 
 
 def _unclosed(log, node_scans, filter_poses, sequential: Edges, t0: float) -> LoopClosure:

@@ -1,7 +1,7 @@
 """How fast the filter's heading and the odometry's drift, as the loops measure them, and the
 chain whose headings weigh the two by it (:func:`heading_drift_rates`, :func:`smoothed_headings`,
-:func:`fused_chain`), and whether the two part after the last loop beyond what they allow
-(:func:`parting`).
+:func:`fused_chain`, :func:`weighed_chain`), and whether the two part after the last loop beyond
+what they allow (:func:`parting`, :func:`parted`).
 
 The pose graph's chain between loops is the filter's steps. Where the filter's heading drifts
 faster than the robot's odometry (on FR-clinic 34 degrees after 1.4 km against the odometry's
@@ -37,6 +37,7 @@ import scipy.linalg
 
 from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
 from jaxslam.graph.acceptance import first_kept
+from jaxslam.graph.windows import path_distances
 
 
 def heading_drift_rates(first: np.ndarray, last: np.ndarray, second: np.ndarray, measured_heading: np.ndarray,
@@ -258,3 +259,43 @@ def measured_share(everything, submaps, local: np.ndarray, odometry_headings: np
     if np.all(np.isfinite(rates)) and sum(rates) > 0:
         return rates[0] / (rates[0] + rates[1]), rates
     return share, rates
+
+
+def parted(everything, local, odometry_headings, rates, jitter, config) -> bool:
+    """Whether the filter's and the odometry's headings part after the last kept loop of
+    ``everything`` (every pass's loops) by more than ``max_parting`` standard deviations
+    (:func:`parting`), over a path long enough (``min_separation``) to hold a loop no window
+    reached.
+
+    Args:
+        local: (S, 3) the filter's chain; ``odometry_headings`` (S,) rad.
+        rates: ``(filter, odometry)`` rad^2 per step; ``jitter``: rad^2 (:func:`step_noise`).
+        config: the closure's settings.
+    """
+    kept = first_kept(everything)
+    since = int(everything.query[kept].max()) if kept.size else local.shape[0] - 1
+    return bool(np.all(np.isfinite(rates)) and path_distances(local[since:])[-1] >= config.min_separation
+                and parting(local[:, 2], odometry_headings, since, rates, jitter) > config.max_parting)
+
+
+def weighed_chain(local: np.ndarray, motions: np.ndarray, rates, jitter: float,
+                  submaps) -> tuple[np.ndarray, float | None]:
+    """The chain a pass searches from, and its sequential edges' heading variance per step.
+
+    With the drift rates ``(filter, odometry)``: the headings of both weighed by them and the
+    filter's jitter (:func:`smoothed_headings`), each submap rigid (:func:`fused_chain`), at the
+    rate the fused chain drifts. Without (``None``): the odometry's headings, every node turned,
+    not every submap (a filter that drifted out of every window has drifted inside its submaps
+    too), the motion model's variance.
+
+    Args:
+        local: (S, 3) the filter's chain (m, m, rad); ``motions``: (S, 3) the odometry's (row 0
+            unused); ``jitter``: rad^2; ``submaps``: their node runs.
+    """
+    if rates is None:
+        every_node = np.arange(local.shape[0])
+        odometry = local[0, 2] + np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
+        return fused_chain(local, odometry, every_node, every_node), None
+    headings = smoothed_headings(local[:, 2], motions[1:, 2], rates[0], rates[1], jitter)
+    fused_rate = rates[0] * rates[1] / (rates[0] + rates[1])
+    return fused_chain(local, headings, submaps.first_node, submaps.last_node), fused_rate

@@ -34,7 +34,8 @@ def save_graph(path, closure: LoopClosure) -> None:
     poses), every candidate loop (``loop_*``: the fields of :class:`Loops`, ``loop_node`` its
     submap's first node), ``submap_first_node``, and the chain the last pass searched from
     (``chain_poses``, ``odometry_share``, ``drift_rates`` (filter, odometry) in rad^2 per step,
-    ``passes``: :mod:`jaxslam.graph.drift`)."""
+    ``passes``: :mod:`jaxslam.graph.drift`), and ``jumps`` ((J, 4): node, rad, robust standard
+    deviations, 1 where given to the filter; :mod:`jaxslam.graph.jumps`)."""
     edges = closure.edges
     loops = closure.loops
     arrays = {"node_scans": closure.node_scans, "filter_poses": closure.filter_poses, "poses": closure.poses,
@@ -44,7 +45,8 @@ def save_graph(path, closure: LoopClosure) -> None:
               "edge_chi2": pose_graph.chi2(closure.poses, edges),
               "loop_node": closure.submap_first_node[loops.submap] if loops.submap.size else np.zeros(0, int),
               "chain_poses": closure.chain_poses, "odometry_share": np.float64(closure.odometry_share),
-              "drift_rates": np.asarray(closure.drift_rates, np.float64), "passes": np.int64(closure.passes)}
+              "drift_rates": np.asarray(closure.drift_rates, np.float64), "passes": np.int64(closure.passes),
+              "jumps": np.asarray(closure.jumps, np.float64).reshape(-1, 4)}
     arrays.update({f"loop_{name}": np.asarray(value) for name, value in loops._asdict().items()})
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
@@ -60,7 +62,9 @@ def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None
     """Draw a saved graph (:func:`load_graph`) on a map's axes (world frame): the filter's path,
     the optimised path, and every candidate loop as a line from its submap's first node to its
     query at the optimised poses: kept in green (purple where the search by appearance found it),
-    refused in red (thin), each set labelled with its count."""
+    refused in red (thin), each set labelled with its count; each jump of the filter's heading
+    tried (:mod:`jaxslam.graph.jumps`) as a cross on the filter's path, black where given to the
+    filter."""
     poses, filt = graph["poses"], graph["filter_poses"]
     ax.plot(filt[:, 0], filt[:, 1], color="tab:red", lw=0.6, alpha=0.6, label="filter")
     share = float(graph.get("odometry_share", 0.0))
@@ -84,5 +88,10 @@ def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None
         a, b = poses[graph["loop_node"][mask]], poses[graph["loop_query"][mask]]
         segments = np.stack([a[:, :2], b[:, :2]], axis=1)
         ax.add_collection(LineCollection(segments, colors=colour, linewidths=lw, label=f"{label} ({int(mask.sum())})"))
+    for node, jump, _, given in graph.get("jumps", np.zeros((0, 4))):  # older archives have none
+        at = filt[int(node)]
+        whose = "given to" if given else "kept by"
+        ax.plot(at[0], at[1], "x", color="black" if given else "tab:gray", ms=8, mew=2,
+                label=f"jump of {np.degrees(jump):.0f} deg at node {int(node)}, {whose} the filter")
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=7)
