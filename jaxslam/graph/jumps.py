@@ -76,7 +76,7 @@ def unspanned_jumps(filter_headings: np.ndarray, odometry_turns: np.ndarray, spa
 
 def undo_jump(filter_poses: np.ndarray, odometry_turns: np.ndarray, node: int, half_width: int) -> np.ndarray:
     """(S, 3) the filter's chain with the heading changes of the steps within ``half_width`` of
-    ``node`` (:func:`unspanned_jump`) taken from the odometry: the jump given to the filter."""
+    ``node`` (:func:`unspanned_jumps`) taken from the odometry: the jump given to the filter."""
     filter_poses = np.asarray(filter_poses, np.float64)
     steps = between_np(filter_poses[:-1], filter_poses[1:])
     around = slice(max(node - half_width, 0), min(node + half_width, steps.shape[0]))
