@@ -9,7 +9,8 @@ import pytest
 from jaxslam.geometry import between_np, chain_np
 from jaxslam.graph.acceptance import Loops
 from jaxslam.graph.drift import fused_chain, heading_drift_rates, parting, smoothed_headings, step_noise
-from jaxslam.graph.jumps import loops_across, loops_side_with, spanned_nodes, undo_jump, unspanned_jumps
+from jaxslam.graph.jumps import heading_jumps, loops_across, loops_side_with, spanned_nodes, undo_jump, unspanned_jumps
+from jaxslam.graph.submaps import submap_ranges
 
 
 def test_heading_drift_rates_recover_two_random_walks_whatever_the_submaps_first_node_jitters():
@@ -212,6 +213,44 @@ def test_unspanned_jumps_find_the_filters_jumps_where_no_loop_spans_them():
     assert unspanned_jumps(headings, turns, spanned, half_width, 1)[0].tolist() == [240]
     assert unspanned_jumps(headings, turns, np.ones(nodes, bool), half_width, 3)[0].size == 0
     assert unspanned_jumps(headings[:9], turns[:8], np.zeros(9, bool), half_width, 3)[0].size == 0
+
+
+def test_heading_jumps_are_every_large_jump_spanned_or_not_and_begin_a_submap():
+    """The filter of the test above: its two jumps (44 and 28 robust standard deviations) are
+    found whether loops span them or not, and the next largest values of the statistic (2.4) are
+    not; a steady drift changes nothing. The submaps begin a run at each jump; a piece shorter
+    than half a run joins the run on its side of the jump, so no submap holds nodes on both
+    sides; without jumps the runs are the regular ones."""
+    rng = np.random.default_rng(11)
+    nodes = 400
+    turns = rng.normal(0.0, 0.05, nodes - 1)
+    headings = 0.3 + np.concatenate([[0.0], np.cumsum(turns + rng.normal(0.0, 0.002, nodes - 1))])
+    headings += rng.normal(0.0, 0.01, nodes)
+    headings[137:] += 0.4
+    headings[240:] -= 0.25
+    cuts = heading_jumps(headings, turns, 5, 4.0)
+    assert cuts.tolist() == [137, 240]
+    np.testing.assert_array_equal(heading_jumps(headings + 0.015 * np.arange(nodes), turns, 5, 4.0), cuts)
+    assert heading_jumps(headings, turns, 5, 50.0).size == 0
+    first, last = submap_ranges(nodes, 20, cuts)
+    assert list(zip(first, last))[6:13] == [(120, 136), (137, 159), (160, 179), (180, 199), (200, 219),
+                                            (220, 239), (240, 259)]  # 240 begins the regular run
+    np.testing.assert_array_equal(first[1:], last[:-1] + 1)
+    for c in cuts:
+        assert c in first  # no submap holds both c - 1 and c
+    regular = submap_ranges(101, 20)
+    np.testing.assert_array_equal(regular[0], [0, 20, 40, 60, 80, 100])
+    np.testing.assert_array_equal(regular[1], [19, 39, 59, 79, 99, 100])
+    cases = {(61,): [0, 20, 40, 61, 80, 100],  # [60, 61) joins 40's run
+             (78,): [0, 20, 40, 60, 78, 100],  # [78, 80) joins 80's run
+             (61, 78): [0, 20, 40, 61, 78, 100],
+             (65,): [0, 20, 40, 65, 80, 100],  # [60, 65) joins 40's run: 25 nodes
+             (70,): [0, 20, 40, 60, 70, 80, 100],  # both pieces half a run
+             (40, 0, 101, 150): [0, 20, 40, 60, 80, 100]}  # a regular start, the ends, beyond them
+    for given, firsts in cases.items():
+        got_first, got_last = submap_ranges(101, 20, given)
+        assert got_first.tolist() == firsts, given
+        np.testing.assert_array_equal(got_last, np.append(got_first[1:] - 1, 100))
 
 
 def test_undo_jump_takes_the_odometrys_turns_near_the_node_and_keeps_every_other_step():

@@ -323,6 +323,30 @@ def test_twin_rooms_no_false_loop_is_kept_and_the_path_comes_closer(twin_rooms, 
     assert graph["edge_kind"].sum() == kept.sum()  # LOOP = 1, one edge per kept loop
 
 
+def test_twin_rooms_turned_inside_a_submap_keep_no_loop_into_it(twin_rooms):
+    """The true path turned 0.5 rad between nodes 60 and 61, against an odometry that did not
+    turn. A submap of nodes 60-79 would hold node 60 in one frame and the rest in another, and
+    loops measured in node 60's frame carry the turn: with no jump counted large enough to begin
+    a submap, two are kept 2.0-2.6 m off the truth, both into it. At the defaults a submap
+    begins at node 61 (the piece before joins nodes 40-59), and no kept loop is off."""
+    scenario, selection, truth, _ = twin_rooms
+    steps = between_np(truth[:-1], truth[1:])
+    steps[60, 2] += 0.5
+    turned = chain_np(truth[0], steps)
+
+    def close(**changes):
+        return close_trajectory_loops(scenario.log, selection.indices, turned, selection.motions, default_params(),
+                                      SlamConfig(), np.zeros(2), dataclasses.replace(ClosureConfig(), **changes))
+
+    uncut, cut = close(jump_min_sds=1e9), close()
+    assert 60 in uncut.submap_first_node and 61 not in uncut.submap_first_node
+    off = (uncut.loops.refused == "") & (_loop_errors(uncut, truth) > 0.3)
+    assert off.sum() >= 1 and np.all(uncut.submap_first_node[uncut.loops.submap[off]] == 60)
+    assert 61 in cut.submap_first_node and 60 not in cut.submap_first_node and 40 in cut.submap_first_node
+    kept = cut.loops.refused == ""
+    assert kept.sum() >= 10 and np.all(_loop_errors(cut, truth)[kept] < 0.3)
+
+
 def test_twin_rooms_the_loops_measure_whose_heading_drifts(twin_rooms):
     """The input path's heading drifts by 0.001 rad a step; the odometry here is the truth's
     steps with a tenth of that in noise. The first pass's loops measure the input's drift as the

@@ -65,7 +65,7 @@ from jaxslam.laser import scan_points
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
 from jaxslam.graph import acceptance, drift, places, pose_graph
 from jaxslam.graph.acceptance import Loops, loop_edges
-from jaxslam.graph.jumps import try_jumps
+from jaxslam.graph.jumps import heading_jumps, try_jumps
 from jaxslam.graph.loop_search import SearchWindow, class_shape
 from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps
@@ -78,7 +78,8 @@ class ClosureConfig:
     """Settings of the loop closure. Hashable; the fields marked static set array shapes."""
 
     nodes_per_submap: int = 20
-    """Consecutive processed scans per submap (static)."""
+    """Consecutive processed scans per submap (static); a jump of the heading at least
+    ``jump_min_sds`` begins one (:func:`jaxslam.graph.submaps.submap_ranges`)."""
     query_stride: int = 3
     """Every this many processed scans is searched for loops."""
     submaps_per_query: int = 2
@@ -194,7 +195,8 @@ class ClosureConfig:
     chain, taken where the loops across it choose it (:mod:`jaxslam.graph.jumps`;
     0: never)."""
     jump_min_sds: float = 4.0
-    """Least size of a jump tried (robust standard deviations of the jump statistic)."""
+    """Least size of a jump tried, and of one that begins a submap (robust standard deviations
+    of the jump statistic, :func:`jaxslam.graph.jumps.heading_jumps`)."""
     jump_half_width: int = 5
     """Nodes averaged on either side of a jump (:mod:`jaxslam.graph.jumps`)."""
 
@@ -433,8 +435,9 @@ def _close_chain(log, node_scans, filter_poses, motions, params, slam_config, fr
     # its heading from the odometry takes the odometry's step-to-step noise too (the simulated
     # worlds' loops came out 3 degrees off against submaps drawn on it).
     widest = config.window(slam_config.resolution)  # the bounds the deepest search reads
+    cuts = heading_jumps(local[:, 2], motions[1:, 2], config.jump_half_width, config.jump_min_sds)
     submaps = build_submaps(local, ranges, log.sensor, params.insertion, slam_config.resolution, slam_config.max_insert_range,
-                            config.nodes_per_submap, config.sigma, class_shape(widest.half_cells, widest).levels)
+                            config.nodes_per_submap, config.sigma, class_shape(widest.half_cells, widest).levels, cuts=cuts)
     seconds = {"submaps": time.perf_counter() - t0, "search": 0.0, "accept": 0.0, "appearance": 0.0, "optimize": 0.0}
     run = _passes(local, motions, submaps, ranges, (points, valid, contexts), log.sensor, params, config, seconds,
                   progress)

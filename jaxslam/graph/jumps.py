@@ -74,6 +74,19 @@ def unspanned_jumps(filter_headings: np.ndarray, odometry_turns: np.ndarray, spa
     return nodes[chosen], jump[chosen], np.abs(jump[chosen] - typical) / spread
 
 
+def heading_jumps(filter_headings: np.ndarray, odometry_turns: np.ndarray, half_width: int,
+                  min_sds: float) -> np.ndarray:
+    """(J,) int, increasing: every node where the statistic of :func:`unspanned_jumps` exceeds
+    ``min_sds`` robust standard deviations, spanned by loops or not, each at least two half
+    widths from a larger one. The submaps begin a new run there
+    (:func:`jaxslam.graph.submaps.submap_ranges`): whichever chain the jump is in, no submap then
+    holds scans placed on both sides of it.
+    """
+    size = np.asarray(filter_headings).size
+    nodes, _, sds = unspanned_jumps(filter_headings, odometry_turns, np.zeros(size, bool), half_width, size)
+    return np.sort(nodes[sds > min_sds])
+
+
 def undo_jump(filter_poses: np.ndarray, odometry_turns: np.ndarray, node: int, half_width: int) -> np.ndarray:
     """(S, 3) the filter's chain with the heading changes of the steps within ``half_width`` of
     ``node`` (:func:`unspanned_jumps`) taken from the odometry: the jump given to the filter."""

@@ -1,7 +1,8 @@
 """Submaps: small local grids of consecutive scans at the filter's poses, what the loop search
 matches scans against (:mod:`jaxslam.graph.loop_search`).
 
-A submap holds ``nodes_per_submap`` consecutive processed scans, inserted with the filter's own
+A submap holds ``nodes_per_submap`` consecutive processed scans (fewer or more where the chain's
+heading jumps: :func:`submap_ranges`), inserted with the filter's own
 insertion (:func:`jaxslam.occupancy.insert_scan`) into a dense grid in the frame of its first
 node. Its cells keep what the search reads:
 
@@ -55,11 +56,32 @@ class Submaps(NamedTuple):
     module docstring)."""
 
 
-def submap_ranges(num_nodes: int, nodes_per_submap: int) -> tuple[np.ndarray, np.ndarray]:
+def submap_ranges(num_nodes: int, nodes_per_submap: int, cuts=()) -> tuple[np.ndarray, np.ndarray]:
     """First and last node (inclusive) of each submap: consecutive runs of ``nodes_per_submap``
-    nodes, the last run possibly shorter."""
-    first = np.arange(0, num_nodes, nodes_per_submap)
-    return first, np.minimum(first + nodes_per_submap - 1, num_nodes - 1)
+    nodes, the last run possibly shorter, and a submap begun at each node of ``cuts``.
+
+    A cut is a step the chain's heading may have jumped at (:func:`jaxslam.graph.jumps.heading_jumps`):
+    a submap across it would hold scans placed in two frames, and a loop into it, measured in its
+    first node's frame, would carry the jump (the simulated worlds turned 0.5 rad inside a submap
+    kept loops 2-3 m off the truth into it, none where the turn fell on a submap's first node).
+    A piece a cut leaves shorter than half a run joins the run on its side of the cut, so a
+    submap holds at most about twice ``nodes_per_submap`` nodes; without cuts the runs are as
+    before.
+    """
+    regular = set(range(0, num_nodes, nodes_per_submap))
+    cuts = {int(c) for c in cuts if 0 < int(c) < num_nodes}
+    starts = sorted(regular | cuts)
+    shortest = nodes_per_submap // 2
+    k = 1
+    while k < len(starts):
+        before, after = starts[k - 1], starts[k + 1] if k + 1 < len(starts) else num_nodes
+        if starts[k] not in cuts and ((before in cuts and starts[k] - before < shortest)
+                                      or (after in cuts and after - starts[k] < shortest)):
+            del starts[k]  # the short piece joins the run beside it, on its side of the cut
+        else:
+            k += 1
+    first = np.array(starts, int)
+    return first, np.append(first[1:] - 1, num_nodes - 1)
 
 
 def _fit_table(resolution: float, sigma: float) -> np.ndarray:
@@ -106,7 +128,7 @@ def _insert_submaps(poses, ranges, sensor, params: InsertionParams, grid: GridSp
 
 def build_submaps(poses: np.ndarray, ranges: np.ndarray, sensor: SensorSpec, insertion: InsertionParams,
                   resolution: float, max_insert_range: float, nodes_per_submap: int, sigma: float, levels: int,
-                  batch: int = 8) -> Submaps:
+                  batch: int = 8, cuts=()) -> Submaps:
     """Build the submaps of a trajectory.
 
     Args:
@@ -120,17 +142,19 @@ def build_submaps(poses: np.ndarray, ranges: np.ndarray, sensor: SensorSpec, ins
         sigma: the fit's width (m).
         levels: bound levels to keep (the branch and bound's depth).
         batch: submaps inserted at once (memory).
+        cuts: nodes that begin a submap (:func:`submap_ranges`).
 
     Returns:
         :class:`Submaps`.
     """
     poses = np.asarray(poses, np.float64)
     ranges = np.asarray(ranges, np.float32)
-    first, last = submap_ranges(poses.shape[0], nodes_per_submap)
+    first, last = submap_ranges(poses.shape[0], nodes_per_submap, cuts)
     num = first.size
+    longest = int(np.max(last - first)) + 1
     # Every node in its submap's frame, and the footprint: the nodes plus the insertion's reach.
-    idx = np.minimum(first[:, None] + np.arange(nodes_per_submap)[None], last[:, None])  # (M, n)
-    padded = (first[:, None] + np.arange(nodes_per_submap)[None]) > last[:, None]
+    idx = np.minimum(first[:, None] + np.arange(longest)[None], last[:, None])  # (M, n)
+    padded = (first[:, None] + np.arange(longest)[None]) > last[:, None]
     rel = between_np(poses[first][:, None, :], poses[idx])  # (M, n, 3)
     reach = max_insert_range + float(np.max(np.abs(np.asarray(sensor.laser_pose)[:2]))) + 2 * resolution
     lo = np.min(rel[..., :2], axis=1) - reach
