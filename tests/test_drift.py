@@ -319,3 +319,41 @@ def test_loops_side_with_the_chain_whose_heading_they_measure():
         assert loops_side_with(loops, across, first_node, chain, other)
         assert not loops_side_with(loops, across, first_node, other, chain)
         assert not loops_side_with(loops, across[:0], first_node, chain, other)
+
+
+def test_a_turn_lets_the_loops_after_it_set_the_heading_where_the_straight_steps_hold_it():
+    """FR-clinic's last corner: the chain turned 90 degrees 2.8 degrees too far, and the loops
+    after the corner measured it, but the chain's heading variance was the loops' drift rate alone
+    (0.05 degrees a root step), so the graph held the chain's turn against them. The motion
+    model's share of a turn (``stt`` times it) frees the turn and not the straight steps: the
+    solved heading after the corner is the loops', and without it stays off by over 1 degree."""
+    from jaxslam.config import default_params
+    from jaxslam.graph import pose_graph
+    from jaxslam.graph.closure import sequential_edges
+    from jaxslam.graph.pose_graph import LOOP, Edges, PoseGraph
+
+    steps = np.zeros((81, 3))
+    steps[1:, 0] = 0.7  # 0.7 m a step, the corner's 90 degrees over steps 40 and 41
+    steps[40:42, 2] = np.pi / 4
+    truth = chain_np(np.zeros(3), steps[1:])
+    odometry = steps.copy()
+    odometry[40:42, 2] *= 1 + np.radians(2.8) / (np.pi / 2)  # the odometry's turn 2.8 degrees too far
+    chain = chain_np(np.zeros(3), odometry[1:])
+    pairs = np.array([(20, 60), (25, 65), (30, 70)])  # loops across the corner, as the scans measured them
+    information = np.broadcast_to(np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / 0.01**2]), (3, 3, 3))
+    loops = Edges(pairs[:, 0], pairs[:, 1], between_np(truth[pairs[:, 0]], truth[pairs[:, 1]]), information,
+                  np.full(3, LOOP))
+    params = default_params().motion
+    rate = np.radians(0.05) ** 2
+    after = slice(45, 81)
+    for motion, most in ((params, 0.3), (params._replace(stt=0.0), None)):
+        sequential = sequential_edges(chain, odometry, motion, rate)
+        solved = pose_graph.optimize(PoseGraph(chain, pose_graph.concat_edges(sequential, loops)), loop_phi=None,
+                                     max_iterations=100, tolerance=1e-12).poses
+        off = np.degrees(np.abs(solved[after, 2] - truth[after, 2]).max())
+        if most is not None:
+            assert off < most
+            straight = np.degrees(np.abs(np.diff(solved[:40, 2])).max())
+            assert straight < 0.05  # the straight steps keep their stiffness
+        else:
+            assert off > 1.0

@@ -319,14 +319,16 @@ def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params, head
     covariance of the odometry motion between them ((S, 3) poses, (S, 3) motions, row 0 unused).
 
     ``heading_rate`` (rad^2 per step), where the loops measured it, is each step's heading
-    variance instead: the motion model's (about 3 degrees a step) would let the graph bend a
-    chain whose heading the loops found good to 0.04-0.06 degrees a root step, and close a loop's
-    translation by turning it (FR-clinic: 12 degrees)."""
+    variance instead, plus the motion model's share of the step's turn (``stt`` times it): the
+    model's whole (about 3 degrees a step) would let the graph bend a chain whose heading the
+    loops found good to 0.04-0.06 degrees a root step, and close a loop's translation by turning
+    it (FR-clinic: 12 degrees); the rate alone held a turn's error too, which a random walk does
+    not model (FR-clinic's last corner, 2.8 degrees: the loops after it were outvoted)."""
     first = np.arange(poses.shape[0] - 1)
     measurement = between_np(poses[:-1], poses[1:])
     std = np.asarray(noise_std(jnp.asarray(motions[1:], jnp.float32), motion_params), np.float64)
     if heading_rate is not None:
-        std[:, 2] = math.sqrt(heading_rate)
+        std[:, 2] = np.sqrt(heading_rate + (float(motion_params.stt) * motions[1:, 2]) ** 2)
     information = np.zeros((first.size, 3, 3))
     information[:, [0, 1, 2], [0, 1, 2]] = 1.0 / np.maximum(std, 1e-6) ** 2
     return Edges(first, first + 1, measurement, information, np.full(first.size, SEQUENTIAL))
