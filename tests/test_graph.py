@@ -16,7 +16,7 @@ from jaxslam.geometry import between_np, chain_np, compose_np, wrap_angle_np
 from jaxslam.graph import ClosureConfig, close_trajectory_loops, load_graph, plot_graph, save_graph
 from jaxslam.graph import pose_graph
 from jaxslam.graph.loop_search import SearchWindow, class_shape, search_batch
-from jaxslam.graph.pose_graph import LOOP, SEQUENTIAL, Edges, PoseGraph
+from jaxslam.graph.pose_graph import LOOP, ODOMETRY, SEQUENTIAL, Edges, PoseGraph
 from jaxslam.graph.submaps import square_bounds
 from jaxslam.laserlog import select_updates
 from jaxslam.sim.aliasing import TWIN_OFFSET, twin_rooms_scenario
@@ -320,7 +320,9 @@ def test_twin_rooms_no_false_loop_is_kept_and_the_path_comes_closer(twin_rooms, 
     graph = load_graph(tmp_path / "graph.npz")
     assert graph["loop_refused"].shape == kept.shape and int((graph["loop_refused"] == "").sum()) == kept.sum()
     np.testing.assert_array_equal(graph["loop_appearance"], closure.loops.appearance)
-    assert graph["edge_kind"].sum() == kept.sum()  # LOOP = 1, one edge per kept loop
+    kinds = np.bincount(graph["edge_kind"], minlength=3)
+    # one edge per kept loop; the chain's and the odometry's over every step (lengths.py)
+    assert kinds[LOOP] == kept.sum() and kinds[SEQUENTIAL] == kinds[ODOMETRY] == closure.node_scans.size - 1
 
 
 def test_twin_rooms_turned_inside_a_submap_keep_no_loop_into_it(twin_rooms):

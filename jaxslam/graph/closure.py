@@ -43,11 +43,11 @@ every window, and measures the rates again from every loop kept so far, until th
 less than ``min_share_change`` (at most ``max_passes``). Where the filter's and the odometry's
 headings then part after the last kept loop by more than the rates allow (``max_parting``), one
 more pass searches from the odometry's chain. The final graph holds every pass's kept loops on
-the last chain. The submaps stay the filter's. Where too few loops span a jump of the filter's
-heading against the odometry's, the closure runs again with the jump given to the filter, and the
-loops across it choose (:mod:`jaxslam.graph.jumps`). :mod:`jaxslam.graph.output` draws the map again
-at the optimised poses and writes the graph.
-"""
+the last chain, with each step's length weighed between what its scan pins and the odometry's
+(:mod:`jaxslam.graph.lengths`). The submaps stay the filter's. Where too few loops span a jump of
+the filter's heading against the odometry's, the closure runs again with the jump given to the
+filter, and the loops across it choose (:mod:`jaxslam.graph.jumps`). :mod:`jaxslam.graph.output`
+draws the map again at the optimised poses and writes the graph."""
 
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ from tqdm.auto import tqdm
 from jaxslam.geometry import between_np, compose_np
 from jaxslam.laser import scan_points
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
-from jaxslam.graph import acceptance, drift, places, pose_graph
+from jaxslam.graph import acceptance, drift, lengths, places, pose_graph
 from jaxslam.graph.acceptance import Loops, loop_edges
 from jaxslam.graph.jumps import heading_jumps, try_jumps
 from jaxslam.graph.loop_search import SearchWindow, class_shape
@@ -449,11 +449,13 @@ def _close_chain(log, node_scans, filter_poses, motions, params, slam_config, fr
     found, estimate, sequential = closed.loops, closed.poses, closed.sequential
     if run.searched_parting:  # the final chain is not the one the last pass searched from
         sequential = sequential_edges(chain, motions, params.motion, run.heading_rate)
-    if done > 1 and share > 0:  # the loops of every pass in one graph on the last chain, from the last pass's solution
+    if done > 1 and share > 0:  # the loops of every pass in one graph on the last chain
         found = acceptance.merged(everything)
-        t_solve = time.perf_counter()
-        estimate = _solve(found, submaps, sequential, chain, estimate, chain.shape[0], config)
-        seconds["optimize"] += time.perf_counter() - t_solve
+    t_solve = time.perf_counter()
+    sequential = lengths.weighed_steps(sequential, lengths.scan_structure(ranges, log.sensor, config.search_range),
+                                       motions, params.motion, slam_config.resolution)
+    estimate = _solve(found, submaps, sequential, chain, estimate, chain.shape[0], config)
+    seconds["optimize"] += time.perf_counter() - t_solve
     poses = to_world(estimate, frame_offset)
     return LoopClosure(node_scans, filter_poses, poses, trajectory_per_scan(log, node_scans, poses),
                        pose_graph.concat_edges(sequential, loop_edges(found, submaps)),

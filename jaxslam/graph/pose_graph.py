@@ -23,8 +23,9 @@ import scipy.sparse.linalg
 
 from jaxslam.geometry import between_np, wrap_angle_np
 
-SEQUENTIAL, LOOP = 0, 1
-"""Edge kinds: between consecutive nodes (the filter's relative poses), and loop closures."""
+SEQUENTIAL, LOOP, ODOMETRY = 0, 1, 2
+"""Edge kinds: between consecutive nodes (the filter's relative poses), loop closures, and the
+odometry's translation between consecutive nodes (:mod:`jaxslam.graph.lengths`)."""
 
 
 class Edges(NamedTuple):
@@ -39,7 +40,7 @@ class Edges(NamedTuple):
     information: np.ndarray
     """(E, 3, 3) float64: the measurement's inverse covariance (1/m^2, 1/(m rad), 1/rad^2)."""
     kind: np.ndarray
-    """(E,) int: :data:`SEQUENTIAL` or :data:`LOOP`."""
+    """(E,) int: :data:`SEQUENTIAL`, :data:`LOOP` or :data:`ODOMETRY`."""
 
     @property
     def count(self) -> int:
