@@ -262,7 +262,7 @@ class LoopClosure(NamedTuple):
     trajectory: np.ndarray
     """(T, 3): an optimised pose for every scan of the log."""
     edges: Edges
-    """The graph's edges, the kept loops last (node indices)."""
+    """The final graph's edges (node indices): the chain's, the odometry's (:mod:`jaxslam.graph.lengths`), the kept loops."""
     loops: Loops
     """Every candidate loop the search found with a score, kept or refused."""
     submap_first_node: np.ndarray
