@@ -48,6 +48,13 @@ def compose_np(a, b) -> np.ndarray:
     return np.stack([x, y, wrap_angle_np(a[..., 2] + b[..., 2])], axis=-1)
 
 
+def rotation_np(theta) -> np.ndarray:
+    """(..., 2, 2) float64 rotation matrices by ``theta`` (rad, any shape): a vector in the turned
+    frame, times it, is the same vector in the frame it was turned from."""
+    c, s = np.cos(np.asarray(theta, np.float64)), np.sin(np.asarray(theta, np.float64))
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
 def chain_np(start, steps) -> np.ndarray:
     """(T + 1, 3) float64 poses ``x_0 = start`` (3,), ``x_{i+1} = x_i (+) steps[i]`` ((T, 3)
     relative poses), composed in closed form with no loop: the heading is the running sum of the

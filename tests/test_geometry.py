@@ -214,3 +214,11 @@ def test_chain_np_matches_composing_one_step_at_a_time():
     expected = steps.copy()
     expected[:, 2] = G.wrap_angle_np(steps[:, 2])
     np.testing.assert_allclose(G.between_np(poses[:-1], poses[1:]), expected, atol=1e-10)
+
+
+def test_rotation_np_turns_a_step_as_compose_np_does():
+    rng = np.random.default_rng(0)
+    poses, steps = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    turned = np.einsum("eij,ej->ei", G.rotation_np(poses[:, 2]), steps[:, :2])
+    np.testing.assert_allclose(poses[:, :2] + turned, G.compose_np(poses, steps)[:, :2], atol=1e-12)
+    assert G.rotation_np(np.zeros((2, 3))).shape == (2, 3, 2, 2)

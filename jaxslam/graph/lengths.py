@@ -20,6 +20,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from jaxslam.geometry import rotation_np
 from jaxslam.graph.pose_graph import ODOMETRY, Edges, concat_edges
 from jaxslam.laser import scan_points
 from jaxslam.motion import noise_std
@@ -88,8 +89,7 @@ def weighed_steps(sequential: Edges, structure: np.ndarray, motions: np.ndarray,
     # An edge's error is taken in its measurement's frame, turned by the step's heading: the second
     # node's robot frame, where its scan's structure already is; the odometry's noise is in the first.
     heading = sequential.measurement[:, 2]
-    cos, sin = np.cos(heading), np.sin(heading)
-    turn = np.stack([np.stack([cos, -sin], -1), np.stack([sin, cos], -1)], -2)  # second's frame -> first's
+    turn = rotation_np(heading)  # second's frame -> first's
     chain_information = sequential.information.copy()
     chain_information[:, :2, :2] = structure[sequential.second] * (4.0 / resolution ** 2) + 1e-6 * np.eye(2)
     std = np.asarray(noise_std(jnp.asarray(motions[sequential.second], jnp.float32), motion_params), np.float64)

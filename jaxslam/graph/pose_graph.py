@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from jaxslam.geometry import between_np, wrap_angle_np
+from jaxslam.geometry import between_np, rotation_np, wrap_angle_np
 
 SEQUENTIAL, LOOP, ODOMETRY = 0, 1, 2
 """Edge kinds: between consecutive nodes (the filter's relative poses), loop closures, and the
@@ -95,13 +95,12 @@ def _jacobians(poses: np.ndarray, edges: Edges) -> tuple[np.ndarray, np.ndarray,
     node's (x, y, theta)."""
     a, b, z = poses[edges.first], poses[edges.second], edges.measurement
     ca, sa = np.cos(a[:, 2]), np.sin(a[:, 2])
-    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
     dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
     # R_a^T (t_b - t_a) and its derivative in theta_a.
     local = np.stack([ca * dx + sa * dy, -sa * dx + ca * dy], axis=-1)
     dlocal = np.stack([-sa * dx + ca * dy, -ca * dx - sa * dy], axis=-1)
-    rzt = np.stack([np.stack([cz, sz], -1), np.stack([-sz, cz], -1)], axis=-2)  # R_z^T (E, 2, 2)
-    rat = np.stack([np.stack([ca, sa], -1), np.stack([-sa, ca], -1)], axis=-2)  # R_a^T
+    rzt = rotation_np(z[:, 2]).swapaxes(-1, -2)  # R_z^T (E, 2, 2)
+    rat = rotation_np(a[:, 2]).swapaxes(-1, -2)  # R_a^T
     d = local - z[:, :2]
     error = np.concatenate([np.einsum("eij,ej->ei", rzt, d),
                             wrap_angle_np(b[:, 2] - a[:, 2] - z[:, 2])[:, None]], axis=-1)
