@@ -216,14 +216,18 @@ def test_eval_prints_and_writes_the_error_table(tmp_path, capsys):
     traj = tmp_path / "traj.txt"
     traj.write_text("".join(f"{a:.6f} {p[0]} {p[1]} {p[2]}\n" for a, p in zip(t, poses)))
     rel = tmp_path / "rel.txt"
-    # Relations that claim 1.1 m per second where the trajectory moved 1.0 m: error 0.1 m each.
-    rel.write_text("".join(f"{a:.6f} {a + 1:.6f} 1.1 0 0 0 0 0\n" for a in t[:-1]))
+    # Relations that claim 1.1 m per second where the trajectory moved 1.0 m: error 0.1 m each;
+    # and one that claims the robot slid 0.5 m sideways as it went 1 m ahead: error 0.5 m.
+    rel.write_text("".join(f"{a:.6f} {a + 1:.6f} 1.1 0 0 0 0 0\n" for a in t[:-1]) + "0 1 1.0 0.5 0 0 0 0\n")
     out = tmp_path / "errors.json"
     assert main(["eval", str(traj), str(rel), "--out", str(out)]) == 0
     table = json.loads(out.read_text())
-    assert table["count"] == 4
-    assert table["trans_mean"] == pytest.approx(0.1, abs=1e-5)
-    assert "trans_mean" in capsys.readouterr().out
+    assert table["count"] == 5
+    assert table["trans_mean"] == pytest.approx(0.9 / 5, abs=1e-5)
+    assert table["sideways_count"] == 1
+    assert table["trans_mean_no_sideways"] == pytest.approx(0.1, abs=1e-5)
+    printed = capsys.readouterr().out
+    assert "trans_mean" in printed and "sideways_count" in printed
 
 
 def test_doors_command_writes_a_summary(tmp_path, capsys):

@@ -11,7 +11,7 @@ import pytest
 
 from jaxslam.geometry import between_np, compose, compose_np
 from jaxslam.io import read_log, read_relations
-from jaxslam.io.relations import Relations
+from jaxslam.io.relations import Relations, sideways_relations
 from jaxslam.laserlog import LogError
 from jaxslam.metrics import lookup_poses, relation_error
 
@@ -156,6 +156,60 @@ def test_lookup_poses_in_an_unsorted_trajectory():
     ts = np.array([3.0, 1.0, 2.0])
     poses = np.array([[3.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])
     np.testing.assert_array_equal(lookup_poses(ts, poses, [2.0, 1.0, 3.0])[:, 0], [2.0, 1.0, 3.0])
+
+
+# --------------------------------------------------------------------------- sideways relations
+
+
+def _drive(rng, steps: int, slip: float = 0.0) -> np.ndarray:
+    """(steps + 1, 3) poses of a differential-drive robot: 0.1 m steps forward or back along arcs
+    of a curvature drawn per drive (up to 0.3 rad/m) that wavers step to step, plus ``slip`` m
+    sideways per step."""
+    poses = [np.zeros(3)]
+    direction, curve = rng.choice([-1.0, 1.0]), rng.uniform(-0.03, 0.03)
+    for _ in range(steps):
+        turn = curve + rng.uniform(-0.005, 0.005)
+        step = np.array([direction * 0.1 * math.cos(turn / 2), direction * 0.1 * math.sin(turn / 2) + slip, turn])
+        poses.append(compose_np(poses[-1], step))
+    return np.asarray(poses)
+
+
+def test_sideways_relations_pass_every_drive_and_catch_a_slide():
+    rng = np.random.default_rng(0)
+    rows = []
+    for slip in (0.0, 0.0, 0.0, 0.03):  # 0.03 m sideways per 0.1 m: 17 degrees off the arc
+        for _ in range(50):
+            poses = _drive(rng, int(rng.integers(6, 40)), slip)  # 0.6-4 m within 12 s, up to 1.2 rad of turn
+            rows.append(between_np(poses[0], poses[-1]))
+    motion = np.asarray(rows)
+    relations = Relations(np.zeros(len(rows)), np.full(len(rows), 10.0), motion)
+    flagged = sideways_relations(relations, max_turn=1.2)
+    assert not flagged[:150].any()  # a drive along arcs of any curvature, forward or back, passes
+    assert flagged[150:].all()
+    # The same slides checked over a longer time, a shorter chord or a sharper turn than allowed are not judged.
+    assert not sideways_relations(relations._replace(t2=np.full(len(rows), 20.0)), max_turn=1.2).any()
+    assert not sideways_relations(relations, min_length=5.0, max_turn=1.2).any()
+    sharper = np.abs(motion[:, 2]) > 0.3
+    assert sharper[150:].sum() > 10 and not sideways_relations(relations, max_turn=0.3)[sharper].any()
+    # A chord 7 degrees off is kept and 9 degrees off flagged, at the default 8.
+    for degrees, expected in ((7.0, False), (9.0, True), (-9.0, True), (180.0 + 9.0, True)):
+        angle = math.radians(degrees)
+        one = Relations(np.zeros(1), np.ones(1), np.array([[math.cos(angle), math.sin(angle), 0.0]]))
+        assert bool(sideways_relations(one)[0]) is expected, degrees
+
+
+@pytest.mark.parametrize("name, value", [("max_seconds", 0.0), ("min_length", -1.0), ("max_turn", float("nan")),
+                                         ("max_sideways", float("inf"))])
+def test_sideways_relations_refuse_bad_settings(name, value):
+    relations = Relations(np.zeros(1), np.ones(1), np.array([[1.0, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match=name):
+        sideways_relations(relations, **{name: value})
+
+
+@pytest.mark.parametrize("name, count", [("intel", 0), ("aces", 1), ("mit-csail", 0), ("fr-clinic", 40),
+                                         ("mit-killian", 3)])
+def test_sideways_relations_of_the_real_logs(shared_data, name, count):
+    assert int(sideways_relations(read_relations(shared_data / f"{name}.relations")).sum()) == count
 
 
 # --------------------------------------------------------------------------- real data

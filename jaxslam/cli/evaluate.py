@@ -13,7 +13,7 @@ import numpy as np
 
 from jaxslam.config import ConfigError
 from jaxslam.diagnose import diagnose, read_step_record
-from jaxslam.io import read_log, read_relations, read_trajectory
+from jaxslam.io import read_log, read_relations, read_trajectory, sideways_relations
 from jaxslam.io.relation_clock import align_relations_clock
 from jaxslam.io.files import OutputError, check_output_file, write_file_atomic
 from jaxslam.io.maps import read_map
@@ -42,6 +42,10 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise ConfigError(f"{missing}; relations written on another clock than the log's (a converted log, as "
                           f"MIT Killian's bag) need --log LOG") from None
     table = err.to_dict()
+    # Kept in the mean, as the benchmark keeps them; their count and the mean without them beside it.
+    sideways = sideways_relations(relations)
+    table["sideways_count"] = int(sideways.sum())
+    table["trans_mean_no_sideways"] = float(np.mean(err.trans[~sideways])) if not sideways.all() else float("nan")
     for warning in found:
         print(f"warning: {warning}", file=sys.stderr)
     if alignment is not None:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from jaxslam.io.carmen import ONLY_COMMENTS, read_carmen, text_problem, write_carmen
 from jaxslam.io.maps import read_map, write_map
-from jaxslam.io.relations import Relations, read_relations
+from jaxslam.io.relations import Relations, read_relations, sideways_relations
 from jaxslam.io.rosbag import read_rosbag
 from jaxslam.io.trajectory import read_trajectory, write_trajectory
 from jaxslam.laserlog import LaserLog, LogError
@@ -29,6 +29,7 @@ __all__ = [
     "read_relations",
     "read_rosbag",
     "read_trajectory",
+    "sideways_relations",
     "write_carmen",
     "write_map",
     "write_trajectory",

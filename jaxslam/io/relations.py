@@ -8,6 +8,7 @@ a line where they are not is an error rather than a dropped dimension.
 
 from __future__ import annotations
 
+import math
 import os
 from typing import NamedTuple
 
@@ -15,7 +16,7 @@ import numpy as np
 
 from jaxslam.laserlog import LogError
 
-__all__ = ["Relations", "read_relations"]
+__all__ = ["Relations", "read_relations", "sideways_relations"]
 
 # z, roll and pitch are written as 0.000000; anything larger is not a planar relation.
 _PLANAR_TOLERANCE = 1e-6
@@ -82,6 +83,47 @@ def read_relations(path) -> Relations:
         raise LogError(f"{src}: the relations file holds no relations")
     table = np.asarray(rows, dtype=np.float64)
     return Relations(table[:, 0].copy(), table[:, 1].copy(), table[:, [2, 3, 7]].copy())
+
+
+def sideways_relations(relations: Relations, max_seconds: float = 12.0, min_length: float = 0.5,
+                       max_turn: float = math.radians(10.0), max_sideways: float = math.radians(8.0)) -> np.ndarray:
+    """(R,) bool: the relations a differential-drive robot cannot make: a short, nearly straight
+    motion whose chord leaves the robot's heading sideways.
+
+    A differential-drive robot moves along its heading. Over an arc that turns it by ``yaw``,
+    the chord from start to end points ``yaw / 2`` off its first heading (forward or backward),
+    whatever the arc's radius. A relation whose two scans are at most ``max_seconds`` apart,
+    at least ``min_length`` apart in space, and turn at most ``max_turn``, but whose chord
+    points more than ``max_sideways`` off that direction, says the robot slid sideways.
+
+    FR-clinic's relations hold 40 such (of 2,820), most of them in one minute of the log where
+    they say 0.34 m sideways for every metre ahead. The odometry, the filter and the loop
+    closure all say straight ahead there, and the two scans of 39 of the 40 fit the closure's
+    motion better than the relation's. The other four logs hold 0-3 each
+    (docs/notes/2026-12-01-where-fr-clinic-loses.md). They are part of every method's
+    mean on that log: :func:`jaxslam.metrics.relation_error` keeps them, as the benchmark does,
+    and ``jaxslam eval`` reports the mean without them beside it.
+
+    Args:
+        relations: R relations (:func:`read_relations`).
+        max_seconds: longest time between the two scans checked (s): a longer relation may
+            hold any path.
+        min_length: shortest chord checked (m): a short one's direction is noise.
+        max_turn: largest heading change checked (rad): over a sharper turn the path need not be
+            one arc.
+        max_sideways: largest angle between the chord and the arc's direction (rad).
+    """
+    for name, value in (("max_seconds", max_seconds), ("min_length", min_length), ("max_turn", max_turn),
+                        ("max_sideways", max_sideways)):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"sideways_relations: {name} must be a finite number > 0, got {value!r}")
+    motion = np.asarray(relations.motion, np.float64)
+    seconds = np.abs(np.asarray(relations.t2, np.float64) - np.asarray(relations.t1, np.float64))
+    length = np.hypot(motion[:, 0], motion[:, 1])
+    # The chord's angle off the arc's direction, forward or backward: folded into [-pi/2, pi/2).
+    off = (np.arctan2(motion[:, 1], motion[:, 0]) - motion[:, 2] / 2 + np.pi / 2) % np.pi - np.pi / 2
+    checked = (seconds <= max_seconds) & (length >= min_length) & (np.abs(motion[:, 2]) <= max_turn)
+    return checked & (np.abs(off) > max_sideways)
 
 
 def _is_number(text: str) -> bool:
