@@ -130,6 +130,15 @@ def scan_points(ranges: np.ndarray, sensor: SensorSpec, max_range: float, num_po
     return points, valid
 
 
+def _overlay_distances(motion: np.ndarray, first_points, second_points, radius: float) -> np.ndarray:
+    """(..., P2) the distance from each of the second scan's points, laid over the first scan by
+    each ``motion`` (..., 3), to the nearest first-scan point (inf beyond ``radius``); one tree."""
+    cos, sin = np.cos(motion[..., 2, None]), np.sin(motion[..., 2, None])  # (..., 1)
+    x, y = second_points[:, 0], second_points[:, 1]
+    moved = np.stack([cos * x - sin * y + motion[..., 0, None], sin * x + cos * y + motion[..., 1, None]], -1)
+    return scipy.spatial.cKDTree(first_points).query(moved, distance_upper_bound=radius)[0]
+
+
 def scan_misfit(motion, first_points, second_points, radius: float):
     """How badly ``motion`` (..., 3), the second scan's robot pose in the first's frame, lays the
     second scan's points (P2, 2) over the first scan's (P1, 2), both in their robot frames (m, from
@@ -145,9 +154,23 @@ def scan_misfit(motion, first_points, second_points, radius: float):
     if len(first_points) == 0 or len(second_points) == 0:
         misfit = np.full(motion.shape[:-1], radius ** 2)
     else:
-        cos, sin = np.cos(motion[..., 2, None]), np.sin(motion[..., 2, None])  # (..., 1)
-        x, y = second_points[:, 0], second_points[:, 1]
-        moved = np.stack([cos * x - sin * y + motion[..., 0, None], sin * x + cos * y + motion[..., 1, None]], -1)
-        distance = scipy.spatial.cKDTree(first_points).query(moved, distance_upper_bound=radius)[0]
-        misfit = np.mean(np.minimum(distance, radius) ** 2, axis=-1)
+        misfit = np.mean(np.minimum(_overlay_distances(motion, first_points, second_points, radius), radius) ** 2,
+                         axis=-1)
     return float(misfit) if motion.ndim == 1 else misfit
+
+
+def scan_inliers(motion, first_points, second_points, distance: float):
+    """The share of the second scan's points (P2, 2) that ``motion`` (..., 3) lays within
+    ``distance`` (m) of a first-scan point (P1, 2), both in their robot frames (:func:`scan_misfit`'s
+    overlay, counted rather than averaged: a long return that the other scan did not see costs a
+    point, not the cap squared). 0 where either scan is empty.
+
+    Returns:
+        float for one motion (3,), else (...) float64 in [0, 1].
+    """
+    motion = np.asarray(motion, np.float64)
+    if len(first_points) == 0 or len(second_points) == 0:
+        share = np.zeros(motion.shape[:-1])
+    else:
+        share = np.mean(_overlay_distances(motion, first_points, second_points, distance) <= distance, axis=-1)
+    return float(share) if motion.ndim == 1 else share

@@ -14,7 +14,7 @@ from jaxslam.geometry import between_np, chain_np
 from jaxslam.io import write_carmen, write_trajectory
 from jaxslam.io.relation_clock import align_relations_clock
 from jaxslam.io.relations import Relations
-from jaxslam.laser import make_sensor, scan_misfit
+from jaxslam.laser import make_sensor, scan_inliers, scan_misfit
 from jaxslam.laserlog import LaserLog, LogError
 from jaxslam.metrics import relation_error
 from jaxslam.sim import simulate_scans
@@ -151,6 +151,21 @@ def test_scan_misfit_against_brute_force_nearest_points():
     both = scan_misfit(np.stack([motion, np.zeros(3)]), first, second, 0.25)
     assert both.shape == (2,) and both[0] == pytest.approx(expected, rel=1e-12)
     assert both[1] == pytest.approx(scan_misfit(np.zeros(3), first, second, 0.25), rel=1e-12)
+
+
+def test_scan_inliers_against_brute_force_nearest_points():
+    rng = np.random.default_rng(4)
+    first, second = rng.uniform(-3, 3, (60, 2)), rng.uniform(-3, 3, (45, 2))
+    motions = np.array([[0.4, -0.2, 0.3], [0.0, 0.0, 0.0], [-1.0, 0.5, -2.0]])
+    for motion, got in zip(motions, scan_inliers(motions, first, second, 0.3)):
+        cos, sin = np.cos(motion[2]), np.sin(motion[2])
+        moved = second @ np.array([[cos, -sin], [sin, cos]]).T + motion[:2]
+        nearest = np.sqrt(((moved[:, None] - first[None]) ** 2).sum(-1)).min(1)
+        assert got == pytest.approx(np.mean(nearest <= 0.3), abs=1e-12)
+        assert scan_inliers(motion, first, second, 0.3) == pytest.approx(got, abs=1e-12)
+    # A scan over itself: every point; an empty scan: none.
+    assert scan_inliers(np.zeros(3), first, first, 1e-9) == 1.0
+    assert scan_inliers(np.zeros(3), first[:0], second, 0.3) == 0.0
 
 
 def test_scans_that_do_not_fit_the_log_are_refused_before_any_work():

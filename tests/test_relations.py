@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 import re
 import warnings
@@ -210,6 +212,83 @@ def test_sideways_relations_refuse_bad_settings(name, value):
                                          ("mit-killian", 3)])
 def test_sideways_relations_of_the_real_logs(shared_data, name, count):
     assert int(sideways_relations(read_relations(shared_data / f"{name}.relations")).sum()) == count
+
+
+def _corridor_log():
+    """A simulated log along an L of corridors (noise-free scans), its truth, and relations between
+    scans three apart taken from the truth."""
+    import jax
+
+    from jaxslam.laser import make_sensor, uniform_beams
+    from jaxslam.motion import motion_params
+    from jaxslam.sim import make_world, polyline_segments, simulate_log, waypoint_path
+
+    walls = np.concatenate([polyline_segments([[-1, -1], [12, -1], [12, 10]]),
+                            polyline_segments([[-1, 1], [10, 1], [10, 10]]),
+                            polyline_segments([[3, -1], [3, -0.2]]), polyline_segments([[6, 1], [6, 0.4]])])
+    truth = waypoint_path([[0, 0], [11, 0], [11, 9]], 0.2, 0.2)
+    sensor = make_sensor(uniform_beams(181), range_max=15.0)
+    log = simulate_log(jax.random.key(0), make_world(walls), truth, sensor, motion_params(0, 0, 0, 0, 0, 0), 0.0)
+    first = np.arange(0, truth.shape[0] - 3, 3)
+    motion = between_np(truth[first], truth[first + 3])
+    return log, truth, Relations(log.timestamps[first], log.timestamps[first + 3], motion)
+
+
+def test_scan_support_tells_a_wrong_relation_from_a_wrong_trajectory():
+    from jaxslam.metrics import scan_support
+
+    log, truth, relations = _corridor_log()
+    # One relation slid 0.4 m sideways; and, apart, a trajectory with one pose 0.4 m off.
+    wrong_relation = relations.motion.copy()
+    wrong_relation[10, 1] += 0.4
+    bad_relations = relations._replace(motion=wrong_relation)
+    err = relation_error(log.timestamps, truth, bad_relations)
+    support = scan_support(bad_relations, log.timestamps, truth, err.trans, log.timestamps, log.ranges, log.sensor)
+    assert np.flatnonzero(support.checked).tolist() == [10]
+    assert support.trajectory_inliers[10] > 0.9 and support.relation_inliers[10] < support.trajectory_inliers[10] - 0.3
+    summary = support.summary(err.trans)
+    assert (summary["favour_trajectory"], summary["favour_relation"]) == (1, 0)
+    assert summary["favour_trajectory_error_share"] == pytest.approx(1.0)
+
+    moved = truth.copy()
+    moved[31:, 1] += 0.4  # every pose from the 31st on: one relation (scans 30 and 33) spans the step
+    err = relation_error(log.timestamps, moved, relations)
+    support = scan_support(relations, log.timestamps, moved, err.trans, log.timestamps, log.ranges, log.sensor)
+    assert np.flatnonzero(support.checked).tolist() == [10]
+    summary = support.summary(err.trans)
+    assert (summary["favour_trajectory"], summary["favour_relation"]) == (0, 1)
+    # Relations further apart in time than max_seconds are not judged.
+    assert not scan_support(relations, log.timestamps, moved, err.trans, log.timestamps, log.ranges, log.sensor,
+                            max_seconds=0.1).checked.any()
+    with pytest.raises(ValueError, match="one error per relation"):
+        scan_support(relations, log.timestamps, moved, err.trans[:-1], log.timestamps, log.ranges, log.sensor)
+    with pytest.raises(ValueError, match="not"):
+        scan_support(relations, log.timestamps, moved, err.trans, log.timestamps + 100.0, log.ranges, log.sensor)
+
+
+def test_eval_scans_names_whose_error_it_is(tmp_path, capsys):
+    from jaxslam.cli import main
+    from jaxslam.io import write_carmen, write_trajectory
+
+    log, truth, relations = _corridor_log()
+    write_carmen(tmp_path / "corridor.clf", log)
+    write_trajectory(tmp_path / "truth.txt", log.timestamps, truth)
+    wrong = relations.motion.copy()
+    wrong[10, 1] += 0.4
+    (tmp_path / "rel.txt").write_text("".join(f"{a:.17g} {b:.17g} {m[0]:.17g} {m[1]:.17g} 0 0 0 {m[2]:.17g}\n"
+                                              for a, b, m in zip(relations.t1, relations.t2, wrong)))
+    out = tmp_path / "errors.json"
+    args = ["eval", str(tmp_path / "truth.txt"), str(tmp_path / "rel.txt"), "--scans", str(tmp_path / "corridor.clf")]
+    assert main(args + ["--out", str(out)]) == 0
+    support = json.loads(out.read_text())["scan_support"]
+    assert (support["checked"], support["favour_trajectory"], support["favour_relation"]) == (1, 1, 0)
+    assert "the two scans favour the trajectory's motion in 1" in capsys.readouterr().out
+    # A log that does not hold the relations' scans is named, and nothing is written.
+    other = dataclasses.replace(log, timestamps=log.timestamps + 100.0)
+    write_carmen(tmp_path / "other.clf", other)
+    out.unlink()
+    assert main(args[:-1] + [str(tmp_path / "other.clf"), "--out", str(out)]) == 2
+    assert "--scans" in capsys.readouterr().err and not out.exists()
 
 
 # --------------------------------------------------------------------------- real data

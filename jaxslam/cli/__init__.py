@@ -86,6 +86,10 @@ def make_parser() -> argparse.ArgumentParser:
     p_eval.add_argument("relations", help="relations file: 't1 t2 x y z roll pitch yaw' per line")
     p_eval.add_argument("--out", help="write the table as JSON to this file (not a folder)")
     p_eval.add_argument("--log", help=LOG_CLOCK_HELP)
+    p_eval.add_argument("--scans", metavar="LOG",
+                        help="the log whose scans say whose error it is: for each relation at most 60 s long on "
+                             "which the trajectory is more than 0.1 m off, which motion (the relation's or the "
+                             "trajectory's) lays its two scans over each other better")
     p_eval.set_defaults(func=_cmd_eval)
 
     p_diag = sub.add_parser("diagnose", help="what happened in a map run, step by step (ESS, lineages, "

@@ -17,7 +17,7 @@ from jaxslam.io import read_log, read_relations, read_trajectory, sideways_relat
 from jaxslam.io.relation_clock import align_relations_clock
 from jaxslam.io.files import OutputError, check_output_file, write_file_atomic
 from jaxslam.io.maps import read_map
-from jaxslam.metrics import relation_error
+from jaxslam.metrics import relation_error, scan_support
 from jaxslam.outputs import strict_json_values
 from jaxslam.plotting import plot_diagnosis, plot_map
 
@@ -34,6 +34,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         timestamps, poses = read_trajectory(args.trajectory)  # repeated timestamps: the last kept, warned
     found = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     relations, alignment = _read_relations(args.relations, args.log)
+    scans_log = None
+    if args.scans:
+        with warnings.catch_warnings(record=True) as caught_log:
+            warnings.simplefilter("always")
+            scans_log = read_log(args.scans)
+        found += [f"--scans: {w.message}" for w in caught_log if issubclass(w.category, UserWarning)]
     try:
         err = relation_error(timestamps, poses, relations)
     except ValueError as missing:
@@ -46,6 +52,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     sideways = sideways_relations(relations)
     table["sideways_count"] = int(sideways.sum())
     table["trans_mean_no_sideways"] = float(np.mean(err.trans[~sideways])) if not sideways.all() else float("nan")
+    if scans_log is not None:
+        try:
+            support = scan_support(relations, timestamps, poses, err.trans, scans_log.timestamps, scans_log.ranges,
+                                   scans_log.sensor)
+        except ValueError as missing:
+            raise ConfigError(f"--scans {args.scans}: {missing}") from None
+        table["scan_support"] = support.summary(err.trans)
     for warning in found:
         print(f"warning: {warning}", file=sys.stderr)
     if alignment is not None:
@@ -57,6 +70,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
               f"{table['clock_alignment']['residual_max_m']:.3f} m; the laser's scans "
               f"{alignment.laser_shift:+d} scans from the odometry's")
     print(f"{'relations':>22}: {table.get('count')}")
+    if "scan_support" in table:
+        support = table["scan_support"]
+        print(f"{'scans':>22}: of {support['checked']} relations at most 60 s long and more than 0.1 m off, the two "
+              f"scans favour the trajectory's motion in {support['favour_trajectory']} "
+              f"({support['favour_trajectory_error_share']:.0%} of the summed error), the relation's in "
+              f"{support['favour_relation']} ({support['favour_relation_error_share']:.0%})")
     for key, value in table.items():
         if key != "count" and not isinstance(value, (list, dict)):
             print(f"{key:>22}: {value:.6g}")
