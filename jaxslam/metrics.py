@@ -254,9 +254,11 @@ def scan_support(relations: Relations, timestamps, poses, trans: np.ndarray, sca
     - Intel: the scans favour the relation in 133 of its 137 such relations;
     - MIT CSAIL: the relation in 95 of 107;
     - FR-clinic: the trajectory in 526 of 708, and the relation in 53
-      (docs/notes/2026-12-01-where-fr-clinic-loses.md). The inlier share, not the capped squared
-    distance of :func:`jaxslam.laser.scan_misfit`: the long returns one scan saw and the other did
-    not swamped the latter on FR-clinic.
+      (docs/notes/2026-12-01-where-fr-clinic-loses.md).
+
+    It counts inliers rather than taking the capped squared distance of
+    :func:`jaxslam.laser.scan_misfit`: on FR-clinic the long returns that one scan saw and the
+    other did not swamped the latter.
 
     Args:
         relations: R relations, their timestamps on the log's clock.
@@ -271,7 +273,7 @@ def scan_support(relations: Relations, timestamps, poses, trans: np.ndarray, sca
         ValueError: ``trans`` does not hold one error per relation, or a checked relation's scan is
             not in the log (named).
     """
-    from jaxslam.laser import scan_inliers, scan_points
+    from jaxslam.laser import scan_inliers, scan_points  # here: the other metrics need no JAX
 
     t1, t2 = np.asarray(relations.t1, np.float64), np.asarray(relations.t2, np.float64)
     trans = np.asarray(trans, np.float64)
