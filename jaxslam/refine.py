@@ -67,6 +67,9 @@ class RefinedTrajectory(NamedTuple):
     """(T, 3) float64: the match of every scan (the input pose where it failed)."""
     match_covariances: np.ndarray
     """(T, 3, 3) float64: each match's covariance (tempered likelihood on the stencil)."""
+    odometry_noise_scale: tuple = (1.0, 1.0, 1.0)
+    """The factors on the motion model's x, y and heading stds that the odometry steps were
+    fused with (:func:`odometry_noise_scale`; all 1 unless the odometry was trusted)."""
 
 
 def refine_trajectory(
@@ -79,6 +82,7 @@ def refine_trajectory(
     config,
     odometry: Float[np.ndarray, "T 3"] | None = None,
     chunk_size: int = 256,
+    odometry_noise_scale=(1.0, 1.0, 1.0),
 ) -> RefinedTrajectory:
     """Scan-match every scan against one map, starting at its trajectory pose.
 
@@ -93,6 +97,8 @@ def refine_trajectory(
       odometry: (T, 3) the log's odometry poses, one per scan; when given, the matches are
         fused with it (:func:`smooth_with_odometry`, motion stds from ``params.motion``).
       chunk_size: scans matched per compiled call (static).
+      odometry_noise_scale: (3,) factors on the motion model's x, y and heading stds of the
+        odometry steps (:func:`odometry_noise_scale`).
 
     Returns:
       A :class:`RefinedTrajectory`.
@@ -121,8 +127,10 @@ def refine_trajectory(
     matched_pose[:, 2] = wrap_angle_np(matched_pose[:, 2])
     refined = matched_pose
     if odometry is not None:
-        refined = smooth_with_odometry(poses, matched_pose, covariances, ok, odometry, params.motion)
-    return RefinedTrajectory(refined, ok, scores, matched_pose, covariances)
+        refined = smooth_with_odometry(poses, matched_pose, covariances, ok, odometry, params.motion,
+                                       noise_scale=odometry_noise_scale)
+    return RefinedTrajectory(refined, ok, scores, matched_pose, covariances,
+                             tuple(float(v) for v in np.broadcast_to(odometry_noise_scale, 3)))
 
 
 def refine_in_rounds(
@@ -136,6 +144,7 @@ def refine_in_rounds(
     map_scans: np.ndarray,
     odometry: Float[np.ndarray, "T 3"] | None = None,
     chunk_size: int = 256,
+    trust_odometry: bool = False,
 ) -> RefinedTrajectory:
     """``config.refine_rounds`` rounds of :func:`refine_trajectory`: the first in the given map,
     each later one in the map drawn again (:func:`jaxslam.occupancy.map_from_scans`, the filter's
@@ -155,6 +164,10 @@ def refine_in_rounds(
         ``max_insert_range`` and ``field_radius`` for the maps drawn again.
       map_scans: (S,) int indices into ``poses`` of the scans that draw the later rounds' maps
         (the processed scans: ``SlamResult.selection.indices``).
+      trust_odometry: the later rounds fuse the odometry at the noise the first round's steps
+        show (:func:`odometry_noise_scale`), not the motion model's. ``jaxslam map`` sets it
+        where the loop closure found the odometry's heading drifting slower than the filter's
+        (``LoopClosure.odometry_share`` > 0.5).
 
     Returns:
       The last round's :class:`RefinedTrajectory`.
@@ -166,13 +179,51 @@ def refine_in_rounds(
         raise ValueError(f"refine_in_rounds: map_scans must be a non-empty 1-D array of scan indices in [0, {num}), "
                          f"got shape {map_scans.shape}, dtype {map_scans.dtype}")
     refined = refine_trajectory(spec, hit_dist2, poses, ranges, sensor, params, config, odometry, chunk_size)
+    scale = (1.0, 1.0, 1.0)
+    if trust_odometry and odometry is not None:
+        scale = odometry_noise_scale(refined.poses, odometry, refined.matched, params.motion)
     for _ in range(config.refine_rounds - 1):
         grid_map, spec = map_from_scans(refined.poses[map_scans], np.asarray(ranges)[map_scans], sensor,
                                         params.insertion, config.resolution, config.max_insert_range,
                                         config.field_radius)
         refined = refine_trajectory(spec, grid_map.hit_dist2, refined.poses, ranges, sensor, params, config,
-                                    odometry, chunk_size)
+                                    odometry, chunk_size, scale)
     return refined
+
+
+def odometry_noise_scale(poses: Float[np.ndarray, "T 3"], odometry: Float[np.ndarray, "T 3"], matched: np.ndarray,
+                         motion_params) -> tuple[float, float, float]:
+    """How loose the motion model is for this log's odometry: over the steps between two matched
+    scans where the odometry moved (over 1 cm), the robust spread (1.4826 x the median absolute
+    deviation) of each step's x, y and heading against the odometry's, in units of the motion
+    model's std for that step; each at most 1.
+
+    The motion model is the filter's proposal noise (GMapping's 10 % of a step's length), loose
+    on purpose so that the particles cover the truth. A refined trajectory's steps stray from
+    FR-clinic's odometry by 0.29, 0.23 and 0.18 of it (seed 0). Trusted at that noise, FR-clinic's
+    refinement gains 5 mm. Intel's steps stray by as little (0.23, 0.14, 0.23), but its
+    odometry's errors are correlated over many steps: trusted at that noise, Intel loses 1.7 mm.
+    So :func:`refine_in_rounds` takes this scale only where the loops measured the odometry's
+    heading as the better one (docs/notes/2026-12-01-where-fr-clinic-loses.md).
+
+    Args:
+      poses: (T, 3) a refined trajectory (m, m, rad); odometry: (T, 3) the odometry's poses;
+        matched: (T,) bool, the scans whose match held; motion_params: the motion model.
+
+    Returns:
+      ``(x, y, heading)`` factors in (0, 1]; 1 for each where fewer than 10 steps qualify.
+    """
+    poses, odometry = np.asarray(poses, np.float64), np.asarray(odometry, np.float64)
+    steps = between_np(odometry[:-1], odometry[1:])
+    moved = between_np(poses[:-1], poses[1:]) - steps
+    moved[:, 2] = wrap_angle_np(moved[:, 2])
+    std = np.asarray(motion.noise_std(jnp.asarray(steps, jnp.float32), motion_params), np.float64)
+    use = np.asarray(matched[:-1], bool) & np.asarray(matched[1:], bool) & (np.hypot(steps[:, 0], steps[:, 1]) > 0.01)
+    if use.sum() < 10:
+        return (1.0, 1.0, 1.0)
+    z = moved[use] / std[use]
+    spread = 1.4826 * np.median(np.abs(z - np.median(z, axis=0)), axis=0)
+    return tuple(float(v) for v in np.clip(spread, 1e-3, 1.0))
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6, 7, 8, 9))
@@ -210,6 +261,7 @@ def smooth_with_odometry(
     iterations: int = 20,
     huber: float = 3.0,
     tolerance: float = 1e-6,
+    noise_scale=(1.0, 1.0, 1.0),
 ) -> np.ndarray:
     """The least-squares trajectory through pose measurements and odometry steps.
 
@@ -231,6 +283,7 @@ def smooth_with_odometry(
       motion_params: the motion model's ``MotionParams``.
       iterations: at most this many Gauss-Newton steps; stops earlier once no pose moves by
         more than ``tolerance`` (m or rad).
+      noise_scale: (3,) factors on the motion model's x, y and heading stds of each step.
 
     Returns:
       (T, 3) float64 poses, angles in (-pi, pi].
@@ -245,6 +298,7 @@ def smooth_with_odometry(
     odometry = np.asarray(odometry, np.float64)
     steps = between_np(odometry[:-1], odometry[1:])
     std = np.asarray(motion.noise_std(jnp.asarray(steps, jnp.float32), motion_params), np.float64)
+    std = std * np.asarray(noise_scale, np.float64)
     info_step = 1.0 / std**2  # (T-1, 3): diagonal
     for _ in range(iterations):
         # Matches: residual x_t - m_t, Jacobian I, Huber weight on the Mahalanobis distance.

@@ -224,8 +224,12 @@ def write_map_outputs(out, log, result, params, seed: int, source: str, refine: 
         else:
             (_, field, grid), start = result.dense_map(local=True), result.trajectory
         t0 = time.perf_counter()
+        # Where the loops found the odometry's heading the better one, its steps are trusted at
+        # the noise the first round shows (refine.odometry_noise_scale).
+        trust = closure is not None and closure.num_loops > 0 and closure.odometry_share > 0.5
         refined = refine_in_rounds(grid, field, result.to_local(start), log.ranges, log.sensor, params, result.config,
-                                   result.selection.indices, odometry=result.to_local(log.odometry))
+                                   result.selection.indices, odometry=result.to_local(log.odometry),
+                                   trust_odometry=trust)
         refined = refined._replace(poses=result.to_world(refined.poses),
                                    matched_poses=result.to_world(refined.matched_poses))
         refine_seconds = time.perf_counter() - t0
