@@ -182,7 +182,8 @@ def _slam_summary(log, result, params, seed: int, source: str, refined=None,
             summary["closure"]["ground_truth_mean_m"] = float(np.mean(np.hypot(*(closure.poses[:, :2] - truth).T)))
     if refined is not None:
         summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
-                                 "median_score": float(np.median(refined.scores))}
+                                 "median_score": float(np.median(refined.scores)),
+                                 "odometry_noise_scale": [float(v) for v in refined.odometry_noise_scale]}
         if refine_seconds is not None:  # seconds vary run to run: beside the filter's
             summary["timings"]["refinement"] = float(refine_seconds)
     summary, null_reasons = strict_json_values(summary, _known_null_reasons(summary, result))

@@ -51,6 +51,7 @@ def test_map_refine_writes_a_refined_trajectory(tmp_path, small_log):
     np.testing.assert_array_equal(refined[:, 0], plain[:, 0])  # the same scans, the same stamps
     summary = json.loads((out / "summary.json").read_text())
     assert 0.5 < summary["refinement"]["matched_fraction"] <= 1.0
+    assert summary["refinement"]["odometry_noise_scale"] == [1.0, 1.0, 1.0]  # 20 scans: no loop to trust it by
     assert summary["timings"]["refinement"] > 0.0
 
 
