@@ -51,7 +51,8 @@ def bench(path: Path, max_scans: int | None) -> dict:
         t2 = time.perf_counter()
         refined = refine_in_rounds(grid_to_world(grid, -result.frame_offset), field,
                                    result.to_local(closure.trajectory), log.ranges, log.sensor, params,
-                                   result.config, result.selection.indices, odometry=result.to_local(log.odometry))
+                                   result.config, result.selection.indices, odometry=result.to_local(log.odometry),
+                                   trust_odometry=closure.num_loops > 0 and closure.odometry_share > 0.5)  # as map
         np.asarray(refined.poses)
         return closure, t1 - t0, t2 - t1, time.perf_counter() - t2
 
