@@ -32,7 +32,7 @@ def bench(path: Path, max_scans: int | None) -> dict:
     from jaxslam.graph import ClosureConfig, close_loops
     from jaxslam.io import read_log
     from jaxslam.laserlog import grid_to_world
-    from jaxslam.refine import refine_in_rounds
+    from jaxslam.refine import refine_in_rounds, trusts_odometry
 
     log = read_log(path)
     if max_scans:
@@ -52,7 +52,7 @@ def bench(path: Path, max_scans: int | None) -> dict:
         refined = refine_in_rounds(grid_to_world(grid, -result.frame_offset), field,
                                    result.to_local(closure.trajectory), log.ranges, log.sensor, params,
                                    result.config, result.selection.indices, odometry=result.to_local(log.odometry),
-                                   trust_odometry=closure.num_loops > 0 and closure.odometry_share > 0.5)  # as map
+                                   trust_odometry=trusts_odometry(closure))
         np.asarray(refined.poses)
         return closure, t1 - t0, t2 - t1, time.perf_counter() - t2
 

@@ -191,6 +191,14 @@ def refine_in_rounds(
     return refined
 
 
+def trusts_odometry(closure) -> bool:
+    """Whether the loops measured the odometry's heading as the better one: a
+    :class:`jaxslam.graph.LoopClosure` (or None) that kept loops and takes over half of each step's
+    heading change from the odometry (``odometry_share`` > 0.5). Where it does, the refinement's
+    later rounds trust the odometry (:func:`refine_in_rounds`' ``trust_odometry``)."""
+    return closure is not None and closure.num_loops > 0 and closure.odometry_share > 0.5
+
+
 def odometry_noise_scale(poses: Float[np.ndarray, "T 3"], odometry: Float[np.ndarray, "T 3"], matched: np.ndarray,
                          motion_params) -> tuple[float, float, float]:
     """How loose the motion model is for this log's odometry: over the steps between two matched

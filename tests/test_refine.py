@@ -366,3 +366,14 @@ def test_refine_in_rounds_trusts_the_odometry_only_when_told(drifted_office):
     # odometry alone 0.49). A bound that a scale gone wrong (a chain held to a drifting odometry)
     # would break, not the measured gain.
     assert _relative_error(trusted.poses, truth) < 1.2 * _relative_error(plain.poses, truth)
+
+
+def test_trusts_odometry_where_the_loops_take_its_heading():
+    from types import SimpleNamespace
+
+    from jaxslam.refine import trusts_odometry
+
+    assert trusts_odometry(SimpleNamespace(num_loops=3, odometry_share=0.9))
+    assert not trusts_odometry(SimpleNamespace(num_loops=3, odometry_share=0.06))  # MIT CSAIL's
+    assert not trusts_odometry(SimpleNamespace(num_loops=0, odometry_share=1.0))  # nothing measured it
+    assert not trusts_odometry(None)

@@ -25,7 +25,7 @@ from jaxslam.proposals import PROPOSALS
 from jaxslam.outputs import expected_output_bytes, write_slam_outputs
 from jaxslam.laserlog import grid_to_world
 from jaxslam.rbpf import check_config_for_log, first_scan_tiles, prepare
-from jaxslam.refine import refine_in_rounds
+from jaxslam.refine import refine_in_rounds, trusts_odometry
 from jaxslam.resources import available_memory_bytes, estimate_run_bytes, map_cells, state_bytes
 from jaxslam.slam import RunInterrupted, run
 
@@ -226,10 +226,9 @@ def write_map_outputs(out, log, result, params, seed: int, source: str, refine: 
         t0 = time.perf_counter()
         # Where the loops found the odometry's heading the better one, its steps are trusted at
         # the noise the first round shows (refine.odometry_noise_scale).
-        trust = closure is not None and closure.num_loops > 0 and closure.odometry_share > 0.5
         refined = refine_in_rounds(grid, field, result.to_local(start), log.ranges, log.sensor, params, result.config,
                                    result.selection.indices, odometry=result.to_local(log.odometry),
-                                   trust_odometry=trust)
+                                   trust_odometry=trusts_odometry(closure))
         refined = refined._replace(poses=result.to_world(refined.poses),
                                    matched_poses=result.to_world(refined.matched_poses))
         refine_seconds = time.perf_counter() - t0
