@@ -317,17 +317,9 @@ def smooth_with_odometry(
         diag = info_measured * w[:, None, None]
         rhs = np.einsum("tij,tj->ti", diag, r_m)
         # Odometry: residual between(x_{t-1}, x_t) - u_t with Jacobians A (x_{t-1}) and B (x_t).
-        a, b = x[:-1], x[1:]
-        c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-        dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-        r_o = between_np(a, b) - steps
+        r_o = between_np(x[:-1], x[1:]) - steps
         r_o[:, 2] = wrap_angle_np(r_o[:, 2])
-        jac_a = np.zeros((num - 1, 3, 3))
-        jac_a[:, 0, 0], jac_a[:, 0, 1], jac_a[:, 0, 2] = -c, -s, -s * dx + c * dy
-        jac_a[:, 1, 0], jac_a[:, 1, 1], jac_a[:, 1, 2] = s, -c, -c * dx - s * dy
-        jac_a[:, 2, 2] = -1.0
-        jac_b = np.zeros((num - 1, 3, 3))
-        jac_b[:, 0, 0], jac_b[:, 0, 1], jac_b[:, 1, 0], jac_b[:, 1, 1], jac_b[:, 2, 2] = c, s, -s, c, 1.0
+        jac_a, jac_b = _step_jacobians(x[:-1], x[1:])
         wa = jac_a * info_step[:, :, None]  # S^-1 A
         wb = jac_b * info_step[:, :, None]
         diag[:-1] += np.einsum("tki,tkj->tij", jac_a, wa)
@@ -342,6 +334,19 @@ def smooth_with_odometry(
         if np.max(np.abs(delta)) < tolerance:
             break
     return x
+
+
+def _step_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Jacobians (T, 3, 3) of ``between(a, b)`` with respect to ``a`` and to ``b`` (T, 3)."""
+    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    jac_a = np.zeros((a.shape[0], 3, 3))
+    jac_a[:, 0, 0], jac_a[:, 0, 1], jac_a[:, 0, 2] = -c, -s, -s * dx + c * dy
+    jac_a[:, 1, 0], jac_a[:, 1, 1], jac_a[:, 1, 2] = s, -c, -c * dx - s * dy
+    jac_a[:, 2, 2] = -1.0
+    jac_b = np.zeros((a.shape[0], 3, 3))
+    jac_b[:, 0, 0], jac_b[:, 0, 1], jac_b[:, 1, 0], jac_b[:, 1, 1], jac_b[:, 2, 2] = c, s, -s, c, 1.0
+    return jac_a, jac_b
 
 
 def _solve_block_tridiagonal(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:
