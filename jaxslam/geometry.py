@@ -55,6 +55,21 @@ def rotation_np(theta) -> np.ndarray:
     return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
 
 
+def between_jacobians_np(a, b) -> tuple[np.ndarray, np.ndarray]:
+    """The Jacobians (..., 3, 3) float64 of :func:`between_np` ``(a, b)`` with respect to ``a`` and
+    to ``b`` ((..., 3) poses): the pose graph's edges and the refinement's odometry steps."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    jac_a = np.zeros(a.shape + (3,))
+    jac_a[..., 0, 0], jac_a[..., 0, 1], jac_a[..., 0, 2] = -c, -s, -s * dx + c * dy
+    jac_a[..., 1, 0], jac_a[..., 1, 1], jac_a[..., 1, 2] = s, -c, -c * dx - s * dy
+    jac_a[..., 2, 2] = -1.0
+    jac_b = np.zeros(a.shape + (3,))
+    jac_b[..., 0, 0], jac_b[..., 0, 1], jac_b[..., 1, 0], jac_b[..., 1, 1], jac_b[..., 2, 2] = c, s, -s, c, 1.0
+    return jac_a, jac_b
+
+
 def chain_np(start, steps) -> np.ndarray:
     """(T + 1, 3) float64 poses ``x_0 = start`` (3,), ``x_{i+1} = x_i (+) steps[i]`` ((T, 3)
     relative poses), composed in closed form with no loop: the heading is the running sum of the

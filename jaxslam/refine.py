@@ -42,7 +42,7 @@ import scipy.linalg
 from jaxtyping import Array, Float, UInt8
 
 from jaxslam import motion
-from jaxslam.geometry import between_np, weighted_mean_and_covariance, wrap_angle_np
+from jaxslam.geometry import between_jacobians_np, between_np, weighted_mean_and_covariance, wrap_angle_np
 from jaxslam.grid import GridSpec
 from jaxslam.driver import run_in_chunks
 from jaxslam.laser import SensorSpec, subsample_beams
@@ -180,7 +180,7 @@ def refine_in_rounds(
                          f"got shape {map_scans.shape}, dtype {map_scans.dtype}")
     refined = refine_trajectory(spec, hit_dist2, poses, ranges, sensor, params, config, odometry, chunk_size)
     scale = (1.0, 1.0, 1.0)
-    if trust_odometry and odometry is not None:
+    if trust_odometry and odometry is not None and config.refine_rounds > 1:
         scale = odometry_noise_scale(refined.poses, odometry, refined.matched, params.motion)
     for _ in range(config.refine_rounds - 1):
         grid_map, spec = map_from_scans(refined.poses[map_scans], np.asarray(ranges)[map_scans], sensor,
@@ -221,11 +221,9 @@ def odometry_noise_scale(poses: Float[np.ndarray, "T 3"], odometry: Float[np.nda
     Returns:
       ``(x, y, heading)`` factors in (0, 1]; 1 for each where fewer than 10 steps qualify.
     """
-    poses, odometry = np.asarray(poses, np.float64), np.asarray(odometry, np.float64)
-    steps = between_np(odometry[:-1], odometry[1:])
-    moved = between_np(poses[:-1], poses[1:]) - steps
+    steps, std = _odometry_steps(odometry, motion_params)
+    moved = between_np(np.asarray(poses, np.float64)[:-1], np.asarray(poses, np.float64)[1:]) - steps
     moved[:, 2] = wrap_angle_np(moved[:, 2])
-    std = np.asarray(motion.noise_std(jnp.asarray(steps, jnp.float32), motion_params), np.float64)
     use = np.asarray(matched[:-1], bool) & np.asarray(matched[1:], bool) & (np.hypot(steps[:, 0], steps[:, 1]) > 0.01)
     if use.sum() < 10:
         return (1.0, 1.0, 1.0)
@@ -303,11 +301,8 @@ def smooth_with_odometry(
     if not ok.any() or num == 0:
         return x
     info_measured = np.linalg.inv(np.asarray(measured_cov, np.float64)) * ok[:, None, None]
-    odometry = np.asarray(odometry, np.float64)
-    steps = between_np(odometry[:-1], odometry[1:])
-    std = np.asarray(motion.noise_std(jnp.asarray(steps, jnp.float32), motion_params), np.float64)
-    std = std * np.asarray(noise_scale, np.float64)
-    info_step = 1.0 / std**2  # (T-1, 3): diagonal
+    steps, std = _odometry_steps(odometry, motion_params)
+    info_step = 1.0 / (std * np.asarray(noise_scale, np.float64))**2  # (T-1, 3): diagonal
     for _ in range(iterations):
         # Matches: residual x_t - m_t, Jacobian I, Huber weight on the Mahalanobis distance.
         r_m = x - measured
@@ -319,7 +314,7 @@ def smooth_with_odometry(
         # Odometry: residual between(x_{t-1}, x_t) - u_t with Jacobians A (x_{t-1}) and B (x_t).
         r_o = between_np(x[:-1], x[1:]) - steps
         r_o[:, 2] = wrap_angle_np(r_o[:, 2])
-        jac_a, jac_b = _step_jacobians(x[:-1], x[1:])
+        jac_a, jac_b = between_jacobians_np(x[:-1], x[1:])
         wa = jac_a * info_step[:, :, None]  # S^-1 A
         wb = jac_b * info_step[:, :, None]
         diag[:-1] += np.einsum("tki,tkj->tij", jac_a, wa)
@@ -336,17 +331,11 @@ def smooth_with_odometry(
     return x
 
 
-def _step_jacobians(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The Jacobians (T, 3, 3) of ``between(a, b)`` with respect to ``a`` and to ``b`` (T, 3)."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    jac_a = np.zeros((a.shape[0], 3, 3))
-    jac_a[:, 0, 0], jac_a[:, 0, 1], jac_a[:, 0, 2] = -c, -s, -s * dx + c * dy
-    jac_a[:, 1, 0], jac_a[:, 1, 1], jac_a[:, 1, 2] = s, -c, -c * dx - s * dy
-    jac_a[:, 2, 2] = -1.0
-    jac_b = np.zeros((a.shape[0], 3, 3))
-    jac_b[:, 0, 0], jac_b[:, 0, 1], jac_b[:, 1, 0], jac_b[:, 1, 1], jac_b[:, 2, 2] = c, s, -s, c, 1.0
-    return jac_a, jac_b
+def _odometry_steps(odometry, motion_params) -> tuple[np.ndarray, np.ndarray]:
+    """The odometry's steps between consecutive scans (T-1, 3) and the motion model's std of each."""
+    odometry = np.asarray(odometry, np.float64)
+    steps = between_np(odometry[:-1], odometry[1:])
+    return steps, np.asarray(motion.noise_std(jnp.asarray(steps, jnp.float32), motion_params), np.float64)
 
 
 def _solve_block_tridiagonal(diag: np.ndarray, upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:

@@ -222,3 +222,19 @@ def test_rotation_np_turns_a_step_as_compose_np_does():
     turned = np.einsum("eij,ej->ei", G.rotation_np(poses[:, 2]), steps[:, :2])
     np.testing.assert_allclose(poses[:, :2] + turned, G.compose_np(poses, steps)[:, :2], atol=1e-12)
     assert G.rotation_np(np.zeros((2, 3))).shape == (2, 3, 2, 2)
+
+
+def test_between_jacobians_match_finite_differences():
+    rng = np.random.default_rng(7)
+    a = np.column_stack([rng.normal(0, 5, (20, 2)), rng.uniform(-np.pi, np.pi, 20)])
+    b = np.column_stack([rng.normal(0, 5, (20, 2)), rng.uniform(-np.pi, np.pi, 20)])
+    jac_a, jac_b = G.between_jacobians_np(a, b)
+    step = 1e-6
+    for k in range(3):
+        delta = np.zeros(3)
+        delta[k] = step
+        for jac, moved in ((jac_a, lambda d: G.between_np(a + d, b)), (jac_b, lambda d: G.between_np(a, b + d))):
+            numeric = moved(delta) - moved(-delta)
+            numeric[:, 2] = G.wrap_angle_np(numeric[:, 2])
+            np.testing.assert_allclose(jac[:, :, k], numeric / (2 * step), atol=1e-6)
+    assert G.between_jacobians_np(a[0], b[0])[0].shape == (3, 3)  # one pose pair

@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from jaxslam.geometry import between_np, rotation_np, wrap_angle_np
+from jaxslam.geometry import between_jacobians_np, between_np, rotation_np, wrap_angle_np
 
 SEQUENTIAL, LOOP, ODOMETRY = 0, 1, 2
 """Edge kinds: between consecutive nodes (the filter's relative poses), loop closures, and the
@@ -94,24 +94,15 @@ def _jacobians(poses: np.ndarray, edges: Edges) -> tuple[np.ndarray, np.ndarray,
     """The errors (E, 3) and their Jacobians (E, 3, 3) with respect to the first and second
     node's (x, y, theta)."""
     a, b, z = poses[edges.first], poses[edges.second], edges.measurement
-    ca, sa = np.cos(a[:, 2]), np.sin(a[:, 2])
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    # R_a^T (t_b - t_a) and its derivative in theta_a.
-    local = np.stack([ca * dx + sa * dy, -sa * dx + ca * dy], axis=-1)
-    dlocal = np.stack([-sa * dx + ca * dy, -ca * dx - sa * dy], axis=-1)
+    # between(a, b) = (R_a^T (t_b - t_a), theta_b - theta_a) and its Jacobians; the error turns its
+    # translation's residual into the measurement's frame by R_z^T.
+    local = between_np(a, b)[:, :2]
+    jac_a, jac_b = between_jacobians_np(a, b)
     rzt = rotation_np(z[:, 2]).swapaxes(-1, -2)  # R_z^T (E, 2, 2)
-    rat = rotation_np(a[:, 2]).swapaxes(-1, -2)  # R_a^T
-    d = local - z[:, :2]
-    error = np.concatenate([np.einsum("eij,ej->ei", rzt, d),
+    error = np.concatenate([np.einsum("eij,ej->ei", rzt, local - z[:, :2]),
                             wrap_angle_np(b[:, 2] - a[:, 2] - z[:, 2])[:, None]], axis=-1)
-    rr = np.einsum("eij,ejk->eik", rzt, rat)
-    jac_a = np.zeros((len(a), 3, 3))
-    jac_b = np.zeros((len(a), 3, 3))
-    jac_a[:, :2, :2] = -rr
-    jac_a[:, :2, 2] = np.einsum("eij,ej->ei", rzt, dlocal)
-    jac_a[:, 2, 2] = -1.0
-    jac_b[:, :2, :2] = rr
-    jac_b[:, 2, 2] = 1.0
+    jac_a[:, :2] = np.einsum("eij,ejk->eik", rzt, jac_a[:, :2])
+    jac_b[:, :2] = np.einsum("eij,ejk->eik", rzt, jac_b[:, :2])
     return error, jac_a, jac_b
 
 
