@@ -41,6 +41,9 @@ the run's ``trajectory.txt`` and optionally a relations file, into per-step seri
 ``events`` lists the largest corrections and the worst relations with their step, time and
 place, ranked (no threshold): where to look in the map first.
 :func:`jaxslam.plotting.plot_diagnosis` draws it all; ``jaxslam diagnose RUN_DIR [RELATIONS]`` writes ``diagnosis.json`` and ``diagnosis.png``.
+For a closed run (``graph.npz``) it draws the graph over the map (``graph.png``) and, with
+relations, lists the returns the closure missed and why
+(:func:`jaxslam.graph.missed.missed_returns`, ``closure`` in ``diagnosis.json``).
 """
 
 from __future__ import annotations
@@ -425,6 +428,22 @@ def diagnose(record: dict[str, np.ndarray], trajectory: tuple[np.ndarray, np.nda
     return out
 
 
+def relations_within(relations, times) -> tuple:
+    """The relations inside a run's time span (``times``, (T,) s: its trajectory's), and how many
+    lie outside it: a run of part of a log (``--max-scans``) is judged on those inside.
+
+    Raises:
+        ValueError: none lies inside (the relations are another log's).
+    """
+    times = np.asarray(times)
+    inside = ((np.minimum(relations.t1, relations.t2) >= times[0] - 1e-4)
+              & (np.maximum(relations.t1, relations.t2) <= times[-1] + 1e-4))
+    if not np.any(inside):
+        raise ValueError(f"diagnose: none of the {relations.count} relations lies within the run's time span "
+                         f"({times[0]:.3f} to {times[-1]:.3f} s): are they the log's?")
+    return type(relations)(relations.t1[inside], relations.t2[inside], relations.motion[inside]), int(np.sum(~inside))
+
+
 def _step_series(record: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict]:
     """The per-step series of :func:`diagnose` (each (S,) for the record's S steps; see the
     module's docstring for their meaning and units), and :func:`weight_persistence`'s result
@@ -523,21 +542,14 @@ def _add_relation_errors(out: dict, record: dict[str, np.ndarray], trajectory, r
     start = float(np.asarray(record["timestamp"])[0])
     if trajectory is None:
         raise ValueError("diagnose: relations need the run's trajectory (a pose per scan)")
-    # A run of part of a log (--max-scans) is judged on the relations inside its time span.
-    times = np.asarray(trajectory[0])
-    inside = ((np.minimum(relations.t1, relations.t2) >= times[0] - 1e-4)
-              & (np.maximum(relations.t1, relations.t2) <= times[-1] + 1e-4))
-    if not np.any(inside):
-        raise ValueError(f"diagnose: none of the {relations.count} relations lies within the run's time span "
-                         f"({times[0]:.3f} to {times[-1]:.3f} s): are they the log's?")
-    relations = type(relations)(relations.t1[inside], relations.t2[inside], relations.motion[inside])
+    relations, outside = relations_within(relations, trajectory[0])
     err = relation_error(trajectory[0], trajectory[1], relations)
     later = np.maximum(relations.t1, relations.t2)
     at_step = np.clip(np.searchsorted(step_times, later), 0, max(steps - 1, 0))
     out["relations"] = {"time": later.tolist(), "trans": err.trans.tolist(), "rot": err.rot.tolist(),
                         "step": (at_step + 1).tolist()}
     summary["relation_error"] = {"trans_mean": err.trans_mean, "rot_mean": err.rot_mean, "count": err.count,
-                                 "relations_outside_the_run": int(np.sum(~inside))}
+                                 "relations_outside_the_run": outside}
     errors = errors_then(record, trajectory, relations)
     then, weighted = errors.min(axis=1), weighted_then(record, trajectory, relations, errors)
     out["relations"]["closest_then"] = then.tolist()

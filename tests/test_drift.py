@@ -329,7 +329,7 @@ def test_a_turn_lets_the_loops_after_it_set_the_heading_where_the_straight_steps
     solved heading after the corner is the loops', and without it stays off by over 1 degree."""
     from jaxslam.config import default_params
     from jaxslam.graph import pose_graph
-    from jaxslam.graph.closure import sequential_edges
+    from jaxslam.graph.drift import sequential_edges
     from jaxslam.graph.pose_graph import LOOP, Edges, PoseGraph
 
     steps = np.zeros((81, 3))

@@ -323,6 +323,18 @@ def test_twin_rooms_no_false_loop_is_kept_and_the_path_comes_closer(twin_rooms, 
     kinds = np.bincount(graph["edge_kind"], minlength=3)
     # one edge per kept loop; the chain's and the odometry's over every step (lengths.py)
     assert kinds[LOOP] == kept.sum() and kinds[SEQUENTIAL] == kinds[ODOMETRY] == closure.node_scans.size - 1
+    # The search's record holds every windowed pair (the widened and appearance pairs aside), each
+    # kept loop's among them at a candidate's score, and travels in graph.npz.
+    record = closure.searched
+    assert 0 < record.query.size <= closure.pairs_searched and set(record.chain_pass) <= set(range(1, closure.passes + 1))
+    rows = {}
+    for q, j, score in zip(record.query, record.submap, record.score):  # a pair's best over the passes
+        rows[(int(q), int(j))] = max(rows.get((int(q), int(j)), 0.0), float(score))
+    windowed = kept & ~closure.loops.appearance
+    assert all(rows[(int(q), int(j))] >= ClosureConfig().candidate_score
+               for q, j in zip(closure.loops.query[windowed], closure.loops.submap[windowed]))
+    np.testing.assert_array_equal(graph["searched_score"], record.score)
+    np.testing.assert_array_equal(graph["searched_half_xy"], record.half_xy)
 
 
 def test_twin_rooms_turned_inside_a_submap_keep_no_loop_into_it(twin_rooms):
@@ -602,7 +614,7 @@ def test_close_loops_refuses_mismatched_input(twin_rooms):
 # jaxslam map: closed by default, the filter alone on request.
 
 
-def test_map_closes_loops_by_default_and_not_on_request(tmp_path, twin_rooms):
+def test_map_closes_loops_by_default_and_not_on_request(tmp_path, twin_rooms, capsys):
     from jaxslam.cli import main
     from logs import write_flaser_log
 
@@ -625,6 +637,40 @@ def test_map_closes_loops_by_default_and_not_on_request(tmp_path, twin_rooms):
     assert not (alone / "graph.npz").exists() and not (alone / "trajectory_filter.txt").exists()
     assert "closure" not in json.loads((alone / "summary.json").read_text())
     assert main(["diagnose", str(closed)]) == 0 and (closed / "graph.png").is_file()
+    _diagnose_names_the_returns_missed(closed, scenario, tmp_path, capsys)
+
+
+def _diagnose_names_the_returns_missed(run, scenario, tmp_path, capsys):
+    """``jaxslam diagnose RUN RELATIONS`` of a closed twin-rooms run lists the returns its closure
+    missed (jaxslam.graph.missed), as the library function finds them."""
+    from jaxslam.cli import main
+    from jaxslam.graph.missed import missed_returns
+    from jaxslam.io import read_relations, read_trajectory
+
+    # The true motions between the first visit to room A and the return to it (node times), one
+    # of them made 1 m wrong: a return the closed poses cannot agree with.
+    times = np.loadtxt(run / "trajectory.txt")[:, 0]
+    node_scans = load_graph(run / "graph.npz")["node_scans"]
+    truth = scenario.true_poses
+    first, last = node_scans[: node_scans.size // 5], node_scans[-node_scans.size // 5:]
+    near = np.hypot(*(truth[first, None, :2] - truth[None, last, :2]).T).T < 1.0
+    i, j = np.nonzero(near)
+    pairs = np.stack([first[i], last[j]], 1)[::5]
+    motion = between_np(truth[pairs[:, 0]], truth[pairs[:, 1]])
+    motion[0, 0] += 1.0
+    lines = [f"{times[a]:.6f} {times[b]:.6f} {m[0]:.6f} {m[1]:.6f} 0 0 0 {m[2]:.6f}" for (a, b), m in zip(pairs, motion)]
+    (tmp_path / "twin.relations").write_text("\n".join(lines) + "\n")
+    capsys.readouterr()
+    assert main(["diagnose", str(run), str(tmp_path / "twin.relations")]) == 0
+    printed = capsys.readouterr().out
+    missed = json.loads((run / "diagnosis.json").read_text())["closure"]["missed_returns"]
+    wrong = int(np.searchsorted(node_scans, pairs[0, 1]))
+    assert any(m["later_nodes"][0] <= wrong <= m["later_nodes"][1] for m in missed)
+    assert "returns the closure missed" in printed and missed[0]["cause"] in printed
+    _, closed = read_trajectory(run / "trajectory.txt")
+    _, filtered = read_trajectory(run / "trajectory_filter.txt")
+    assert missed == missed_returns(load_graph(run / "graph.npz"), times, closed, filtered,
+                                    read_relations(tmp_path / "twin.relations"))
 
 
 def test_closure_config_refuses_bad_values():

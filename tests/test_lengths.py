@@ -7,7 +7,7 @@ import pytest
 from jaxslam.config import default_params
 from jaxslam.geometry import between_np, chain_np
 from jaxslam.graph import pose_graph
-from jaxslam.graph.closure import sequential_edges
+from jaxslam.graph.drift import sequential_edges
 from jaxslam.graph.lengths import scan_structure, weighed_steps
 from jaxslam.graph.pose_graph import ODOMETRY, SEQUENTIAL, PoseGraph
 from jaxslam.laser import make_sensor, uniform_beams

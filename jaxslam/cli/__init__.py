@@ -93,7 +93,8 @@ def make_parser() -> argparse.ArgumentParser:
     p_eval.set_defaults(func=_cmd_eval)
 
     p_diag = sub.add_parser("diagnose", help="what happened in a map run, step by step (ESS, lineages, "
-                                             "corrections, relation error over time)")
+                                             "corrections, relation error over time); in a closed run, the "
+                                             "returns the closure missed and why")
     p_diag.add_argument("run_dir", help="the output folder of `jaxslam map` (it holds steps.npz)")
     p_diag.add_argument("relations", nargs="?", help="relations file of the log, for the error over time")
     p_diag.add_argument("--log", help=LOG_CLOCK_HELP)

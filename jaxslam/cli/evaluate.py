@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxslam.config import ConfigError
-from jaxslam.diagnose import diagnose, read_step_record
+from jaxslam.diagnose import NUM_EVENTS, diagnose, read_step_record, relations_within
 from jaxslam.io import read_log, read_relations, read_trajectory, sideways_relations
 from jaxslam.io.relation_clock import align_relations_clock
 from jaxslam.io.files import OutputError, check_output_file, write_file_atomic
@@ -121,6 +121,11 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     filter_trajectory = run / ("trajectory_filter.txt" if (run / "trajectory_filter.txt").exists() else "trajectory.txt")
     trajectory = read_trajectory(filter_trajectory) if relations is not None else None
     result = diagnose(record, trajectory, relations)
+    # A closed run: the returns its closure missed, and why (jaxslam.graph.missed).
+    missed = _missed_returns(run, relations) if relations is not None and (run / "graph.npz").exists() else None
+    if missed is not None:
+        result["closure"] = {"missed_returns": missed}
+        result["summary"]["missed_returns"] = len(missed)
     out.mkdir(parents=True, exist_ok=True)
     values, nulled = strict_json_values(result)
     if nulled:
@@ -138,7 +143,7 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         plt.close(fig)
     written = [out / "diagnosis.json", out / "diagnosis.png"]
     if (run / "graph.npz").exists():
-        written.append(_draw_graph(run, out))
+        written.append(_draw_graph(run, out, missed))
     summary = result["summary"]
     for key, value in summary.items():
         print(f"{key:>40}: {value}")
@@ -146,12 +151,43 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
         print(name.replace("_", " ") + ":")
         for event in events:
             print("   " + ", ".join(f"{k} {v:.4g}" for k, v in event.items()))
+    if missed is not None:
+        print(f"returns the closure missed ({len(missed)}; the worst {min(len(missed), NUM_EVENTS)}):")
+        for m in missed[:NUM_EVENTS]:
+            print("   " + _missed_line(m))
     print("written to " + ", ".join(str(path) for path in written))
     return 0
 
 
-def _draw_graph(run: Path, out: Path) -> Path:
-    """graph.png: a run's pose graph (graph.npz) drawn over its map."""
+def _missed_line(m: dict) -> str:
+    """One missed return (:func:`jaxslam.graph.missed.missed_returns`) as a line."""
+    searched = m["searched"]
+    looked = "" if searched is None else f"; searched {searched['pairs']} pairs there"
+    if searched is not None and searched["pairs"]:
+        looked += (f", best {searched['best_score']:.2f}, windows {searched['window_m'][0]:.1f}-"
+                   f"{searched['window_m'][1]:.1f} m centred {searched['guess_off_m'][0]:.1f} m or more off the "
+                   f"relations' pose, {searched['reached']} holding it")
+    if searched is not None:
+        looked += f" ({searched['pairs_elsewhere']} elsewhere)"
+    return (f"nodes {m['later_nodes'][0]}-{m['later_nodes'][1]} back to {m['earlier_nodes'][0]}-"
+            f"{m['earlier_nodes'][1]} ({m['path_between_m']:.0f} m of path): {m['relations']} relations, closed "
+            f"{m['closed_error_m']:.2f} m, filter {m['filter_error_m']:.2f} m; candidates {m['candidates'] or 'none'}"
+            f"{looked}: {m['cause']}")
+
+
+def _missed_returns(run: Path, relations) -> list[dict]:
+    """:func:`jaxslam.graph.missed.missed_returns` of a closed run's folder."""
+    from jaxslam.graph import load_graph, missed_returns  # lazy: scipy.sparse adds 0.7 s to every start (measured)
+
+    times, closed = read_trajectory(run / "trajectory.txt")
+    filter_times, filtered = read_trajectory(run / "trajectory_filter.txt")
+    if not np.array_equal(times, filter_times):
+        raise ValueError(f"diagnose: {run}'s trajectory.txt and trajectory_filter.txt hold other scans")
+    return missed_returns(load_graph(run / "graph.npz"), times, closed, filtered, relations_within(relations, times)[0])
+
+
+def _draw_graph(run: Path, out: Path, missed: list[dict] | None) -> Path:
+    """graph.png: a run's pose graph (graph.npz) drawn over its map, with the returns it missed."""
     # lazy: matplotlib.pyplot and jaxslam.graph (scipy.sparse) add 0.7 s each to every command's start (measured)
     import matplotlib.pyplot as plt
 
@@ -164,7 +200,7 @@ def _draw_graph(run: Path, out: Path) -> Path:
             occupancy, spec = read_map(run / "map.yaml")
             occupancy = np.clip(occupancy, 1e-3, 1 - 1e-3)
             plot_map(ax, np.log(occupancy / (1 - occupancy)), spec)  # plot_map draws log-odds
-        plot_graph(ax, graph)
+        plot_graph(ax, graph, missed=missed)
         kept = int((graph["loop_refused"] == "").sum())
         title = f"{run}: {kept} loops kept of {graph['loop_refused'].size} candidates"
         if "drift_rates" in graph and np.all(np.isfinite(graph["drift_rates"])):

@@ -72,6 +72,46 @@ class Searched(NamedTuple):
     result: SearchResult
 
 
+class SearchRecord(NamedTuple):
+    """Every pair the windowed search ran, whatever it scored (host arrays, one row a pair): where
+    the graph holds no candidate, whether the search looked there (:mod:`jaxslam.graph.missed`).
+    The pairs searched again wider or by appearance are not in it."""
+
+    query: np.ndarray
+    """(P,) int: the node searched."""
+    submap: np.ndarray
+    """(P,) int: the submap it was searched against."""
+    guess: np.ndarray
+    """(P, 3): the query's pose in the submap's first node's frame that the window was centred on
+    (m, m, rad)."""
+    score: np.ndarray
+    """(P,) the search's best score (a candidate from ``ClosureConfig.candidate_score`` on)."""
+    half_xy: np.ndarray
+    """(P,) m: the translation window, either side."""
+    half_theta: np.ndarray
+    """(P,) rad: the angular window, either side."""
+    chain_pass: np.ndarray
+    """(P,) int: the pass whose chain it was searched from (1 the filter's; :mod:`jaxslam.graph.drift`)."""
+
+    @classmethod
+    def of(cls, searched: Searched, submaps: Submaps, chain_pass: int = 1) -> "SearchRecord":
+        """A block's searched pairs (``searched.guess`` is in its submap's grid: its corner added back)."""
+        guess = np.asarray(searched.guess, np.float64).copy()
+        guess[:, :2] += submaps.corner[searched.submap]
+        return cls(searched.query, searched.submap, guess, np.asarray(searched.result.score, np.float64),
+                   searched.half_xy, searched.half_theta, np.full(searched.query.size, chain_pass))
+
+    @classmethod
+    def empty(cls) -> "SearchRecord":
+        """No pairs."""
+        return cls(np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0),
+                   np.zeros(0, int))
+
+    def extend(self, other: "SearchRecord") -> "SearchRecord":
+        """These pairs, then ``other``'s."""
+        return SearchRecord(*(np.concatenate([a, b]) for a, b in zip(self, other)))
+
+
 @partial(jax.jit, static_argnames=("grid", "iterations"))
 def _refine_one(field, grid: GridSpec, pose, scan, sensor, likelihood, iterations: int):
     """One match refined below the search's cell on its submap's field (bilinear hill climb),

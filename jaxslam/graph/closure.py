@@ -64,13 +64,12 @@ from jaxslam.geometry import between_np, compose_np
 from jaxslam.laser import scan_points
 from jaxslam.laserlog import to_local, to_world, trajectory_per_scan
 from jaxslam.graph import acceptance, drift, lengths, places, pose_graph
-from jaxslam.graph.acceptance import Loops, loop_edges
+from jaxslam.graph.acceptance import Loops, SearchRecord, loop_edges
 from jaxslam.graph.jumps import heading_jumps, try_jumps
 from jaxslam.graph.loop_search import SearchWindow, class_shape
-from jaxslam.graph.pose_graph import SEQUENTIAL, Edges, PoseGraph
+from jaxslam.graph.pose_graph import Edges, PoseGraph
 from jaxslam.graph.submaps import Submaps, build_submaps
 from jaxslam.graph.windows import path_distances, search_block
-from jaxslam.motion import noise_std
 
 
 @dataclasses.dataclass(frozen=True)
@@ -285,6 +284,8 @@ class LoopClosure(NamedTuple):
     """The jumps of the filter's heading that too few loops spanned, tried in turn
     (:attr:`ClosureConfig.jump_tries`): ``(node, rad, robust stds, given to the filter)`` each;
     where the last was given, the closure is its chain's and ``filter_poses`` the filter's."""
+    searched: SearchRecord = SearchRecord.empty()
+    """Every pair the windowed search of its passes ran, with its score and window."""
 
     @property
     def num_loops(self) -> int:
@@ -312,26 +313,6 @@ class LoopClosure(NamedTuple):
                 "heading_drift_deg_per_sqrt_step": {
                     name: (float(np.degrees(np.sqrt(rate))) if np.isfinite(rate) else None)
                     for name, rate in zip(("filter", "odometry"), self.drift_rates)}}
-
-
-def sequential_edges(poses: np.ndarray, motions: np.ndarray, motion_params, heading_rate: float | None = None) -> Edges:
-    """Edges between consecutive nodes: the chain's relative poses, with the motion model's
-    covariance of the odometry motion between them ((S, 3) poses, (S, 3) motions, row 0 unused).
-
-    ``heading_rate`` (rad^2 per step), where the loops measured it, is each step's heading
-    variance instead, plus the motion model's share of the step's turn (``stt`` times it): the
-    model's whole (about 3 degrees a step) would let the graph bend a chain whose heading the
-    loops found good to 0.04-0.06 degrees a root step, and close a loop's translation by turning
-    it (FR-clinic: 12 degrees); the rate alone held a turn's error too, which a random walk does
-    not model (FR-clinic's last corner, 2.8 degrees: the loops after it were outvoted)."""
-    first = np.arange(poses.shape[0] - 1)
-    measurement = between_np(poses[:-1], poses[1:])
-    std = np.asarray(noise_std(jnp.asarray(motions[1:], jnp.float32), motion_params), np.float64)
-    if heading_rate is not None:
-        std[:, 2] = np.sqrt(heading_rate + (float(motion_params.stt) * motions[1:, 2]) ** 2)
-    information = np.zeros((first.size, 3, 3))
-    information[:, [0, 1, 2], [0, 1, 2]] = 1.0 / np.maximum(std, 1e-6) ** 2
-    return Edges(first, first + 1, measurement, information, np.full(first.size, SEQUENTIAL))
 
 
 def _solve(found: Loops, submaps: Submaps, sequential: Edges, local: np.ndarray, estimate: np.ndarray,
@@ -427,7 +408,7 @@ def _close_chain(log, node_scans, filter_poses, motions, params, slam_config, fr
     second try."""
     local = to_local(filter_poses, frame_offset)
     if path_distances(local)[-1] < config.min_separation:  # no submap can be searched: nothing to build
-        return _unclosed(log, node_scans, filter_poses, sequential_edges(local, motions, params.motion), t0)
+        return _unclosed(log, node_scans, filter_poses, drift.sequential_edges(local, motions, params.motion), t0)
     ranges = np.asarray(log.ranges[node_scans], np.float32)
     points, valid = scan_points(ranges, log.sensor, config.search_range, config.num_points)
     contexts = places.scan_contexts(*scan_points(ranges, log.sensor, config.search_range, places.CONTEXT_POINTS),
@@ -448,7 +429,7 @@ def _close_chain(log, node_scans, filter_poses, motions, params, slam_config, fr
         closed, share, chain = run.first_pass, 0.0, local
     found, estimate, sequential = closed.loops, closed.poses, closed.sequential
     if run.searched_parting:  # the final chain is not the one the last pass searched from
-        sequential = sequential_edges(chain, motions, params.motion, run.heading_rate)
+        sequential = drift.sequential_edges(chain, motions, params.motion, run.heading_rate)
     if done > 1 and share > 0:  # the loops of every pass in one graph on the last chain
         found = acceptance.merged(everything)
     t_solve = time.perf_counter()
@@ -461,13 +442,14 @@ def _close_chain(log, node_scans, filter_poses, motions, params, slam_config, fr
                        pose_graph.concat_edges(sequential, loop_edges(found, submaps)),
                        found._replace(refused=found.refused.astype(str)), submaps.first_node, run.pairs,
                        {**seconds, "total": time.perf_counter() - t0}, to_world(chain, frame_offset), float(share),
-                       tuple(float(r) for r in rates), done)
+                       tuple(float(r) for r in rates), done, searched=run.searched)
 
 
 class _Passes(NamedTuple):
     """What :func:`_passes` leaves: the last pass and the first, every pass's candidates, the final
     chain, its share and heading rate, the rates measured, whether the last pass was the parting's
-    (:func:`jaxslam.graph.drift.parted`), the passes run and the pairs searched."""
+    (:func:`jaxslam.graph.drift.parted`), the passes run and the pairs searched (counted, and the
+    windowed search's recorded)."""
 
     closed: _Pass
     first_pass: _Pass
@@ -479,6 +461,7 @@ class _Passes(NamedTuple):
     searched_parting: bool
     done: int
     pairs: int
+    searched: SearchRecord
 
 
 def _passes(local, motions, submaps: Submaps, ranges, scans, sensor, params, config: ClosureConfig,
@@ -487,7 +470,7 @@ def _passes(local, motions, submaps: Submaps, ranges, scans, sensor, params, con
     weigh; ``seconds`` gains each stage's time."""
     odometry_headings = np.concatenate([[0.0], np.cumsum(motions[1:, 2])])
     _, jitter = drift.step_noise(between_np(local[:-1], local[1:]), motions[1:])
-    pairs = 0
+    pairs, searched = 0, SearchRecord.empty()
     share, chain, heading_rate = 0.0, local, None
     everything = Loops.empty()  # every pass's candidates, in pass order
     parting_pass = searched_parting = False  # the next pass, the pass just run: the parting's (at most one)
@@ -502,6 +485,7 @@ def _passes(local, motions, submaps: Submaps, ranges, scans, sensor, params, con
         if bar is not None:
             bar.close()
         pairs += closed.pairs
+        searched = searched.extend(closed.searched._replace(chain_pass=np.full(closed.searched.query.size, done)))
         for stage, taken in closed.seconds.items():
             seconds[stage] += taken
         everything = everything.extend(closed.loops)
@@ -531,7 +515,8 @@ def _passes(local, motions, submaps: Submaps, ranges, scans, sensor, params, con
         # the rates every pass's loops measure.
         share = new_share
         chain, heading_rate = drift.weighed_chain(local, motions, rates, jitter, submaps)
-    return _Passes(closed, first_pass, everything, share, chain, heading_rate, rates, searched_parting, done, pairs)
+    return _Passes(closed, first_pass, everything, share, chain, heading_rate, rates, searched_parting, done, pairs,
+                   searched)
 
 
 def _unclosed(log, node_scans, filter_poses, sequential: Edges, t0: float) -> LoopClosure:
@@ -550,6 +535,7 @@ class _Pass(NamedTuple):
     sequential: Edges
     pairs: int
     seconds: dict
+    searched: SearchRecord
 
 
 def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, scans, sensor, params,
@@ -559,11 +545,11 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, scans, s
     may explain loops the vote refused (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`;
     only where the chain carries the submaps rigidly)."""
     points, valid, _ = scans  # the search's points (S, P, 2), (S, P) and the signatures (S, R, A)
-    sequential = sequential_edges(chain, motions, params.motion, heading_rate)
+    sequential = drift.sequential_edges(chain, motions, params.motion, heading_rate)
     seconds = {"search": 0.0, "accept": 0.0, "appearance": 0.0, "optimize": 0.0}
     travelled = path_distances(chain)
     likelihood = params.likelihood._replace(sigma=jnp.float32(config.sigma))
-    found = Loops.empty()
+    found, record = Loops.empty(), SearchRecord.empty()
     estimate = chain.copy()  # the current estimate: optimised up to the last block, then the chain's steps
     pairs = 0
     # In time order, a block of queries at a time, as a robot would close them: the windows grow with
@@ -575,6 +561,7 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, scans, s
         todo = queries[queries % config.query_stride == 0]
         searched, distance = search_block(todo, estimate, travelled, found, submaps, points, valid, config)
         pairs += int(searched.query.size)
+        record = record.extend(SearchRecord.of(searched, submaps))
         t_b = time.perf_counter()
         new = acceptance.accept(submaps, searched, ranges, sensor, likelihood, estimate, found, config)
         t_c = time.perf_counter()
@@ -597,4 +584,4 @@ def _close_pass(chain, heading_rate, motions, submaps: Submaps, ranges, scans, s
             seconds[stage] += seconds_taken
         if bar is not None:
             bar.update(block_end - block_start)
-    return _Pass(estimate, found, sequential, pairs, seconds)
+    return _Pass(estimate, found, sequential, pairs, seconds, record)

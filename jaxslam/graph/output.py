@@ -34,8 +34,9 @@ def save_graph(path, closure: LoopClosure) -> None:
     poses), every candidate loop (``loop_*``: the fields of :class:`Loops`, ``loop_node`` its
     submap's first node), ``submap_first_node``, and the chain the last pass searched from
     (``chain_poses``, ``odometry_share``, ``drift_rates`` (filter, odometry) in rad^2 per step,
-    ``passes``: :mod:`jaxslam.graph.drift`), and ``jumps`` ((J, 4): node, rad, robust standard
-    deviations, 1 where given to the filter; :mod:`jaxslam.graph.jumps`)."""
+    ``passes``: :mod:`jaxslam.graph.drift`), ``jumps`` ((J, 4): node, rad, robust standard
+    deviations, 1 where given to the filter; :mod:`jaxslam.graph.jumps`), and every pair the
+    windowed search ran (``searched_*``: the fields of :class:`~jaxslam.graph.acceptance.SearchRecord`)."""
     edges = closure.edges
     loops = closure.loops
     arrays = {"node_scans": closure.node_scans, "filter_poses": closure.filter_poses, "poses": closure.poses,
@@ -48,6 +49,7 @@ def save_graph(path, closure: LoopClosure) -> None:
               "drift_rates": np.asarray(closure.drift_rates, np.float64), "passes": np.int64(closure.passes),
               "jumps": np.asarray(closure.jumps, np.float64).reshape(-1, 4)}
     arrays.update({f"loop_{name}": np.asarray(value) for name, value in loops._asdict().items()})
+    arrays.update({f"searched_{name}": np.asarray(value) for name, value in closure.searched._asdict().items()})
     with open(path, "wb") as f:
         np.savez_compressed(f, **arrays)
 
@@ -58,13 +60,15 @@ def load_graph(path) -> dict[str, np.ndarray]:
         return {name: data[name] for name in data.files}
 
 
-def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None) -> None:
+def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None,
+               missed: list[dict] | None = None) -> None:
     """Draw a saved graph (:func:`load_graph`) on a map's axes (world frame): the filter's path,
     the optimised path, and every candidate loop as a line from its submap's first node to its
     query at the optimised poses: kept in green (purple where the search by appearance found it),
     refused in red (thin), each set labelled with its count; each jump of the filter's heading
     tried (:mod:`jaxslam.graph.jumps`) as a cross on the filter's path, black where given to the
-    filter."""
+    filter; and each return the closure missed (``missed``: :func:`jaxslam.graph.missed.missed_returns`)
+    as a dashed orange line between the middles of its earlier and later nodes, numbered worst first."""
     poses, filt = graph["poses"], graph["filter_poses"]
     ax.plot(filt[:, 0], filt[:, 1], color="tab:red", lw=0.6, alpha=0.6, label="filter")
     share = float(graph.get("odometry_share", 0.0))
@@ -93,5 +97,10 @@ def plot_graph(ax, graph: dict[str, np.ndarray], truth: np.ndarray | None = None
         whose = "given to" if given else "kept by"
         ax.plot(at[0], at[1], "x", color="black" if given else "tab:gray", ms=8, mew=2,
                 label=f"jump of {np.degrees(jump):.0f} deg at node {int(node)}, {whose} the filter")
+    for rank, m in enumerate(missed or [], start=1):
+        a, b = poses[int(np.mean(m["earlier_nodes"]))], poses[int(np.mean(m["later_nodes"]))]
+        ax.plot([a[0], b[0]], [a[1], b[1]], color="tab:orange", lw=1.2, ls="--",
+                label=f"returns missed ({len(missed)})" if rank == 1 else None)
+        ax.annotate(str(rank), b[:2], color="tab:orange", fontsize=8)
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=7)
