@@ -94,12 +94,13 @@ class SearchRecord(NamedTuple):
     """(P,) int: the pass whose chain it was searched from (1 the filter's; :mod:`jaxslam.graph.drift`)."""
 
     @classmethod
-    def of(cls, searched: Searched, submaps: Submaps, chain_pass: int = 1) -> "SearchRecord":
-        """A block's searched pairs (``searched.guess`` is in its submap's grid: its corner added back)."""
+    def of(cls, searched: Searched, submaps: Submaps) -> "SearchRecord":
+        """A block's searched pairs (``searched.guess`` is in its submap's grid: its corner added
+        back); ``chain_pass`` 1 until the closure's passes number them."""
         guess = np.asarray(searched.guess, np.float64).copy()
         guess[:, :2] += submaps.corner[searched.submap]
         return cls(searched.query, searched.submap, guess, np.asarray(searched.result.score, np.float64),
-                   searched.half_xy, searched.half_theta, np.full(searched.query.size, chain_pass))
+                   searched.half_xy, searched.half_theta, np.ones(searched.query.size, int))
 
     @classmethod
     def empty(cls) -> "SearchRecord":

@@ -161,7 +161,7 @@ class _Ends(NamedTuple):
     """(T, 3) the closed trajectory."""
 
 
-def _describe(graph, rows, ends: "_Ends", along, closed_err, filter_err, node_times) -> dict:
+def _describe(graph, rows, ends: _Ends, along, closed_err, filter_err, node_times) -> dict:
     """One missed return (:func:`missed_returns`' dict) from its relations' rows."""
     early, late = ends.early, ends.late
     later_nodes = [int(late[rows].min()), int(late[rows].max())]
