@@ -3,8 +3,8 @@ every file a document cites exists, and nothing points outside the repository.
 
 The documents are README.md and every markdown file under docs/. A results file is cited by
 its repository path (``docs/results/x.png``) anywhere in the text, or by a relative markdown
-link that resolves to it (``[x](results/x.png)`` from docs/, ``(../results/x.png)`` from
-docs/notes/). Plain text only: no JAX, so this runs in well under a second.
+link that resolves to it (``[x](results/x.png)`` from docs/). Plain text only: no JAX, so this
+runs in well under a second.
 """
 
 from __future__ import annotations
