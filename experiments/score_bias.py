@@ -8,7 +8,7 @@ fixed-lag smoothed score (:func:`jaxslam.particle_filter.fixed_lag_score`) at a 
   on ``--seeds`` simulated datasets, over ``--lg-keys`` filter keys each; and, beside it, the
   path-space score of the fully adapted proposal (``proposal="adapted"``: each state drawn from
   its exact posterior given the previous state and the observation, weighed by gamma / q), the
-  counterpart of the SMP's importance weight (docs/notes/2026-11-26-smp-weights-for-learning.md).
+  counterpart of the SMP's importance weight (docs/design.md, "What a gradient of the filter is").
 * The simulated office (:func:`jaxslam.sim.office_scenario`, set up as
   experiments/learn_office.py does: OP, every scan an update, the simulator's minimum stds,
   bilinear lookup, gain 1, the first ``--scans`` scans, the motion terms at the simulated values

@@ -8,7 +8,7 @@ loop whose trip count XLA cannot know are always materialised, by vectorised cod
 :func:`computed_once` runs the producer in a ``while_loop`` whose trip count depends on the data
 (and is in fact always 1 or 2, with the same result). ``jax.lax.optimization_barrier`` does not
 do this: XLA's CPU pipeline drops it before fusion. The measurements are in
-``docs/notes/2026-11-23-paged-maps-in-the-filters.md``.
+``docs/design.md``, "Maps are paged".
 
 Also here, the other loop workaround the maps need: :func:`loop_bound`, a ``while_loop``'s trip
 count that stays one number under ``vmap`` (a batched predicate makes JAX select every carry,

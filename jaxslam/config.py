@@ -88,7 +88,7 @@ class SlamConfig:
     """The same choice for the window posterior's polish of each mode's peak (the SMP's and the
     LP's) and the refinement's hill climber and its covariances. "bilinear" (the default) lets a
     peak settle between cells instead of stopping wherever a whole cell stops improving (the
-    figures: docs/notes/2026-11-22-bilinear-matcher.md)."""
+    figures: docs/design.md, "Endpoint model")."""
     beam_stride: int = 2
     """Use every ``beam_stride``-th beam in likelihoods (the map always gets all beams)."""
     free_space_samples: int = 0
@@ -104,7 +104,7 @@ class SlamConfig:
     """Rounds of the refinement (:func:`jaxslam.refine.refine_in_rounds`): the first localises
     every scan in the final map, each later one in the map drawn again from the processed scans
     at the last round's poses. 1: the final map only (the figures:
-    docs/notes/2026-11-29-the-map-drawn-again.md)."""
+    docs/design.md, "Refinement")."""
     window_cells: int = 5
     """Coarse cells per axis of the window posterior (:mod:`jaxslam.window_posterior`): the
     window is cut into this cubed, each scored once."""
@@ -121,13 +121,13 @@ class SlamConfig:
     intermediates (the window posterior's candidate poses times beams, the insertion's beam
     samples) then cost this many particles' worth, not N's. It changes no value; larger blocks
     give a GPU more parallel work, smaller ones less memory (the figures:
-    docs/notes/2026-11-26-memory-per-particle.md)."""
+    docs/design.md, "Per-particle stages run in blocks")."""
     score_lag: int | None = None
     """Which score estimate the gradient of ``rbpf.filter``'s ``marginal_loglik`` is (its value
     is the same): None, the path-space score over the final particles' ancestral paths; an int L
     >= 0, the fixed-lag smoothed score, each step's term averaged over the particles L steps
     later (:func:`jaxslam.particle_filter.fixed_lag_score`; less biased by path degeneracy:
-    docs/notes/2026-11-26-fixed-lag-score.md). Mapping computes no gradient and ignores it."""
+    docs/design.md, "What a gradient of the filter is"). Mapping computes no gradient and ignores it."""
     proposal_settings: tuple[tuple[str, Any], ...] = ()
     """The proposals' own settings that differ from their defaults, as (name, value) pairs sorted
     by name (read them as attributes: ``config.num_localizers``)."""
@@ -216,7 +216,7 @@ class RunSettings:
     linear_update: float = 0.5
     """Process a scan after this much travel (m) since the last processed one. Half GMapping's
     1 m: the odometry's error, and so the cloud every proposal has to search, grows with the
-    motion between processed scans (the figures: docs/notes/2026-11-22-update-rate.md)."""
+    motion between processed scans (the figures: docs/design.md, "Static configuration, traced parameters")."""
     angular_update: float = 0.25
     """... or after this much rotation (rad); half GMapping's 0.5 rad."""
 

@@ -12,13 +12,13 @@ The gradient of ``rbpf.filter``'s estimate is the path-space score by default;
 ``SlamConfig.score_lag`` makes it the fixed-lag smoothed score
 (:func:`jaxslam.particle_filter.fixed_lag_score`: the same bias, less spread on a
 linear-Gaussian model; no change where the weights collapse every step, as on the simulated
-office: docs/notes/2026-11-26-fixed-lag-score.md).
+office: docs/design.md, "What a gradient of the filter is").
 
 Learn with the SMP (:func:`slam_learning_setup` sets its importance weight): it draws from the
 window posterior, so far fewer of its draws lose their weight in a step than the OP's, and a
 fit from twice the truth on the simulated office ends with every motion term within 10 % of the
 known path's optimum (sigma at 1.16x) at 50 particles, where the OP's ends at 0.65x in srt with 200
-(docs/notes/2026-11-26-smp-weights-for-learning.md).
+(docs/design.md, "What a gradient of the filter is").
 
 Fit with the untempered likelihood (``likelihood.gain`` 1 for the RBPF, ``likelihood_gain`` 1
 for MCL and the doors) and leave the gain out of ``trainable``: a gain below 1 makes the

@@ -211,7 +211,7 @@ def endpoint_log_normalizer(ranges: Float[Array, "B"], sensor: SensorSpec, param
     cell (distance 0) is worth at most ``-log(resolution)``. Exact for the nearest lookup. For
     the bilinear lookup it is an approximation that holds for sigma above a cell (the
     interpolated density's own Z falls below it under a cell: measured ratios in
-    docs/notes/2026-11-25-the-models-own-optimum.md). That integral tends to 0 with sigma, and
+    docs/design.md, "Endpoint model"). That integral tends to 0 with sigma, and
     with it the log-likelihood would again be unbounded as sigma falls; the cell count keeps
     the model well posed, and a sigma learned
     with it is comparable with a reference computed with it (not with one computed under another
@@ -304,7 +304,7 @@ def see_through_log_likelihood(
     to its end, with no clear space after them. Counted, the first made the true pose cross more
     cells than poses moved towards what it sees, and the second pulled every pose towards the near
     side of a smear (the endpoint model is flat through it), which the next insertion thickened: a
-    heading ratchet of 50-100 degrees over a box world's laps (docs/notes/2026-11-29-free-space-evidence.md).
+    heading ratchet of 50-100 degrees over a box world's laps (docs/design.md, "Free-space evidence").
     Constant in the pose between cells, so it carries no pose gradient.
 
     Args:

@@ -254,7 +254,7 @@ def scan_support(relations: Relations, timestamps, poses, trans: np.ndarray, sca
     - Intel: the scans favour the relation in 133 of its 137 such relations;
     - MIT CSAIL: the relation in 95 of 107;
     - FR-clinic: the trajectory in 526 of 708, and the relation in 53
-      (docs/notes/2026-12-01-where-fr-clinic-loses.md).
+      (docs/design.md, "Whose error it is").
 
     It counts inliers rather than taking the capped squared distance of
     :func:`jaxslam.laser.scan_misfit`: on FR-clinic the long returns that one scan saw and the

@@ -87,7 +87,7 @@ def sample_with_score(key: PRNGKeyArray, pose: Float[Array, "... 3"], motion: Fl
     estimate (Poyiadjis, Doucet & Singh 2011) instead of a pathwise one. A pathwise gradient
     moves the pose against a map that does not move with it (the maps are not differentiable in
     the poses that built them), so it is far noisier than the score and points the wrong way
-    (the figures: docs/notes/2026-11-24-what-stopped-the-office-fit.md). A zero std (no noise)
+    (the figures: docs/design.md, "Motion-noise gradients by the score"). A zero std (no noise)
     gives a zero term.
     """
     std = noise_std(motion, params)
@@ -135,6 +135,6 @@ def path_log_density(path: Float[Array, "T 3"], motions: Float[Array, "T-1 3"],
     the scans can at best recover. It need not be the simulator's values: the simulator takes
     each step's std at the true motion, the model at the odometry reading, and that alone moves
     the optimum of ``str`` and ``stt`` (the figures:
-    docs/notes/2026-11-25-the-models-own-optimum.md).
+    docs/design.md, "Tempering and learning").
     """
     return jnp.sum(log_density(path[1:], path[:-1], motions, params))

@@ -121,7 +121,7 @@ def pool_size(config: SlamConfig, first_scan_tiles: int | None = None) -> PoolSi
     :func:`jaxslam.slam.run` grows the pools when a step needs more (one recompile each time,
     reported; while it grows both the old and the new pools are held, so starting smaller and
     growing costs more peak memory than starting large enough:
-    docs/notes/2026-11-26-memory-per-particle.md)."""
+    docs/design.md, "Per-particle stages run in blocks")."""
     spec = config.grid
     k = spec.window_tiles(config.max_insert_range, config.field_radius)
     kb = spec.window_blocks(k)

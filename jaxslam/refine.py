@@ -155,7 +155,7 @@ def refine_in_rounds(
     them; the refined poses are better, so the map they draw is sharper and a scan localised in
     it lands closer. Drawn from the processed scans only: the map from every scan was measured
     worse (its walls thicken with the many nearby scans' small errors; the figures:
-    docs/notes/2026-11-29-the-map-drawn-again.md).
+    docs/design.md, "Refinement").
 
     Args:
       spec, hit_dist2, poses, ranges, sensor, params, odometry, chunk_size: as
@@ -212,7 +212,7 @@ def odometry_noise_scale(poses: Float[np.ndarray, "T 3"], odometry: Float[np.nda
     refinement gains 5 mm. Intel's steps stray by as little (0.23, 0.14, 0.23), but its
     odometry's errors are correlated over many steps: trusted at that noise, Intel loses 1.7 mm.
     So :func:`refine_in_rounds` takes this scale only where the loops measured the odometry's
-    heading as the better one (docs/notes/2026-12-01-where-fr-clinic-loses.md).
+    heading as the better one (docs/design.md, "Refinement").
 
     Args:
       poses: (T, 3) a refined trajectory (m, m, rad); odometry: (T, 3) the odometry's poses;

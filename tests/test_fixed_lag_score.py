@@ -79,7 +79,7 @@ def test_fixed_lag_score_against_the_kalman_score():
     34 to 50 %); lag 0 (the filtering weights alone) is biased in a by more than 10 standard
     errors. Both scores carry the same O(T / N) bias of the particle approximation (in r, 15 to
     37 with exact scores of -22 to 7): the lag removes no bias that the path-space score has, it
-    removes spread (docs/notes/2026-11-26-fixed-lag-score.md)."""
+    removes spread (docs/design.md, "What a gradient of the filter is")."""
     for seed in (0, 1):
         ys = simulate(jax.random.key(100 + seed), THETA, 200)
         exact = np.asarray(kalman_score(THETA, ys))

@@ -6,7 +6,7 @@ Riemann sum over a fine lattice of poses round the posterior (summed in NumPy fl
 slow reference), and its gradient in log coordinates by autodiff of that sum and by central finite
 differences. "importance" must reproduce both from its draws; "quadrature" (the default) is shown
 to miss them where the posterior is narrower than its stencil, which is why learning does not use
-it (docs/notes/2026-11-26-smp-weights-for-learning.md).
+it (docs/design.md, "Motion-noise gradients by the score").
 """
 
 from __future__ import annotations

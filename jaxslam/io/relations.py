@@ -101,7 +101,7 @@ def sideways_relations(relations: Relations, max_seconds: float = 12.0, min_leng
     closure all say straight ahead there. For 37 of the 40, the two scans lay over each other
     better under the closure's motion than under the relation's, and for one the other way
     (:func:`jaxslam.metrics.scan_support`). The other four logs hold 0-3 each
-    (docs/notes/2026-12-01-where-fr-clinic-loses.md). They are part of every method's
+    (docs/design.md, "Relations a differential-drive robot cannot make"). They are part of every method's
     mean on that log: :func:`jaxslam.metrics.relation_error` keeps them, as the benchmark does,
     and ``jaxslam eval`` reports the mean without them beside it.
 

@@ -16,7 +16,7 @@ of ``tile_size`` cells, grouped into square blocks of ``block_size`` tiles
 
 Two levels, so that what a particle owns alone is small: a page table over the whole grid per
 particle would cost the grid's extent times the particles again, copied at every resampling
-(the memory figures are in ``docs/notes/2026-11-23-two-level-page-tables.md``). Resampling
+(the memory figures are in ``docs/design.md``, "Maps are paged"). Resampling
 copies directories only (:func:`resample`): particles share the blocks and tiles of their
 common past, as GMapping's reference-counted patches do. Inserting a scan (:func:`insert_scans`)
 first makes every block and tile it writes the writer's own (one only it uses is written in

@@ -39,7 +39,7 @@ by ``likelihood.gain / localizer_gain``, so that the SLAM weights get the eviden
 to the filter's gain like every other proposal's. Tempering the localizers too (the gains
 equal) flattens their weights until the selection barely prefers the poses that explain the
 scans, and the LP drifts like the OP (the box-world figures: docs/design.md, "Gains", and
-docs/notes/2026-11-22-box-world-knobs.md).
+docs/results.md, "Box world").
 
 Gradients (``jax.grad`` of the filter's log-likelihood; docs/design.md, "What a gradient of the
 filter is"). The LP is an importance sampler on an extended space: the L time-t samples x, the
@@ -555,7 +555,7 @@ _SETTINGS = (
     "odometry" (the motion model, as in the paper). Along a featureless corridor the paper's
     localizers spread with the odometry and the particles inherit the spread; started from the
     match they stay pinned to the map (the figures:
-    docs/notes/2026-11-25-robustness-table-and-the-library-lp.md)."""),
+    docs/results.md, "Ten seeds, four logs")."""),
 )
 
 _PARAMS = ParamGroup("lookahead", LookaheadParams,

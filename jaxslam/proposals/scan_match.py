@@ -74,7 +74,7 @@ SMP_WEIGHT = Setting(
     the drawn pose, log p(z_t | x_t, m)^gain + log p(x_t | x_{t-1}, u_t) - log q(x_t) with q the
     window posterior's mixture, an unbiased estimate of the same quantity whose gradient is the
     score of the drawn pose; what ``learning.slam_learning_setup`` sets (the figures:
-    docs/notes/2026-11-26-smp-weights-for-learning.md).""")
+    docs/design.md, "Motion-noise gradients by the score").""")
 
 PROPOSAL = Proposal(
     propose, "scan matching (GMapping's proposal): a Gaussian round each mode of the window posterior",

@@ -142,7 +142,7 @@ def noisy_odometry(key: PRNGKeyArray, true_poses, params: MotionParams) -> np.nd
     than at the true motion: on a nearly straight step the reading's sideways and turning parts
     are pure noise, so the model's std is the wider, and on the simulated office the model's own
     optimum for the known true path (:func:`jaxslam.motion.path_log_density`) is about 0.84x the
-    simulated ``str`` and 1.32x ``stt`` (docs/notes/2026-11-25-the-models-own-optimum.md). A
+    simulated ``str`` and 1.32x ``stt`` (docs/design.md, "Tempering and learning"). A
     filter that composes k simulation steps into one update (update selection) over-estimates
     the noise by about sqrt(k), since independent per-step errors add in variance while the
     model's std adds linearly.
