@@ -206,8 +206,12 @@ def select_updates(log: LaserLog, linear_update: float, angular_update: float) -
     since the last processed scan. The first scan is always processed.
 
     Both thresholds <= 0 process every scan.
+
+    The motions are computed in float32 in the log's local frame (:func:`local_frame_offset`):
+    a log far from the origin gives the motions of the same log near it (float32 resolves 0.5 m
+    at 5,000 km), and a log already local (the filter's) gives the same bits as ever.
     """
-    odom = log.odometry
+    odom = to_local(log.odometry, frame_offset_of(log.odometry))
     steps = np.asarray(between(odom[:-1], odom[1:]), dtype=np.float64)
     step_lin = np.hypot(steps[:, 0], steps[:, 1])
     step_ang = np.abs(steps[:, 2])
@@ -266,8 +270,12 @@ def poses_at(query_times, stream_times, stream_poses) -> PosesAt:
     exact = (query == times[before]) | (span <= 0)
     fraction = np.where(exact, 0.0, (query - times[before]) / np.where(span > 0, span, 1.0))
     fraction = np.clip(fraction, 0.0, 1.0)
-    result = np.asarray(interpolate(poses[before], poses[after], fraction), dtype=np.float64)
-    # Exact hits keep the stream pose bit for bit (interpolate runs in float32).
+    # interpolate runs in float32: in the stream's local frame, so that a stream far from the
+    # origin (UTM coordinates) reads as the same stream near it; exact hits keep the stream pose
+    # bit for bit.
+    offset = frame_offset_of(poses)
+    local = to_local(poses, offset)
+    result = to_world(np.asarray(interpolate(local[before], local[after], fraction), dtype=np.float64), offset)
     result = np.where(exact[:, None], poses[before], result)
     result = np.where(covered[:, None], result, 0.0)
     return PosesAt(result, covered)
@@ -306,10 +314,12 @@ def trajectory_per_scan(log: LaserLog, processed_indices, processed_poses) -> np
     scans = np.arange(log.num_scans)
     # The processed scan each scan hangs off: the last one at or before it, else the first.
     anchor = np.clip(np.searchsorted(idx, scans, side="right") - 1, 0, idx.size - 1)
-    odom = log.odometry
+    # compose runs in float32: in the log's local frame, so that a log far from the origin gets
+    # the trajectory of the same log near it, shifted; processed scans keep their pose exactly.
+    offset = frame_offset_of(log.odometry)
+    odom = to_local(log.odometry, offset)
     motion = between(odom[idx[anchor]], odom)
-    result = np.asarray(compose(poses[anchor], motion), dtype=np.float64)
-    # Processed scans keep their pose exactly (compose runs in float32).
+    result = to_world(np.asarray(compose(to_local(poses, offset)[anchor], motion), dtype=np.float64), offset)
     result[idx] = poses
     result[idx, 2] = wrap_angle_np(poses[:, 2])
     return result
@@ -321,13 +331,22 @@ def trajectory_per_scan(log: LaserLog, processed_indices, processed_poses) -> np
 
 def local_frame_offset(log: LaserLog) -> np.ndarray:
     """(2,) float64: the origin of the filter's local frame in the log's frame, where the virtual
-    grid is centred: the translation of the log's first odometry pose, rounded to a multiple of
-    64 m. Subtracted on the host in float64 before anything is cast to float32 (float32 resolves
-    0.5 m at 5,000 km from the origin, e.g. in UTM coordinates)."""
-    # Rounded to a multiple of 64 m: a log that starts within 32 m of the origin runs exactly as
-    # given, and shifting a log by a multiple of 64 m changes no bit of the filter's arithmetic
-    # (the local logs are equal); |local coordinates| <= 32 m + the log's extent.
-    return np.round(np.asarray(log.odometry[0, :2], dtype=np.float64) / 64.0) * 64.0 + 0.0
+    grid is centred: :func:`frame_offset_of` the log's odometry. Subtracted on the host in float64
+    before anything is cast to float32 (float32 resolves 0.5 m at 5,000 km from the origin, e.g.
+    in UTM coordinates)."""
+    return frame_offset_of(log.odometry)
+
+
+def frame_offset_of(poses) -> np.ndarray:
+    """(2,) float64: the local frame's origin for poses (N, 3) (or points (N, 2)): the first
+    one's translation rounded to a multiple of 64 m (zeros for none)."""
+    # Rounded to a multiple of 64 m: poses that start within 32 m of the origin stay exactly as
+    # given, and shifting them by a multiple of 64 m changes no bit of the float32 arithmetic done
+    # in the local frame (the local poses are equal); |local coordinates| <= 32 m + their extent.
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape[0] == 0:
+        return np.zeros(2)
+    return np.round(poses[0, :2] / 64.0) * 64.0 + 0.0
 
 
 def to_world(poses, frame_offset) -> np.ndarray:
@@ -423,8 +442,9 @@ def estimate_odometry_lead(log: LaserLog, max_lead_scans: float = 2.0, gap: int 
     scans = [points[k][valid[k]] for k in range(used.size)]
     row_first, row_second = np.searchsorted(used, first), np.searchsorted(used, second)
     motions = np.empty((leads.size, first.size, 3))  # each pair's motion at each lead
+    local_odometry = to_local(log.odometry, frame_offset_of(log.odometry))  # float32 below: local
     for k, lead in enumerate(leads):
-        odometry = poses_at(np.clip(times - lead, times[0], times[-1]), times, log.odometry).poses
+        odometry = poses_at(np.clip(times - lead, times[0], times[-1]), times, local_odometry).poses
         motions[k] = np.asarray(between(odometry[first], odometry[second]), np.float64)
     misfit = np.stack([scan_misfit(motions[:, n], scans[i], scans[j], radius)
                        for n, (i, j) in enumerate(zip(row_first, row_second))], axis=1)  # (K, pairs)

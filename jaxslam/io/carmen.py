@@ -33,7 +33,7 @@ import os
 
 import numpy as np
 
-from jaxslam.geometry import between, compose_np
+from jaxslam.geometry import between_np, compose_np
 from jaxslam.io.beam_layouts import BeamLayout, pad_beam_layouts
 from jaxslam.io.rosbag import check_laser_pose
 from jaxslam.laserlog import LaserLog, LogError, last_of_each_timestamp, poses_at
@@ -306,14 +306,14 @@ class _LaserLines:
             if resolution == 0 or not max_range > 0:
                 raise LogError(f"{where}: bad laser settings angular_res={resolution} max_range={max_range}")
             self.geometry = geometry
-            self.laser_pose = np.asarray(between(robot_world, laser_world), dtype=np.float64)
+            self.laser_pose = between_np(robot_world, laser_world)  # float64: world poses
         else:
             # start_angle / angular_res may change (the beam layouts are merged in build).
             if resolution == 0:
                 raise LogError(f"{where}: bad laser settings angular_res={resolution}")
             if geometry[2] != self.geometry[2]:
                 raise LogError(f"{where}: max_range changes from {self.geometry[2]} to {geometry[2]}")
-            mounting = np.asarray(between(robot_world, laser_world), dtype=np.float64)
+            mounting = between_np(robot_world, laser_world)
             if not self.laser_pose_varies and np.max(np.abs(mounting - self.laser_pose)) > _LASER_POSE_TOLERANCE:
                 self.laser_pose_varies = where
         return ranges, robot_world, float(numbers[11]), geometry[:2]
@@ -402,8 +402,8 @@ class _LaserLines:
         both = paired.covered[:-1] & paired.covered[1:]
         if not both.any():
             return [f"{src}: the log's ODOM lines do not overlap its {kind} lines in time; {chosen}"]
-        laser_step = np.asarray(between(odometry[:-1], odometry[1:]), dtype=np.float64)
-        odom_step = np.asarray(between(paired.poses[:-1], paired.poses[1:]), dtype=np.float64)
+        laser_step = between_np(odometry[:-1], odometry[1:])
+        odom_step = between_np(paired.poses[:-1], paired.poses[1:])
         trans = np.hypot(*(laser_step[:, :2] - odom_step[:, :2]).T)
         rot = np.abs(np.angle(np.exp(1j * (laser_step[:, 2] - odom_step[:, 2]))))
         size = np.hypot(laser_step[:, 0], laser_step[:, 1])

@@ -30,7 +30,7 @@ from jaxslam import motion as motion_model
 from jaxslam import particle_filter, resampling
 from jaxslam.geometry import between, wrap_angle
 from jaxslam.laser import SensorSpec, subsample_beams
-from jaxslam.laserlog import LaserLog
+from jaxslam.laserlog import LaserLog, frame_offset_of, to_local
 from jaxslam.localization.beam_model import BeamModelParams, beam_model_log_likelihood, make_beam_model_params
 from jaxslam.motion import MotionParams, motion_params
 from jaxslam.segment_map import expected_ranges
@@ -227,7 +227,7 @@ def filter(key: PRNGKeyArray, state: MclState, inputs: ScanInputs, segments: Flo
 def log_inputs(log: LaserLog) -> ScanInputs:
     """The (T, ...) inputs of a log: odometry motions (row 0 is zero: the first scan is
     weighed at the initial particles) and ranges, as float32 JAX arrays."""
-    odom = np.asarray(log.odometry, np.float64)
+    odom = to_local(log.odometry, frame_offset_of(log.odometry))  # float32 below: in the local frame
     motions = np.zeros_like(odom)
     motions[1:] = np.asarray(between(odom[:-1], odom[1:]), np.float64)
     return ScanInputs(jnp.asarray(motions, jnp.float32), jnp.asarray(log.ranges, jnp.float32))
