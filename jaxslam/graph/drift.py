@@ -10,7 +10,7 @@ faster than the robot's odometry (on FR-clinic 34 degrees after 1.4 km against t
 drifts slower differs from robot to robot, and no single step says it: a step's difference
 between them is mostly the filter's white jitter about its map, which the map cancels over the
 next steps (the particles' spread at a step measures that jitter, not the drift: weighing each
-step by it took Intel from 0.051 to 2.04 m; docs/notes/2026-11-28-whose-heading-drifts.md).
+step by it took Intel from 0.051 to 2.04 m; docs/design.md, "Measured and rejected").
 Drift shows over long spans, and a kept loop is a long span measured: its heading against each
 chain's relative heading over it is one sample of each chain's drift over that many steps.
 
@@ -21,7 +21,7 @@ filter's white jitter (:func:`step_noise`). A robust smoother then takes the hea
 probable under both (:func:`smoothed_headings`): who is at fault at a large disagreement is
 decided by whether it stays, not by its size (on FR-clinic 88-94 % of the steps beyond 4 robust
 stds were the filter's jumps, which a rule on the size took for wheel slips and kept; the
-chains it made ended 19-24 m off; docs/notes/2026-11-28-the-filter-jitters.md). The chain turns each submap
+chains it made ended 19-24 m off; docs/design.md, "Measured and rejected"). The chain turns each submap
 rigidly by its nodes' mean correction (:func:`fused_chain`). The loop closure searches again
 from that chain, and measures the rates again from its loops, until the odometry's share
 ``w = v_filter / (v_filter + v_odometry)`` settles

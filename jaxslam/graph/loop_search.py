@@ -200,7 +200,7 @@ def class_shape(half_cells: int, window: SearchWindow) -> SearchWindow:
     nodes kept for each level added. The top level's squares are coarser there and their bounds
     flatter, so the best candidate's node ranks lower among them: with ``keep`` nodes a level, a
     third of FR-clinic's promising 12.8 and 20 m matches came out elsewhere
-    (docs/notes/2026-11-30-wide-windows-screened.md)."""
+    (docs/design.md, "Loop closure behind the filter")."""
     levels = int(window.levels)
     span = 2 * int(half_cells) + 1
     while window.top_squares and -(-span // 2**levels) > window.top_squares:

@@ -12,7 +12,7 @@ are searched in a small window round that node's pose, turned by the heading the
 found, that heading kept within the pair's angular window. The match then meets the same five tests as any other,
 and one more (:func:`refuse_look_alikes`): a query that matches another place as well is
 refused. The bound, like the window, is what keeps a twin room out: on its first visit nothing
-else matches (:func:`add_appearance_loops`; docs/notes/2026-11-30-searched-by-appearance.md).
+else matches (:func:`add_appearance_loops`; docs/design.md, "Loop closure behind the filter").
 """
 
 from __future__ import annotations

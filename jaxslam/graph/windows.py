@@ -30,7 +30,7 @@ def graph_distances(travelled: np.ndarray, queries: np.ndarray, submap_last: np.
     FR-clinic's return to its start reaches its first submaps through the loop at node 2,166 and
     then those of nodes 765-849, 105 m of graph (a 4 m window) against 560 m through one loop (an
     18 m window). On FR-clinic seeds 0-2 the closed errors came out the same either way
-    (docs/notes/2026-11-29-the-return-to-the-start.md); the window is what the drift allows.
+    (docs/design.md, "Loop closure behind the filter"); the window is what the drift allows.
 
     Args:
         travelled: (S,) :func:`path_distances` along the chain (m).
