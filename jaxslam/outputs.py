@@ -61,6 +61,23 @@ def ground_truth_error(log, result) -> dict | None:
             "odometry_mean_m": float(odometry.mean()), "odometry_max_m": float(odometry.max())}
 
 
+def as_given(value):
+    """``value`` as the user gave it: a float that a float32 holds exactly (a parameter read back
+    from its array, ``0.10000000149011612``) as the shortest decimal that is the same float32
+    (``0.1``); any other value (a float32 cannot hold it, a bool, an int, a string) unchanged."""
+    if isinstance(value, (float, np.floating)):
+        as_float32 = np.float32(value)
+        if float(as_float32) == float(value):  # else a float64 the user gave: rounding would lose digits
+            return float(np.format_float_positional(as_float32, unique=True, trim="0"))
+    return value
+
+
+def summary_params(params) -> dict:
+    """``summary.json``'s ``params``: :func:`~jaxslam.config.params_to_dict`, each value
+    :func:`as_given` (the parameters are float32 arrays, whose exact values print as noise)."""
+    return {name: as_given(value) for name, value in params_to_dict(params).items()}
+
+
 def summarize(log, result, params, seed: int, source: str) -> dict:
     """The ``summary.json`` content of a run; with ``ground_truth_error`` (:func:`ground_truth_error`)
     when the log has ground truth (a simulated log)."""
@@ -71,7 +88,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
         "source": source,
         "seed": seed,
         "config": config,
-        "params": params_to_dict(params),
+        "params": summary_params(params),
         "scans_in_log": log.num_scans,
         "scans_processed": int(result.selection.indices.size),
         "log_duration_s": log.duration,

@@ -46,11 +46,42 @@ LOG_CLOCK_HELP = ("the log the trajectory came from, for relations written on an
                   "the time gaps and the odometry")
 
 
-def make_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="jaxslam", description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+COMMAND_SUMMARIES = {
+    "map": "build a map from a log (ROS 1/2 bag or CARMEN log)",
+    "demo": "map a simulated office (no download needed) and report the error against its ground truth",
+    "eval": "relation error (Kuemmerle et al. 2009) of a trajectory",
+    "diagnose": "what happened in a map run, step by step (ESS, lineages, corrections, relation error over time); "
+                "in a closed run, the returns the closure missed and why",
+    "doors": "localization with door-state estimation (Avots et al. 2002) in a simulated world",
+}
+"""Each command's one line: its entry in ``jaxslam --help`` and the description of its own ``--help``."""
 
-    p_map = sub.add_parser("map", help="build a map from a log (ROS 1/2 bag or CARMEN log)")
+DESCRIPTION = ("Particle filters for robot SLAM and localization in JAX: map a log (map) or a simulated office "
+               "(demo), score a trajectory against relations (eval), look into a map run (diagnose), localize "
+               "with door-state estimation (doors).")
+"""``jaxslam --help``'s description, in plain words: the module docstring above is RST, which a
+terminal would print with its markup."""
+
+EPILOG = ("map and demo set every config field, run setting and parameter by name: --set NAME=VALUE (dotted names "
+          "for parameters, e.g. --set motion.srr=0.05 --set linear_update=0.5) or a JSON file, --config FILE "
+          "holding {\"config\": {...}, \"params\": {...}}. Later wins: the command's defaults, the config file, "
+          "the dedicated flags (when given), --set. The filter commands cache their compiled code in "
+          "$JAXSLAM_CACHE_DIR (default $XDG_CACHE_HOME/jaxslam/jax or ~/.cache/jaxslam/jax; off or --no-cache: "
+          "no cache). A refused input is one line on stderr, jaxslam COMMAND: error: ..., with exit code 2, "
+          "before any work.")
+"""``jaxslam --help``'s epilog: the module docstring's precedence, cache and refusals, without markup."""
+
+
+def make_parser() -> argparse.ArgumentParser:
+    """The ``jaxslam`` parser and its subcommands (each command's function under ``func``)."""
+    parser = _Parser(prog="jaxslam", description=DESCRIPTION, epilog=EPILOG)
+    sub = parser.add_subparsers(title="commands", dest="command", required=True, metavar="COMMAND",
+                                help="jaxslam COMMAND --help lists the command's options")
+
+    def add_command(name: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=COMMAND_SUMMARIES[name], description=COMMAND_SUMMARIES[name])
+
+    p_map = add_command("map")
     p_map.add_argument("log", help="path of the log; the format is read from the file")
     p_map.add_argument("--scan-topic", help="bag topic of sensor_msgs/LaserScan (default /scan)")
     p_map.add_argument("--odom-topic", help="bag topic of nav_msgs/Odometry, or of transforms read as /tf is "
@@ -76,12 +107,13 @@ def make_parser() -> argparse.ArgumentParser:
     _add_filter_options(p_map, MAP_DEFAULTS)
     p_map.set_defaults(func=_cmd_map)
 
-    p_demo = sub.add_parser("demo", help="map a simulated office (no download needed)")
-    p_demo.add_argument("--scans", type=int, default=500, help="scans along the simulated path (88 m)")
+    p_demo = add_command("demo")
+    p_demo.add_argument("--scans", type=int, default=500,
+                        help="scans along the simulated path (88 m) (default %(default)s)")
     _add_filter_options(p_demo, DEMO_DEFAULTS, DEMO_PROPOSAL_NOTE)
     p_demo.set_defaults(func=_cmd_demo, out="out/demo")
 
-    p_eval = sub.add_parser("eval", help="relation error (Kuemmerle et al. 2009) of a trajectory")
+    p_eval = add_command("eval")
     p_eval.add_argument("trajectory", help="trajectory text file: 'timestamp x y theta' per line")
     p_eval.add_argument("relations", help="relations file: 't1 t2 x y z roll pitch yaw' per line")
     p_eval.add_argument("--out", help="write the table as JSON to this file (not a folder)")
@@ -92,29 +124,38 @@ def make_parser() -> argparse.ArgumentParser:
                              "trajectory's) lays its two scans over each other better")
     p_eval.set_defaults(func=_cmd_eval)
 
-    p_diag = sub.add_parser("diagnose", help="what happened in a map run, step by step (ESS, lineages, "
-                                             "corrections, relation error over time); in a closed run, the "
-                                             "returns the closure missed and why")
-    p_diag.add_argument("run_dir", help="the output folder of `jaxslam map` (it holds steps.npz)")
+    p_diag = add_command("diagnose")
+    p_diag.add_argument("run_dir", help="the output folder of jaxslam map (it holds steps.npz)")
     p_diag.add_argument("relations", nargs="?", help="relations file of the log, for the error over time")
     p_diag.add_argument("--log", help=LOG_CLOCK_HELP)
     p_diag.add_argument("--out", help="folder for diagnosis.json and diagnosis.png (default: RUN_DIR)")
     p_diag.set_defaults(func=_cmd_diagnose)
 
-    p_doors = sub.add_parser("doors", help="localization with door-state estimation (Avots et al. 2002)")
+    _add_doors_options(add_command("doors"))
+    return parser
+
+
+def _add_doors_options(p_doors: argparse.ArgumentParser) -> None:
+    """``jaxslam doors``' options: the scenario, the filter and their sizes."""
     p_doors.add_argument("--scenario", choices=("corridors", "office", "patrol"), default="corridors",
                          help="corridors: two corridors told apart only by their doors (Fig. 2); "
                               "office: doors closed on the way out, opened, then the return pass (Fig. 1); "
-                              "patrol: ten round trips while the doors open and close at random")
-    p_doors.add_argument("--particles", type=int, default=1000)
-    p_doors.add_argument("--seed", type=int, default=0, help="seed of the simulated log and of the filter")
+                              "patrol: ten round trips while the doors open and close at random "
+                              "(default %(default)s)")
+    p_doors.add_argument("--particles", type=int, default=1000,
+                         help="number of MCL particles, >= 1 (default %(default)s)")
+    p_doors.add_argument("--seed", type=int, default=0,
+                         help="seed of the simulated log and of the filter (default %(default)s)")
     p_doors.add_argument("--filter", dest="filter_kind", choices=("hybrid", "static", "memoryless"),
-                         default="hybrid")
-    p_doors.add_argument("--out", default="out/doors", help="folder for summary.json and the figures")
+                         default="hybrid",
+                         help="hybrid: the door filter, each particle's door beliefs kept from scan to scan; "
+                              "memoryless: every door 50%% open again before each update; static: MCL on the map "
+                              "as given, each door fixed open or closed as the map has it (default %(default)s)")
+    p_doors.add_argument("--out", default="out/doors",
+                         help="folder for summary.json and the figures (default %(default)s)")
     p_doors.add_argument("--no-cache", action="store_true",
                          help="do not use the persistent compilation cache (as JAXSLAM_CACHE_DIR=off)")
     p_doors.set_defaults(func=_cmd_doors)
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

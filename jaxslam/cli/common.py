@@ -115,12 +115,12 @@ def _add_filter_options(p: argparse.ArgumentParser, command_defaults: dict, prop
         p.add_argument(flag.flag, type=flag.type, default=None,
                        help=f"{owners[flag.flag].upper()}: {flag.help} (default {d[flag.name]:g})")
     p.add_argument("--seed", type=int, default=0,
-                   help="random seed in [0, 2**32) (runs reproduce bit for bit) (default 0)")
+                   help="random seed, 0 to 2^32 - 1 (runs reproduce bit for bit) (default %(default)s)")
     p.add_argument("--config", help="JSON file {\"config\": {...}, \"params\": {...}}")
     p.add_argument("--set", action="append", metavar="NAME=VALUE",
                    help="set any config field or parameter (dotted), e.g. motion.srr=0.05; repeatable")
     p.add_argument("--chunk-size", type=int, default=32,
-                   help="steps per compiled chunk (progress granularity), >= 1 (default 32)")
+                   help="steps per compiled chunk (progress granularity), >= 1 (default %(default)s)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.add_argument("--no-cache", action="store_true",
                    help="do not use the persistent compilation cache (as JAXSLAM_CACHE_DIR=off)")
