@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import resource
+import time
 from pathlib import Path
 
 import numpy as np
@@ -115,25 +116,41 @@ not write (e.g. ``trajectory_refined.txt`` without ``--refine``) are removed, ne
 
 
 def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, world=None, refined=None,
-                       refine_seconds: float | None = None) -> dict:
-    """Write ``map.{pgm,yaml,png}``, ``trajectory.txt``, ``summary.json``, ``slam.png`` and
-    ``steps.npz`` (the per-step record ``jaxslam diagnose`` reads: :mod:`jaxslam.diagnose`) into ``out_dir``.
+                       refine_seconds: float | None = None, timings: dict | None = None,
+                       started: float | None = None) -> dict:
+    """Write what :func:`jaxslam.pipeline.map_log` returned (``result``, a
+    :class:`~jaxslam.pipeline.MappedLog`) into ``out_dir``: ``map.{pgm,yaml,png}`` (``map.png`` with
+    a scale bar and the origin marked: :func:`jaxslam.plotting.annotate_map_png`),
+    ``trajectory.txt``, ``summary.json``, ``slam.png`` (:func:`jaxslam.plotting.slam_figure`) and
+    ``steps.npz`` (the per-step record ``jaxslam diagnose`` reads: :mod:`jaxslam.diagnose`).
+    Nothing is computed here but the files: the map is the result's final map (``result.logodds``).
+
+    A :class:`~jaxslam.slam.SlamResult` is taken too (a notebook's filter run): its final map is
+    drawn first (:func:`jaxslam.pipeline.as_mapped`) and ``refined`` (a
+    :class:`jaxslam.refine.RefinedTrajectory`, world frame; ``refine_seconds`` its wall time) is its
+    refinement.
 
     With a loop closure (``result.closure``, :mod:`jaxslam.graph`), ``trajectory.txt`` holds the
     optimised poses, ``trajectory_filter.txt`` the filter's, ``graph.npz`` the pose graph
-    (:func:`jaxslam.graph.save_graph`), the map is drawn again at the optimised poses
-    (:meth:`jaxslam.slam.SlamResult.closed_map`) and the summary's ``closure`` counts the loops.
+    (:func:`jaxslam.graph.save_graph`) and ``graph.png`` its figure over the map
+    (:func:`jaxslam.plotting.graph_figure`), the map is the one drawn again at the optimised poses
+    and the summary's ``closure`` counts the loops.
 
-    Without one, the map is the final best particle's, cropped to its known cells plus a margin of
+    The map is cropped to its known cells plus a margin of
     :data:`jaxslam.io.maps.DEFAULT_MARGIN_CELLS` cells (see :func:`jaxslam.io.maps.crop_to_known`;
     ``map.yaml``'s origin is the crop's lower-left corner, in the log's frame), and ``slam.png``
-    shows the same area (widened to the best particle's path if that leaves it). The trajectory
+    shows the same area (widened to the paths if they leave it). The trajectory
     has one pose per scan of the log.
-    With ``refined`` (a :class:`jaxslam.refine.RefinedTrajectory`) also ``trajectory_refined.txt``,
-    and the summary's ``refinement`` gives the fraction of scans whose match held (and, when
-    given, ``refine_seconds``, the refinement's wall time, goes under ``timings.refinement``). For a log with ground truth (a
-    simulated one) the summary's ``ground_truth_error`` holds :func:`ground_truth_error`.
-    The figure is drawn without pyplot, so a notebook's plotting backend is left as it is.
+    With a refined trajectory also ``trajectory_refined.txt``, and the summary's ``refinement``
+    gives the fraction of scans whose match held. For a log with ground truth (a simulated one)
+    the summary's ``ground_truth_error`` holds :func:`ground_truth_error`.
+    The figures are drawn without pyplot, so a notebook's plotting backend is left as it is.
+
+    The summary's ``timings`` (s): the filter's (``compile``, ``total``, ``real_time_factor``), the
+    closure's (``closure``), ``closed_map`` and ``refinement`` (:attr:`MappedLog.timings`), the
+    caller's ``timings`` (``jaxslam map``: ``read``, the log read; ``checks``, the memory and disk
+    checks), ``write`` (this function, up to ``summary.json``) and, where ``started`` (a
+    ``time.perf_counter()`` value: when the user's wait began) is given, ``total_wall``.
 
     The folder is replaced atomically (:func:`publish_folder`): all files are written into a
     temporary folder beside it first. If ``out_dir`` holds an earlier run, this run's files
@@ -147,49 +164,59 @@ def write_slam_outputs(out_dir, log, result, params, seed: int, source: str, wor
     ``null_reasons`` is ``{}`` when nothing was nulled.
     Returns the summary as written.
     """
-    # Matplotlib here, not at the top: it is 0.7-0.9 s of the command line's 1.8-2.1 s start-up
-    # (docs/design.md, "Imports"). No pyplot: a notebook's backend is left as it is.
-    from matplotlib.figure import Figure
+    t_write = time.perf_counter()
+    from jaxslam.pipeline import as_mapped
 
-    from jaxslam.plotting import plot_slam_result
-
-    closure = getattr(result, "closure", None)
-    logodds, _, grid = result.dense_map() if closure is None else result.closed_map(log, params)
-    cropped, spec = crop_to_known(logodds, grid)
-    summary = _slam_summary(log, result, params, seed, source, refined, refine_seconds)
-    text = json.dumps(summary, indent=2, allow_nan=False, default=_json_default)
+    mapped = as_mapped(log, result, params, refined)
+    stages = dict(timings or {})
+    if refine_seconds is not None:  # a SlamResult's refinement, timed by the caller
+        stages["refinement"] = float(refine_seconds)
+    cropped, spec = crop_to_known(mapped.logodds, mapped.grid)
+    summary = _slam_summary(log, mapped, params, seed, source, stages)
 
     def write(out: Path) -> None:
         write_map(out / "map", cropped, spec)
-        write_trajectory(out / "trajectory.txt", log.timestamps,
-                         result.trajectory if closure is None else closure.trajectory)
-        fig = Figure(figsize=(8, 8))
-        plot_slam_result(result, log, world=world, ax=fig.subplots())
-        if closure is not None:
-            from jaxslam.graph import save_graph
-
-            write_trajectory(out / "trajectory_filter.txt", log.timestamps, result.trajectory)
-            save_graph(out / "graph.npz", closure)
-            fig.axes[0].plot(closure.poses[:, 0], closure.poses[:, 1], color="tab:blue", lw=1.0,
-                             label=f"closed ({closure.num_loops} loops)")
-            fig.axes[0].legend(loc="upper right", fontsize=8)
-        _limit_to_map(fig.axes[0], spec, result.best_path)
-        fig.savefig(out / "slam.png", dpi=150)
-        if refined is not None:
-            write_trajectory(out / "trajectory_refined.txt", log.timestamps, refined.poses)
-        (out / "summary.json").write_text(text)
-        write_step_record(out / STEPS_FILE, step_record(log, result))
+        _write_figures(out, log, mapped, world, cropped, spec)
+        write_trajectory(out / "trajectory.txt", log.timestamps, mapped.trajectory)
+        if mapped.closure is not None:
+            write_trajectory(out / "trajectory_filter.txt", log.timestamps, mapped.result.trajectory)
+        if mapped.refined is not None:
+            write_trajectory(out / "trajectory_refined.txt", log.timestamps, mapped.refined.poses)
+        write_step_record(out / STEPS_FILE, step_record(log, mapped.result))
+        # Last, so that its timings hold the writing; strict JSON (non-finite numbers nulled).
+        summary["timings"]["write"] = time.perf_counter() - t_write
+        if started is not None:
+            summary["timings"]["total_wall"] = time.perf_counter() - started
+        cleaned, null_reasons = strict_json_values(summary, _known_null_reasons(summary, mapped.result))
+        summary.clear()
+        summary.update(cleaned, null_reasons=null_reasons)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False, default=_json_default))
 
     publish_folder(out_dir, write, replaces=SLAM_OUTPUT_NAMES)
     return summary
 
 
-def _slam_summary(log, result, params, seed: int, source: str, refined=None,
-                  refine_seconds: float | None = None) -> dict:
-    """:func:`write_slam_outputs`' summary: :func:`summarize`'s, with the loop closure's counts and
-    timings (s; its poses' mean distance to the ground truth, m, where the log has one), the
-    refinement's, and non-finite numbers nulled with their ``null_reasons``."""
-    closure = getattr(result, "closure", None)
+def _write_figures(out: Path, log, mapped, world, cropped, spec) -> None:
+    """``map.png``'s scale bar and origin, ``slam.png``, and with a closure ``graph.npz`` and ``graph.png``."""
+    from jaxslam.plotting import annotate_map_png, graph_figure, slam_figure
+
+    annotate_map_png(out / "map.png", spec)
+    slam_figure(mapped, log, world=world, cropped=(cropped, spec)).savefig(out / "slam.png", dpi=150,
+                                                                             bbox_inches="tight")
+    if mapped.closure is not None:
+        from jaxslam.graph import load_graph, save_graph
+
+        save_graph(out / "graph.npz", mapped.closure)
+        graph_figure(load_graph(out / "graph.npz"), cropped, spec).savefig(out / "graph.png", dpi=120,
+                                                                          bbox_inches="tight")
+
+
+def _slam_summary(log, mapped, params, seed: int, source: str, stages: dict) -> dict:
+    """:func:`write_slam_outputs`' summary (before its ``write`` and ``total_wall`` timings and
+    the strict-JSON nulls): :func:`summarize`'s, with the loop closure's counts and timings (s; its
+    poses' mean distance to the ground truth, m, where the log has one), the refinement's, and the
+    stages' seconds."""
+    result, closure, refined = mapped.result, mapped.closure, mapped.refined
     summary = summarize(log, result, params, seed, source)
     if closure is not None:
         summary["closure"] = closure.summary()
@@ -201,10 +228,8 @@ def _slam_summary(log, result, params, seed: int, source: str, refined=None,
         summary["refinement"] = {"matched_fraction": float(np.mean(refined.matched)),
                                  "median_score": float(np.median(refined.scores)),
                                  "odometry_noise_scale": [float(v) for v in refined.odometry_noise_scale]}
-        if refine_seconds is not None:  # seconds vary run to run: beside the filter's
-            summary["timings"]["refinement"] = float(refine_seconds)
-    summary, null_reasons = strict_json_values(summary, _known_null_reasons(summary, result))
-    summary["null_reasons"] = null_reasons
+    summary["timings"].update({name: float(seconds) for name, seconds in mapped.timings.items()})
+    summary["timings"].update({name: float(seconds) for name, seconds in stages.items()})
     return summary
 
 
@@ -272,19 +297,6 @@ def expected_output_bytes(map_cells: int, num_scans: int, checkpoint_bytes: int 
     ``--refine``), the figure and summary (a few MB), and ``checkpoint_bytes`` for a checkpoint
     (``--checkpoint-every``: the particles' directories and the maps' pools)."""
     return 2 * map_cells + 2 * 80 * num_scans + 5_000_000 + checkpoint_bytes
-
-
-def _limit_to_map(ax, spec, path) -> None:
-    """Show the (cropped) map's extent, widened to hold ``path`` (T, 3) if it leaves it."""
-    xmin, xmax, ymin, ymax = spec.extent
-    xy = np.asarray(path)[:, :2]
-    xy = xy[np.all(np.isfinite(xy), axis=1)]
-    if xy.size:
-        margin = 2 * spec.resolution
-        xmin, ymin = np.minimum([xmin, ymin], xy.min(axis=0) - margin)
-        xmax, ymax = np.maximum([xmax, ymax], xy.max(axis=0) + margin)
-    ax.set_xlim(float(xmin), float(xmax))
-    ax.set_ylim(float(ymin), float(ymax))
 
 
 def _json_default(value):

@@ -83,6 +83,8 @@ def refine_trajectory(
     odometry: Float[np.ndarray, "T 3"] | None = None,
     chunk_size: int = 256,
     odometry_noise_scale=(1.0, 1.0, 1.0),
+    progress: bool = False,
+    desc: str = "refinement",
 ) -> RefinedTrajectory:
     """Scan-match every scan against one map, starting at its trajectory pose.
 
@@ -99,6 +101,7 @@ def refine_trajectory(
       chunk_size: scans matched per compiled call (static).
       odometry_noise_scale: (3,) factors on the motion model's x, y and heading stds of the
         odometry steps (:func:`odometry_noise_scale`).
+      progress: show a tqdm bar over the scans (labelled ``desc``).
 
     Returns:
       A :class:`RefinedTrajectory`.
@@ -119,7 +122,8 @@ def refine_trajectory(
                                   config.sensor_model)
 
     matched_pose, scores, covariances = run_in_chunks(
-        chunk_fn, (poses.astype(np.float32), lik_ranges), num, chunk_size).outputs
+        chunk_fn, (poses.astype(np.float32), lik_ranges), num, chunk_size, progress=progress, desc=desc,
+        unit="scan").outputs
     matched_pose = matched_pose.astype(np.float64)
     covariances = covariances.astype(np.float64)
     ok = scores >= float(params.scan_match.min_score)
@@ -145,6 +149,7 @@ def refine_in_rounds(
     odometry: Float[np.ndarray, "T 3"] | None = None,
     chunk_size: int = 256,
     trust_odometry: bool = False,
+    progress: bool = False,
 ) -> RefinedTrajectory:
     """``config.refine_rounds`` rounds of :func:`refine_trajectory`: the first in the given map,
     each later one in the map drawn again (:func:`jaxslam.occupancy.map_from_scans`, the filter's
@@ -168,6 +173,7 @@ def refine_in_rounds(
         show (:func:`odometry_noise_scale`), not the motion model's. ``jaxslam map`` sets it
         where the loop closure found the odometry's heading drifting slower than the filter's
         (``LoopClosure.odometry_share`` > 0.5).
+      progress: a tqdm bar over the scans for each round.
 
     Returns:
       The last round's :class:`RefinedTrajectory`.
@@ -178,16 +184,19 @@ def refine_in_rounds(
             or map_scans.min() < 0 or map_scans.max() >= num):
         raise ValueError(f"refine_in_rounds: map_scans must be a non-empty 1-D array of scan indices in [0, {num}), "
                          f"got shape {map_scans.shape}, dtype {map_scans.dtype}")
-    refined = refine_trajectory(spec, hit_dist2, poses, ranges, sensor, params, config, odometry, chunk_size)
+    rounds = config.refine_rounds
+    refined = refine_trajectory(spec, hit_dist2, poses, ranges, sensor, params, config, odometry, chunk_size,
+                                progress=progress, desc=f"refinement, round 1 of {rounds}")
     scale = (1.0, 1.0, 1.0)
     if trust_odometry and odometry is not None and config.refine_rounds > 1:
         scale = odometry_noise_scale(refined.poses, odometry, refined.matched, params.motion)
-    for _ in range(config.refine_rounds - 1):
+    for round_index in range(2, rounds + 1):
         grid_map, spec = map_from_scans(refined.poses[map_scans], np.asarray(ranges)[map_scans], sensor,
                                         params.insertion, config.resolution, config.max_insert_range,
                                         config.field_radius)
         refined = refine_trajectory(spec, grid_map.hit_dist2, refined.poses, ranges, sensor, params, config,
-                                    odometry, chunk_size, scale)
+                                    odometry, chunk_size, scale, progress=progress,
+                                    desc=f"refinement, round {round_index} of {rounds}")
     return refined
 
 

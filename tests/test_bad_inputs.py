@@ -186,7 +186,7 @@ def no_work(monkeypatch):
 
     monkeypatch.setattr(jaxslam.cli.map, "read_log", trap)
     monkeypatch.setattr(jaxslam.cli.evaluate, "read_trajectory", trap)
-    monkeypatch.setattr(jaxslam.cli.map, "run", trap)
+    monkeypatch.setattr(jaxslam.pipeline, "run", trap)
     monkeypatch.setattr(jaxslam.localization.doors, "filter", trap)
     monkeypatch.setattr(jaxslam.localization.mcl, "filter", trap)
 
@@ -433,7 +433,7 @@ def _trap_filter(monkeypatch):
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
+    monkeypatch.setattr(jaxslam.pipeline, "run", trap)  # the filter jaxslam map calls (jaxslam.pipeline.map_log)
 
 
 def test_the_memory_estimate_counts_page_tables_pool_insertion_lp_terms_and_xla():
@@ -555,7 +555,7 @@ def test_a_log_the_memory_check_prepares_is_prepared_once(tmp_path, small_log, m
         runs.append(kwargs["prepared"])
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.cli.map, "run", trap)
+    monkeypatch.setattr(jaxslam.pipeline, "run", trap)
     with pytest.raises(AssertionError, match="the filter ran"):
         main(["map", str(tmp_path / "office.clf"), "--particles", "2000", "--set", "tile_size=8",
               "--no-progress", "--out", str(tmp_path / "out")])

@@ -132,7 +132,7 @@ def test_a_checkpoint_of_another_run_is_refused(log_path, tmp_path, monkeypatch,
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
+    monkeypatch.setattr(jaxslam.pipeline, "run", trap)  # the filter jaxslam map calls (jaxslam.pipeline.map_log)
     code = main(["map", str(log_path), *ARGS, *change, "--resume", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2, err

@@ -95,7 +95,7 @@ def _setup_of_a_run(monkeypatch, argv):
         seen.append((config, settings, params))
         raise KeyboardInterrupt  # main's own way out, exit code 130
 
-    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
+    monkeypatch.setattr(jaxslam.pipeline, "run", trap)  # the filter jaxslam map calls (jaxslam.pipeline.map_log)
     assert main(argv) == 130
     return seen[0]
 

@@ -942,7 +942,7 @@ def _refused(argv, capsys, monkeypatch, *words):
     def trap(*args, **kwargs):
         raise AssertionError("the filter ran")
 
-    monkeypatch.setattr(jaxslam.cli.map, "run", trap)  # the name jaxslam map calls
+    monkeypatch.setattr(jaxslam.pipeline, "run", trap)  # the filter jaxslam map calls (jaxslam.pipeline.map_log)
     try:
         code = main(argv)
     except SystemExit as exit_:

@@ -141,7 +141,7 @@ LAYERS: dict[str, int] = {
     # 4 runs
     "driver": 4, "slam": 4, "checkpoint": 4, "refine": 4, "islands": 4, "island_runs": 4, "graph": 4, "resources": 4,
     "sim": 4,
-    "diagnose": 4, "growth": 4,
+    "diagnose": 4, "growth": 4, "pipeline": 4,
     # 5 front
     "outputs": 5, "plotting": 5, "localization.plotting": 5, "cli": 5, "": 5,
 }

@@ -23,11 +23,10 @@ from jaxslam.io.rosbag import check_laser_pose
 from jaxslam.laserlog import check_log, estimate_odometry_lead, with_odometry_lead
 from jaxslam.proposals import PROPOSALS
 from jaxslam.outputs import expected_output_bytes, write_slam_outputs
-from jaxslam.laserlog import grid_to_world
 from jaxslam.rbpf import check_config_for_log, first_scan_tiles, prepare
-from jaxslam.refine import refine_in_rounds, trusts_odometry
+from jaxslam.pipeline import finish_mapping, map_log
 from jaxslam.resources import available_memory_bytes, estimate_run_bytes, map_cells, state_bytes
-from jaxslam.slam import RunInterrupted, run
+from jaxslam.slam import RunInterrupted, SlamResult
 
 
 def _cmd_map(args: argparse.Namespace) -> int:
@@ -37,7 +36,10 @@ def _cmd_map(args: argparse.Namespace) -> int:
     _check_at_least("--max-scans", args.max_scans, 1, "scans of the log to use")
     setup = build_setup_from_args(args, MAP_DEFAULTS)
     _check_out_folder(args.out)
-    return _map_and_write(read_map_log(args), setup, args, source=str(args.log))
+    started = time.perf_counter()  # the user's wait: from the log's reading to the last output
+    log = read_map_log(args)
+    return _map_and_write(log, setup, args, source=str(args.log), started=started,
+                          stages={"read": time.perf_counter() - started})
 
 
 def _log_reader_kwargs(args: argparse.Namespace) -> dict:
@@ -163,9 +165,14 @@ def _check_disk(log, config, settings, out, checkpoints: bool) -> None:
         raise ConfigError(f"--out {err}") from None
 
 
-def _map_and_write(log, setup, args, source: str, world=None) -> int:
+def _map_and_write(log, setup, args, source: str, world=None, started: float | None = None,
+                   stages: dict | None = None) -> int:
+    """Check, map (:func:`jaxslam.pipeline.map_log`, checkpointed and resumable) and write one
+    log's outputs. ``started``: ``time.perf_counter()`` when the user's wait began; ``stages``:
+    the seconds of what came before (``read``), for ``summary.json``'s ``timings``."""
     config, settings, params = setup
-
+    started = time.perf_counter() if started is None else started
+    t_checks = time.perf_counter()
     check_config_for_log(log, config)
     prepared = _check_memory(log, config, settings, params)
     _check_disk(log, config, settings, args.out, bool(getattr(args, "checkpoint_every", None)))
@@ -174,6 +181,7 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
     resume = _load_resume(ckpt, identity) if getattr(args, "resume", False) else None
     every = getattr(args, "checkpoint_every", None)
     _warn_of_the_cache(args)
+    stages = dict(stages or {}, checks=time.perf_counter() - t_checks)
 
     with _StopRequest() as stop:
         chunks = [0]
@@ -185,55 +193,38 @@ def _map_and_write(log, setup, args, source: str, world=None) -> int:
             return stop.signum is not None
 
         try:
-            # lazy: jaxslam.graph (scipy.sparse) adds 0.7 s to every command's start (measured)
-            from jaxslam.graph import ClosureConfig
-
-            close = None if getattr(args, "no_close_loops", False) else ClosureConfig()
-            result = run(jax.random.key(args.seed), log, config, params, settings, chunk_size=args.chunk_size,
-                         progress=not args.no_progress, on_chunk=on_chunk, resume=resume, close_loops=close,
-                         prepared=prepared)
+            mapped = map_log(jax.random.key(args.seed), log, config, params, settings,
+                             close_loops=not getattr(args, "no_close_loops", False),
+                             refine=getattr(args, "refine", True), progress=not args.no_progress,
+                             chunk_size=args.chunk_size, on_chunk=on_chunk, resume=resume, prepared=prepared)
         except RunInterrupted as err:
             print(f"jaxslam {args.command}: interrupted at step {err.steps_done} of {err.num_steps} "
                   f"(checkpoint {ckpt}); resume with --resume", file=sys.stderr)
             return 128 + int(stop.signum)
-        summary = write_map_outputs(args.out, log, result, params, args.seed, source,
-                                    refine=getattr(args, "refine", True), world=world)
+        summary = write_map_outputs(args.out, log, mapped, params, args.seed, source, world=world,
+                                    timings=stages, started=started)
         if ckpt.exists():
             ckpt.unlink()
     t = summary["timings"]
     print(f"processed {summary['scans_processed']} of {summary['scans_in_log']} scans in {_fmt(t['total'])} s "
           f"(compile {_fmt(t['compile'])} s, real-time factor {_fmt(t['real_time_factor'])}); "
-          f"outputs in {args.out}/")
+          f"{_fmt(t.get('total_wall'))} s in all; outputs in {args.out}/")
     for warning in summary["warnings"]:
         print(f"warning: {warning}", file=sys.stderr)
     return 0
 
 
-def write_map_outputs(out, log, result, params, seed: int, source: str, refine: bool = False, world=None) -> dict:
-    """``jaxslam map``'s outputs of one finished run (:func:`jaxslam.outputs.write_slam_outputs`);
-    with ``refine``, every scan first localised in the final map and then in the map drawn again at
-    those poses (``trajectory_refined.txt``, :func:`jaxslam.refine.refine_in_rounds`). Returns the summary as written."""
-    refined, refine_seconds = None, None
-    if refine:
-        # In the filter's local frame (result.frame_offset subtracted), as the map was built; on
-        # the closed map from the closed trajectory where loops were closed.
-        closure = result.closure
-        if closure is not None and closure.num_loops:
-            _, field, grid = result.closed_map(log, params)
-            grid, start = grid_to_world(grid, -result.frame_offset), closure.trajectory
-        else:
-            (_, field, grid), start = result.dense_map(local=True), result.trajectory
-        t0 = time.perf_counter()
-        # Where the loops found the odometry's heading the better one, its steps are trusted at
-        # the noise the first round shows (refine.odometry_noise_scale).
-        refined = refine_in_rounds(grid, field, result.to_local(start), log.ranges, log.sensor, params, result.config,
-                                   result.selection.indices, odometry=result.to_local(log.odometry),
-                                   trust_odometry=trusts_odometry(closure))
-        refined = refined._replace(poses=result.to_world(refined.poses),
-                                   matched_poses=result.to_world(refined.matched_poses))
-        refine_seconds = time.perf_counter() - t0
-    return write_slam_outputs(out, log, result, params, seed=seed, source=source, world=world, refined=refined,
-                              refine_seconds=refine_seconds)
+def write_map_outputs(out, log, mapped, params, seed: int, source: str, refine: bool = False, world=None,
+                      timings: dict | None = None, started: float | None = None) -> dict:
+    """``jaxslam map``'s outputs of one finished run: :func:`jaxslam.outputs.write_slam_outputs` of
+    ``mapped``, what :func:`jaxslam.pipeline.map_log` returned (``timings``, ``started``: as
+    there). A :class:`~jaxslam.slam.SlamResult` (a filter run elsewhere, with its closure if any) is
+    first finished by :func:`jaxslam.pipeline.finish_mapping` (the map drawn again; with
+    ``refine``, the refinement). Returns the summary as written."""
+    if isinstance(mapped, SlamResult):
+        mapped = finish_mapping(log, mapped, params, refine=refine)
+    return write_slam_outputs(out, log, mapped, params, seed=seed, source=source, world=world, timings=timings,
+                              started=started)
 
 
 def _fmt(value) -> str:
