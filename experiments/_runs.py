@@ -102,3 +102,27 @@ def gather_json(value: Any) -> list:
     padded[:data.size] = data
     every = np.asarray(multihost_utils.process_allgather(padded))
     return [json.loads(bytes(every[p, :sizes[p]]).decode()) for p in range(sizes.size)]
+
+
+def closure_settings(items: list[str]) -> dict:
+    """``{field: value}`` of ``NAME=VALUE`` texts naming :class:`jaxslam.graph.ClosureConfig`
+    fields (``--set`` of the closure experiments), each value of its field's type; ValueError
+    naming the text otherwise (no field of that name, or a value the type refuses)."""
+    import dataclasses
+
+    from jaxslam.graph import ClosureConfig
+
+    defaults = ClosureConfig()
+    names = [f.name for f in dataclasses.fields(ClosureConfig)]
+    out = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        if name not in names:
+            raise ValueError(f"--set {item}: {name!r} is no ClosureConfig field ({', '.join(names)})")
+        default = getattr(defaults, name)
+        try:
+            out[name] = value if isinstance(default, str) else type(default)(value)
+        except ValueError:
+            raise ValueError(f"--set {item}: {value!r} is no {type(default).__name__}") from None
+    dataclasses.replace(defaults, **out)  # ClosureConfig's own checks, before any work
+    return out

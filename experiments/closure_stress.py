@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _runs import ResultStore  # experiments/_runs.py: the shared resume helper
+from _runs import ResultStore, closure_settings  # experiments/_runs.py: the shared resume helper
 
 FAULTS = ("jump:0.25:10", "jump:0.25:30", "jump:0.5:10", "jump:0.5:30", "jump:0.75:30", "bend:0.3:30:300",
           "bend:0.2:60:600")
@@ -68,10 +68,13 @@ def turned(poses: np.ndarray, fault: str) -> np.ndarray:
     return chain_np(poses[0], steps)
 
 
-def run_fault(log, relations, selection, filter_poses, fault: str, params, slam_config) -> dict:
+def run_fault(log, relations, selection, filter_poses, fault: str, params, slam_config, closure=None) -> dict:
     """One fault's record: the turned input's and the closed result's relation error (m), the
-    loops kept (and how many the search by appearance found), the passes, the jumps of the filter's
-    heading tried (``LoopClosure.jumps``) and the closure's wall."""
+    loops kept (and how many the search by appearance found), the pairs searched, the passes, the
+    jumps of the filter's heading tried (``LoopClosure.jumps``) and the closure's wall;
+    ``closure``: ClosureConfig fields set (``--set``), the rest the defaults."""
+    import dataclasses
+
     from jaxslam.graph import ClosureConfig, close_trajectory_loops
     from jaxslam.laserlog import local_frame_offset, trajectory_per_scan
     from jaxslam.metrics import relation_error
@@ -79,7 +82,7 @@ def run_fault(log, relations, selection, filter_poses, fault: str, params, slam_
     poses = filter_poses if fault == "none" else turned(filter_poses, fault)
     t0 = time.perf_counter()
     closure = close_trajectory_loops(log, selection.indices, poses, selection.motions, params, slam_config,
-                                     local_frame_offset(log), ClosureConfig())
+                                     local_frame_offset(log), dataclasses.replace(ClosureConfig(), **(closure or {})))
     wall = time.perf_counter() - t0
     kept = closure.loops.refused == ""
     return {"fault": fault,
@@ -87,6 +90,7 @@ def run_fault(log, relations, selection, filter_poses, fault: str, params, slam_
                                       relations).trans_mean,
             "closed_m": relation_error(log.timestamps, closure.trajectory, relations).trans_mean,
             "kept": int(kept.sum()), "kept_by_appearance": int((kept & closure.loops.appearance).sum()),
+            "pairs": int(closure.pairs_searched),
             "passes": int(closure.passes), "odometry_share": float(closure.odometry_share),
             "jumps_tried": closure.summary()["jumps_tried"], "closure_s": wall}
 
@@ -113,7 +117,13 @@ def main(argv=None) -> int:
                              "find their timestamps among the log's scans, as jaxslam eval --log does")
     parser.add_argument("--faults", nargs="+", default=list(FAULTS), metavar="FAULT",
                         help=f"jump:WHERE:DEGREES or bend:WHERE:DEGREES:NODES (default {' '.join(FAULTS)})")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="a ClosureConfig field for every closure (e.g. window_min_xy=7), recorded in the settings")
     args = parser.parse_args(argv)
+    try:
+        closure = closure_settings(args.set)
+    except ValueError as err:
+        parser.error(str(err))
     for fault in args.faults:  # every fault checked before any work
         try:
             parse_fault(fault)
@@ -145,11 +155,11 @@ def main(argv=None) -> int:
             parser.error(str(err))
     trajectory = Path(args.trajectory).resolve()  # the run's folder and file name: no path outside it recorded
     store = ResultStore(args.out, {"log": Path(args.log).name, "align_clock": args.align_clock,
-                                   "trajectory": f"{trajectory.parent.name}/{trajectory.name}"},
+                                   "trajectory": f"{trajectory.parent.name}/{trajectory.name}", "set": closure},
                         key=lambda r: r["fault"])
     for fault in tqdm(["none", *args.faults], desc="faults", unit="closure"):
         if not store.done(fault):
-            store.add(run_fault(log, relations, selection, filter_poses, fault, params, slam_config))
+            store.add(run_fault(log, relations, selection, filter_poses, fault, params, slam_config, closure))
     text = table(store.runs)
     store.write(table=text)
     print(text)

@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _runs import ResultStore  # experiments/_runs.py: the shared resume helper
+from _runs import ResultStore, closure_settings  # experiments/_runs.py: the shared resume helper
 
 WORLDS = ("twin_rooms", "office")
 INPUTS = ("filter", "drift")
@@ -172,15 +172,10 @@ def main(argv=None) -> int:
         parser.error(f"--figure must be a PNG file, got the folder {args.figure}")
     from tqdm import tqdm
 
-    from jaxslam.graph import ClosureConfig
-
-    fields = {f.name: f.type for f in dataclasses.fields(ClosureConfig)}
-    for item in args.set:
-        name, _, value = item.partition("=")
-        if name not in fields:
-            parser.error(f"--set {item}: {name!r} is no ClosureConfig field ({', '.join(fields)})")
-        default = getattr(ClosureConfig(), name)
-        VARIANT[name] = value if isinstance(default, str) else type(default)(value)
+    try:
+        VARIANT.update(closure_settings(args.set))
+    except ValueError as err:
+        parser.error(str(err))
     store = ResultStore(args.out, {"filter": FILTER, "windows": WINDOWS, "set": dict(VARIANT)},
                         key=lambda r: (r["world"], r["input"], r["window"], r["seed"]))
     cells = [(w, i, win, s) for w in args.worlds for i in args.inputs for win in WINDOWS for s in range(args.seeds)

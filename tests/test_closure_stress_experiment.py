@@ -61,3 +61,23 @@ def test_a_fault_past_the_path_and_a_missing_log_are_named(tmp_path, capsys):
         closure_stress.main(["--log", str(tmp_path / "missing.bag"), "--relations", "r", "--trajectory", "t",
                              "--out", str(tmp_path / "stress.json")])
     assert "--log" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("item, problem", [("window_width=7", "no ClosureConfig field"),
+                                           ("window_min_xy=wide", "is no float"),
+                                           ("window_min_xy=-1", "window_min_xy must be")])
+def test_a_bad_closure_setting_is_refused_before_any_work(item, problem, tmp_path, capsys):
+    out = tmp_path / "stress.json"
+    with pytest.raises(SystemExit):
+        closure_stress.main(["--log", "missing.bag", "--relations", "r", "--trajectory", "t", "--out", str(out),
+                             "--set", item])
+    assert problem in capsys.readouterr().err and not out.exists()
+
+
+def test_closure_settings_take_each_fields_type():
+    from _runs import closure_settings
+
+    assert closure_settings(["window_min_xy=7", "min_support=2", "places_per_query=0"]) == {
+        "window_min_xy": 7.0, "min_support": 2, "places_per_query": 0}
+    assert isinstance(closure_settings(["window_min_xy=7"])["window_min_xy"], float)
+    assert closure_settings([]) == {}
