@@ -106,7 +106,7 @@ def run_one(world: str, source: str, window: str, seed: int) -> tuple[dict, obje
     from jaxslam.laserlog import local_frame_offset
 
     scenario = scenario_of(world, seed)
-    closure_config = dataclasses.replace(ClosureConfig(), **WINDOWS[window], **VARIANT)
+    closure_config = dataclasses.replace(ClosureConfig(), **{**WINDOWS[window], **VARIANT})  # --set wins
     config, settings, params = build_setup(dict(FILTER))
     t0 = time.perf_counter()
     if source == "filter":
