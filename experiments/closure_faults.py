@@ -66,7 +66,9 @@ from jaxslam.laserlog import LaserLog
 
 DATASETS = faults.DATASETS
 DATA = faults.DATA
-DEFAULT_DATASETS = ("intel", "aces", "mit-csail", "fr-clinic")
+DEFAULT_DATASETS = ("intel", "aces", "mit-csail")
+"""The tuning logs a faulted copy of which can be written as CARMEN (FR-clinic's interleaved beam layouts cannot:
+``check_arguments`` refuses it, naming why)."""
 
 
 class FaultCell(NamedTuple):
@@ -467,7 +469,28 @@ def check_arguments(args) -> tuple[list[str], str | None]:
         build_setup({**({"proposal": args.proposal} if args.proposal else {}), **parse_assignments(args.set)})
     except ConfigError as err:
         return [], f"--set: {err}"
+    problem = unwritable_log(args.datasets, data, args.max_scans)
+    if problem:
+        return [], problem
     return ["clean"] + [c for c in cell_order(cells) if c != "clean"], None
+
+
+def unwritable_log(datasets: list[str], data: Path, max_scans: int | None) -> str | None:
+    """The first dataset whose log cannot be written as the CARMEN log a run maps (beams not evenly
+    spaced, as FR-clinic's interleaved layouts), named with the writer's reason; None when all can."""
+    import tempfile
+
+    from jaxslam.io import write_carmen
+    from jaxslam.laserlog import LogError
+
+    with tempfile.TemporaryDirectory() as folder:
+        for dataset in datasets:
+            log, _ = faults.read_dataset(dataset, data, max_scans)
+            try:
+                write_carmen(Path(folder) / "check.clf", log)
+            except LogError as err:
+                return f"{dataset}: its faulted log could not be mapped: {err}"
+    return None
 
 
 def main(argv=None) -> int:

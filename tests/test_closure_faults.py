@@ -262,8 +262,30 @@ def test_bad_input_is_refused_before_any_run(argv, problem, data_folder, tmp_pat
     assert not (tmp_path / "out").exists()
 
 
+def test_a_log_that_cannot_be_written_as_carmen_is_refused_before_any_run(data_folder, tmp_path, capsys,
+                                                                          monkeypatch):
+    """FR-clinic's interleaved beam layouts are not evenly spaced: its faulted copy cannot be mapped."""
+    from jaxslam.laser import make_sensor
+    from jaxslam.laserlog import LaserLog
+
+    def log_of(angles):
+        return LaserLog(np.arange(3.0), np.zeros((3, 3)), np.full((3, angles.size), 2.0, np.float32),
+                        make_sensor(angles), source=f"{angles.size} beams")
+
+    even, interleaved = np.linspace(-1.5, 1.5, 9), np.sort(np.concatenate([np.linspace(-1.5, 1.5, 5), [0.1, 0.2]]))
+    monkeypatch.setattr(cf.faults, "read_dataset",
+                        lambda dataset, data, max_scans: (log_of(interleaved if dataset == "aces" else even), None))
+    monkeypatch.setattr(cf, "run_one", lambda *args, **kwargs: pytest.fail("a run started"))
+    base = ["--out", str(tmp_path / "out"), "--data", str(data_folder)]
+    assert cf.main(base + ["--datasets", "intel", "aces"]) == 2
+    assert "aces: its faulted log could not be mapped" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+    assert cf.unwritable_log(["intel", "mit-csail"], data_folder, None) is None
+
+
 def test_main_runs_clean_first_and_skips_finished_runs(data_folder, tmp_path, monkeypatch):
     calls = []
+    monkeypatch.setattr(cf, "unwritable_log", lambda *args: None)  # the logs here are empty files
 
     def fake_run(dataset, cell, seed, out, data, settings, keep_log):
         calls.append((dataset, cell, seed))
