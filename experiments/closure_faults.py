@@ -389,14 +389,7 @@ def closure_faults_figure(records: list[dict], path: Path) -> Path:
             ax.text(0.5, 0.5, "no runs", ha="center", va="center", transform=ax.transAxes, color="gray")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("relation error [m]")
-    handles, labels = next(((h, lab) for h, lab in (a.get_legend_handles_labels() for a in axes) if h), ([], []))
-    if handles:
-        fig.legend(handles, labels, loc="lower center", ncol=min(8, len(labels)), fontsize=8)
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
-    path = Path(path)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return faults.save_with_legend(fig, axes, path, max_columns=8)
 
 
 def write_tables(store: ResultStore, floor: float = CLEAN_FLOOR_M):

@@ -447,11 +447,17 @@ def faults_figure(records: list[dict], path: Path, factor: float = SUCCESS_FACTO
         ax.grid(alpha=0.3)
         ax.set_title(f"{kind} slips")
     axes[0].set_ylabel(f"success fraction (error <= {factor:g} x clean)")
-    handles, labels = axes[0].get_legend_handles_labels()
-    if not handles:
-        handles, labels = axes[1].get_legend_handles_labels()
+    return save_with_legend(fig, axes, path, max_columns=6)
+
+
+def save_with_legend(fig, axes, path, max_columns: int) -> Path:
+    """Save ``fig`` to ``path`` (PNG, 100 dpi) with one legend below the panels, from the first of
+    ``axes`` that has labelled lines, and close it; returns the path."""
+    import matplotlib.pyplot as plt
+
+    handles, labels = next(((h, lab) for h, lab in (a.get_legend_handles_labels() for a in axes) if h), ([], []))
     if handles:
-        fig.legend(handles, labels, loc="lower center", ncol=min(6, len(labels)), fontsize=8)
+        fig.legend(handles, labels, loc="lower center", ncol=min(max_columns, len(labels)), fontsize=8)
     fig.tight_layout(rect=(0, 0.1, 1, 1))
     path = Path(path)
     fig.savefig(path, dpi=100)

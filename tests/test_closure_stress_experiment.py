@@ -44,13 +44,18 @@ def test_a_jump_turns_every_later_pose_rigidly_and_a_bend_spreads_the_turn():
     np.testing.assert_allclose(np.angle(np.exp(1j * (bent[:, 2] - reference[:, 2]))), 0.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("fault, problem", [("twist:0.5:30", "expected jump"), ("jump:1.5:30", "WHERE must lie"),
-                                            ("bend:0.5:30", "expected jump"), ("jump:half:30", "must be numbers")])
-def test_a_bad_fault_is_refused_before_any_work(fault, problem, tmp_path, capsys):
+@pytest.mark.parametrize("extra, problem", [(["--faults", "twist:0.5:30"], "expected jump"),
+                                            (["--faults", "jump:1.5:30"], "WHERE must lie"),
+                                            (["--faults", "bend:0.5:30"], "expected jump"),
+                                            (["--faults", "jump:half:30"], "must be numbers"),
+                                            (["--set", "window_width=7"], "no ClosureConfig field"),
+                                            (["--set", "window_min_xy=wide"], "is no float"),
+                                            (["--set", "window_min_xy=-1"], "window_min_xy must be")])
+def test_a_bad_fault_or_closure_setting_is_refused_before_any_work(extra, problem, tmp_path, capsys):
     out = tmp_path / "stress.json"
     with pytest.raises(SystemExit):
         closure_stress.main(["--log", "missing.bag", "--relations", "r", "--trajectory", "t", "--out", str(out),
-                             "--faults", fault])
+                             *extra])
     assert problem in capsys.readouterr().err and not out.exists()
 
 
@@ -61,17 +66,6 @@ def test_a_fault_past_the_path_and_a_missing_log_are_named(tmp_path, capsys):
         closure_stress.main(["--log", str(tmp_path / "missing.bag"), "--relations", "r", "--trajectory", "t",
                              "--out", str(tmp_path / "stress.json")])
     assert "--log" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("item, problem", [("window_width=7", "no ClosureConfig field"),
-                                           ("window_min_xy=wide", "is no float"),
-                                           ("window_min_xy=-1", "window_min_xy must be")])
-def test_a_bad_closure_setting_is_refused_before_any_work(item, problem, tmp_path, capsys):
-    out = tmp_path / "stress.json"
-    with pytest.raises(SystemExit):
-        closure_stress.main(["--log", "missing.bag", "--relations", "r", "--trajectory", "t", "--out", str(out),
-                             "--set", item])
-    assert problem in capsys.readouterr().err and not out.exists()
 
 
 def test_closure_settings_take_each_fields_type():
