@@ -110,7 +110,7 @@ def summarize(log, result, params, seed: int, source: str) -> dict:
 
 
 SLAM_OUTPUT_NAMES = ("map.pgm", "map.yaml", "map.png", "trajectory.txt", "trajectory_refined.txt",
-                     "trajectory_filter.txt", "graph.npz", "summary.json", "slam.png", "steps.npz")
+                     "trajectory_filter.txt", "graph.npz", "graph.png", "summary.json", "slam.png", "steps.npz")
 """Every file :func:`write_slam_outputs` can write. Those of an earlier run that a new run does
 not write (e.g. ``trajectory_refined.txt`` without ``--refine``) are removed, never kept stale."""
 

@@ -98,9 +98,11 @@ def plot_slam_result(result, log=None, world=None, ax=None, cropped=None):
 
 def _filter_only(result):
     """A SlamResult as a MappedLog of the filter's map (nothing drawn again, nothing refined)."""
+    from jaxslam.pipeline import MappedLog
+
     logodds, field, grid = result.dense_map()
     trajectory = result.trajectory if result.closure is None else result.closure.trajectory
-    return finish_mapping.__globals__["MappedLog"](result, result.closure, logodds, field, grid, trajectory, None, {}, "filter's map")
+    return MappedLog(result, result.closure, logodds, field, grid, trajectory, None, {}, "filter's map")
 
 
 def _final_path(mapped) -> tuple[np.ndarray, str]:

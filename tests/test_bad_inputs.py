@@ -378,7 +378,7 @@ def test_a_second_run_removes_the_first_runs_stale_files(tmp_path, small_log):
     assert main([*common, "--no-refine"]) == 0
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted(["map.pgm", "map.yaml", "map.png", "trajectory.txt", "trajectory_filter.txt", "graph.npz",
-                            "summary.json", "slam.png", "steps.npz", "errors.json"])
+                            "graph.png", "summary.json", "slam.png", "steps.npz", "errors.json"])
     summary = json.loads((out / "summary.json").read_text())
     assert "refinement" not in summary and summary["null_reasons"] == {}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["office.clf", "out"]
