@@ -158,3 +158,21 @@ def test_the_closure_of_a_path_in_another_local_frame_is_the_same(runs):
         moved = getattr(far_closure, key).copy()
         moved[:, :2] -= shift
         np.testing.assert_allclose(moved, getattr(near_closure, key), rtol=0, atol=1e-6, err_msg=key)
+
+
+def test_the_readers_interpolation_and_the_update_rule_read_a_far_log_as_the_near_one(office_log):
+    """``poses_at`` (the bag readers' odometry at the scans' times) and ``select_updates`` work in
+    float32 in a local frame: 5,000 km away (float32 resolves 0.5 m there) they give the near
+    log's poses, shifted, and its motions bit for bit."""
+    from jaxslam.laserlog import poses_at, select_updates
+
+    far = _shifted(office_log, SHIFT)
+    halfway = 0.5 * (office_log.timestamps[:-1] + office_log.timestamps[1:])
+    near_read = poses_at(halfway, office_log.timestamps, office_log.odometry).poses
+    far_read = poses_at(halfway, far.timestamps, far.odometry).poses
+    far_read[:, :2] -= SHIFT
+    np.testing.assert_allclose(far_read, near_read, rtol=0, atol=1e-8)
+    assert np.max(np.abs(near_read[:, :2] - office_log.odometry[:-1, :2])) > 0.1  # between messages: interpolated
+    near_selection, far_selection = select_updates(office_log, 1.0, 0.25), select_updates(far, 1.0, 0.25)
+    np.testing.assert_array_equal(far_selection.indices, near_selection.indices)
+    np.testing.assert_array_equal(far_selection.motions, near_selection.motions)
