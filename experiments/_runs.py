@@ -5,7 +5,8 @@ a list of run records (one per finished run, told apart by ``key(run)``) and any
 sections. It refuses a folder written with other settings (:class:`SettingsMismatch`), says
 which runs are done, and rewrites the file atomically after every added run, keeping the
 runs of earlier calls. So an experiment can be stopped and restarted, and a later call into
-the same folder adds its runs beside the earlier ones.
+the same folder adds its runs beside the earlier ones. :func:`closure_settings` reads the closure
+experiments' ``--set NAME=VALUE`` (``closure_stress.py``, ``loop_closure.py``).
 """
 
 from __future__ import annotations
