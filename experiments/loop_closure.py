@@ -1,11 +1,12 @@
 """The loop closure (jaxslam.graph) on simulated worlds with ground truth: precision and recall
 of its loops, and the path error before and after.
 
-Worlds: the twin rooms built to alias (``jaxslam.sim.aliasing``: two identical rooms 10 m
-apart) and the demo's office. Inputs: the filter itself (``slam.run``, the SMP with the demo's
+Worlds: the twin rooms and the twin corridors built to alias (``jaxslam.sim.aliasing``: two
+identical rooms 10 m apart; two identical 36 m corridors 8 m apart, joined into a ring) and the
+demo's office. Inputs: the filter itself (``slam.run``, the SMP with the demo's
 settings, ``close_loops``), and, to test the back end alone, the true path drifted as a filter
 drifts (a heading bias and a scale error per processed scan, drawn per seed). The ``wide``
-window variant searches 12 m either side from the start: wide enough to reach the twin room.
+window variant searches 12 m either side from the start: wide enough to reach the twin.
 
 A loop is correct when its measurement is within 0.3 m and 0.05 rad of the true relative pose.
 Precision: correct kept loops over kept loops. Recall: of the queries that revisit (the true
@@ -28,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from _runs import ResultStore, closure_settings  # experiments/_runs.py: the shared resume helper
 
-WORLDS = ("twin_rooms", "office")
+WORLDS = ("twin_rooms", "twin_corridors", "office")
 INPUTS = ("filter", "drift")
 WINDOWS = {"default": {}, "wide": {"window_min_xy": 12.0, "window_max_xy": 12.0, "max_node_distance": 15.0}}
 VARIANT = {}
@@ -42,10 +43,11 @@ def scenario_of(world: str, seed: int):
     import jax
 
     from jaxslam.sim import office_scenario
-    from jaxslam.sim.aliasing import twin_rooms_scenario
+    from jaxslam.sim.aliasing import twin_corridors_scenario, twin_rooms_scenario
 
     key = jax.random.key(seed)
-    return twin_rooms_scenario(key) if world == "twin_rooms" else office_scenario(key)
+    return {"twin_rooms": twin_rooms_scenario, "twin_corridors": twin_corridors_scenario,
+            "office": office_scenario}[world](key)
 
 
 def drifted(truth: np.ndarray, seed: int) -> np.ndarray:
@@ -179,7 +181,7 @@ def main(argv=None) -> int:
     store = ResultStore(args.out, {"filter": FILTER, "windows": WINDOWS, "set": dict(VARIANT)},
                         key=lambda r: (r["world"], r["input"], r["window"], r["seed"]))
     cells = [(w, i, win, s) for w in args.worlds for i in args.inputs for win in WINDOWS for s in range(args.seeds)
-             if win == "default" or w == "twin_rooms"]
+             if win == "default" or w.startswith("twin_")]
     drawn = False
     for cell in tqdm(cells, desc="loop closure runs", unit="run"):
         if store.done(cell) and not (args.figure and not drawn and cell[0] == "twin_rooms" and cell[2] == "default"):

@@ -6,6 +6,7 @@ a match on its window's edge searched again wider (:func:`widen_edge_peaks`).
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 from typing import NamedTuple
 
@@ -180,6 +181,87 @@ def _pair_agreement(query, submap, measurement, poses, origins, config):
     return a, b, agree, diff[:, 2]
 
 
+def pairwise_consistent(query_a, origin_a, implied_a, query_b, origin_b, implied_b, poses: np.ndarray,
+                        travelled: np.ndarray, config) -> np.ndarray:
+    """Whether loops a and b agree (broadcast over their shapes): the cycle query a -> its submap
+    -> the chain -> b's submap -> query b -> the chain -> query a closes within a tolerance that
+    grows with the chain it runs along.
+
+    Through the loops, the two queries' relative pose is ``implied_a^-1 (+) implied_b`` (each
+    query's pose through its loop, its submap's first node at its ``poses`` estimate); through the
+    chain it is ``poses[query_a]^-1 (+) poses[query_b]``. They agree when the two differ by at most
+    ``consistency_xy`` plus ``consistency_xy_per_metre`` for each metre of chain the cycle runs
+    along (between the queries and between the submaps' first nodes), and ``consistency_theta``
+    plus ``consistency_theta_per_metre`` a metre in heading: the drift the chain may hold between
+    two loops. A loop that aliases (a twin room 10 m away) disagrees with the
+    true loops near it in time by the alias' offset, which no short chain explains.
+
+    Args:
+        query_a, origin_a: int arrays: each loop's query node and its submap's first node.
+        implied_a: (..., 3) each query's pose through its loop (local frame).
+        query_b, origin_b, implied_b: the same for the loops compared with.
+        poses: (S, 3) the current estimate (local frame).
+        travelled: (S,) metres along ``poses`` from the first node.
+        config: the closure's :class:`~jaxslam.graph.closure.ClosureConfig`.
+    """
+    through_loops = between_np(implied_a, implied_b)
+    through_chain = between_np(poses[query_a], poses[query_b])
+    diff = between_np(through_chain, through_loops)
+    chain = np.abs(travelled[query_a] - travelled[query_b]) + np.abs(travelled[origin_a] - travelled[origin_b])
+    return ((np.hypot(diff[..., 0], diff[..., 1]) <= config.consistency_xy + config.consistency_xy_per_metre * chain)
+            & (np.abs(diff[..., 2]) <= config.consistency_theta + config.consistency_theta_per_metre * chain))
+
+
+def consistent_group(query: np.ndarray, submap: np.ndarray, measurement: np.ndarray, kept_query: np.ndarray,
+                     kept_submap: np.ndarray, kept_measurement: np.ndarray, poses: np.ndarray,
+                     first_node: np.ndarray, config) -> np.ndarray:
+    """Which of a block's loops join the kept ones as one consistent group (pairwise consistency,
+    after Mangelson et al. 2018's PCM, with the kept loops fixed): a loop that disagrees with more
+    kept loops than it agrees with is out; of the rest, the largest set whose every pair agrees
+    (:func:`pairwise_consistent`) is taken greedily, the loops that agree with most first; and a
+    loop of it needs ``min_support`` agreeing loops (of the group or kept) whose queries lie within
+    ``consistency_nodes`` nodes: one match alone says nothing about itself.
+
+    Args:
+        query, submap, measurement: (N,), (N,), (N, 3) the block's loops that passed the other tests.
+        kept_query, kept_submap, kept_measurement: (K,), (K,), (K, 3) the loops kept before.
+        poses: (S, 3) the estimate the block was searched from (local frame).
+        first_node: (M,) each submap's first node.
+        config: the closure's :class:`~jaxslam.graph.closure.ClosureConfig`.
+
+    Returns:
+        (N,) bool: kept.
+    """
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(poses[:, :2], axis=0).T))])
+    origin, kept_origin = first_node[submap], first_node[kept_submap]
+    implied = compose_np(poses[origin], measurement)
+    kept_implied = compose_np(poses[kept_origin], kept_measurement)
+    with_kept = pairwise_consistent(query[:, None], origin[:, None], implied[:, None], kept_query[None],
+                                    kept_origin[None], kept_implied[None], poses, travelled, config)
+    among = pairwise_consistent(query[:, None], origin[:, None], implied[:, None], query[None], origin[None],
+                                implied[None], poses, travelled, config)
+    # Far kept loops agree with anything (their chain allows any drift): only the comparisons whose
+    # chain allows no more than the base tolerance count for a loop; every disagreement counts.
+    kept_chain = (np.abs(travelled[query][:, None] - travelled[kept_query][None])
+                  + np.abs(travelled[origin][:, None] - travelled[kept_origin][None]))
+    telling = kept_chain * config.consistency_xy_per_metre <= config.consistency_xy
+    disagree = (~with_kept).sum(axis=1)
+    admissible = (disagree == 0) | ((with_kept & telling).sum(axis=1) > disagree)
+    among &= admissible[:, None] & admissible[None]
+    chosen = np.zeros(query.size, bool)
+    candidates = admissible.copy()
+    while np.any(candidates):
+        degree = np.where(candidates, (among & candidates[None]).sum(axis=1), -1)
+        best = int(np.argmax(degree))
+        chosen[best] = True
+        candidates &= among[best]
+        candidates[best] = False
+    near = np.abs(query[:, None] - query[None]) <= config.consistency_nodes
+    support = ((among & chosen[None] & near & ~np.eye(query.size, dtype=bool)).sum(axis=1)
+               + (with_kept & (np.abs(query[:, None] - kept_query[None]) <= config.consistency_nodes)).sum(axis=1))
+    return chosen & (support >= config.min_support)
+
+
 def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, estimate, kept_before: Loops,
             config) -> Loops:
     """The searched pairs whose score is near the threshold, refined, fitted and put to the
@@ -219,12 +301,31 @@ def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, est
     # not judged again): a loop needs min_support agreeing and more agreeing than disagreeing.
     passed = np.nonzero(refused == "")[0]
     earlier = np.nonzero(kept_before.refused == "")[0]
-    agree, disagree = consistency_votes(np.concatenate([query[passed], kept_before.query[earlier]]),
-                                        np.concatenate([submap[passed], kept_before.submap[earlier]]),
-                                        np.concatenate([measurement[passed], kept_before.measurement[earlier]]),
-                                        estimate, estimate[submaps.first_node], config)
-    agree, disagree = agree[:passed.size], disagree[:passed.size]
-    refused[passed[(agree < config.min_support) | (disagree >= agree)]] = "consistency"
+    if config.consistency == "both":  # the vote first, then the group test on what it kept
+        agree, disagree = consistency_votes(np.concatenate([query[passed], kept_before.query[earlier]]),
+                                            np.concatenate([submap[passed], kept_before.submap[earlier]]),
+                                            np.concatenate([measurement[passed], kept_before.measurement[earlier]]),
+                                            estimate, estimate[submaps.first_node], config)
+        agree, disagree = agree[:passed.size], disagree[:passed.size]
+        voted = (agree >= config.min_support) & (disagree < agree)
+        refused[passed[~voted]] = "consistency"
+        passed = passed[voted]
+        ok = consistent_group(query[passed], submap[passed], measurement[passed], kept_before.query[earlier],
+                              kept_before.submap[earlier], kept_before.measurement[earlier], estimate,
+                              submaps.first_node, dataclasses.replace(config, min_support=0))
+        refused[passed[~ok]] = "consistency"
+    elif config.consistency == "group":
+        ok = consistent_group(query[passed], submap[passed], measurement[passed], kept_before.query[earlier],
+                              kept_before.submap[earlier], kept_before.measurement[earlier], estimate,
+                              submaps.first_node, config)
+        refused[passed[~ok]] = "consistency"
+    else:
+        agree, disagree = consistency_votes(np.concatenate([query[passed], kept_before.query[earlier]]),
+                                            np.concatenate([submap[passed], kept_before.submap[earlier]]),
+                                            np.concatenate([measurement[passed], kept_before.measurement[earlier]]),
+                                            estimate, estimate[submaps.first_node], config)
+        agree, disagree = agree[:passed.size], disagree[:passed.size]
+        refused[passed[(agree < config.min_support) | (disagree >= agree)]] = "consistency"
     return Loops(query, submap, measurement, information, score, second_ratio,
                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan),
                  np.zeros(promising.size, bool))

@@ -143,10 +143,19 @@ class ClosureConfig:
     """Loops agree when they predict each other's query within this (m) ..."""
     consistency_theta: float = 0.05
     """... and this (rad)."""
+    consistency_xy_per_metre: float = 0.03
+    """Growth of ``consistency_xy`` per metre of chain between two loops (m/m;
+    :func:`jaxslam.graph.acceptance.pairwise_consistent`): the drift the chain may hold."""
+    consistency_theta_per_metre: float = math.radians(0.05)
+    """Growth of ``consistency_theta`` per metre of chain between two loops (rad/m)."""
     consistency_jump: float = math.radians(45.0)
     """Largest jump of the chain's heading (rad) that may explain why a block's loops disagree with
     the loops kept before them (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`;
     0: never). The widest angular window's: a larger turn leaves no loop to explain."""
+    consistency: str = "vote"
+    """How the consistency test judges a block's loops: "vote" (:func:`jaxslam.graph.acceptance.consistency_votes`),
+    "group" (:func:`jaxslam.graph.acceptance.consistent_group`, pairwise consistency with the kept loops) or "both"
+    (the vote, then the group test on what it kept; docs/results.md, "Loops accepted as a group")."""
     min_support: int = 1
     """Other loops a loop must agree with."""
     loop_phi: float = 5.0
@@ -215,7 +224,8 @@ class ClosureConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ValueError(f"ClosureConfig: {name} must be an integer >= 0, got {value!r}")
         for name in lengths + ("min_separation", "max_node_distance", "window_xy_per_metre",
-                               "window_theta_per_metre", "min_score", "max_second_ratio", "min_share_change",
+                               "window_theta_per_metre", "consistency_xy_per_metre",
+                               "consistency_theta_per_metre", "min_score", "max_second_ratio", "min_share_change",
                                "min_similarity", "place_drift_per_metre", "jump_min_sds"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value < 0:
@@ -223,6 +233,8 @@ class ClosureConfig:
         for name in lengths:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ClosureConfig: {name} must be > 0, got {getattr(self, name)!r}")
+        if self.consistency not in ("vote", "group", "both"):
+            raise ValueError(f"ClosureConfig: consistency must be 'vote', 'group' or 'both', got {self.consistency!r}")
         if not self.consistency_jump >= 0:
             raise ValueError(f"ClosureConfig: consistency_jump must be >= 0, got {self.consistency_jump!r}")
         if self.window_min_xy > self.window_max_xy or self.window_min_theta > self.window_max_theta:

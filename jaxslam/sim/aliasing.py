@@ -7,6 +7,13 @@ taken inside room B is the scan taken at the same place in room A, shifted by
 :data:`TWIN_OFFSET`: a loop search that matches B's scans against A's submaps (or A's against
 B's) finds a perfect match at the wrong place. :func:`twin_rooms_scenario` tours room A, then
 room B, then room A again (the true loop), and back to the start.
+
+:func:`twin_corridors_world`: three parallel corridors 36 m long joined at both ends, of which
+the south and the north one are the same to the centimetre (niches at the same irregular
+places), :data:`CORRIDOR_OFFSET` apart. Inside either twin a scan is the other's, moved by the
+offset; along one corridor the niches' spacing never repeats, so a match is unique within it.
+:func:`twin_corridors_scenario` drives both twins eastward (back west along the middle one), twice:
+every true loop of the second lap has its twin in the other corridor.
 """
 
 from __future__ import annotations
@@ -89,4 +96,75 @@ def twin_rooms_scenario(key: PRNGKeyArray, num_scans: int = 600, num_beams: int 
     scenario = _waypoint_scenario(key, "twin_rooms", twin_rooms_world(), twin_rooms_waypoints(), 0.5, num_scans,
                                   num_beams, range_max, range_noise_std, speed, motion)
     scenario.metadata["twin_offset"] = TWIN_OFFSET.copy()
+    return scenario
+
+
+CORRIDOR_OFFSET = np.array([0.0, 10.0, 0.0])
+"""The north corridor is the south one moved by this (m, m, rad)."""
+CORRIDOR_LENGTH = 36.0
+"""Length of each corridor (m), from x = 0; the end connectors lie beyond."""
+_CORRIDOR_WIDTH = 2.4
+_TWIN_NICHES = (3.0, 7.5, 10.0, 16.0, 21.5, 24.0, 30.0, 33.5)  # niche centres along a twin (m): no spacing repeats
+_MIDDLE_NICHES = (5.0, 12.5, 14.5, 19.0, 27.0, 31.5)  # the middle corridor's, on its south wall
+_NICHE_WIDTH, _NICHE_DEPTH = 1.0, 0.6
+
+
+def _corridor(y0: float, niches, north: bool) -> list[np.ndarray]:
+    """One corridor, its south wall at ``y0``, with a niche at each of ``niches`` (m along it) in
+    its north wall (``north``) or its south wall; its ends open onto the connectors."""
+    walls = {False: y0, True: y0 + _CORRIDOR_WIDTH}
+    depth = _NICHE_DEPTH if north else -_NICHE_DEPTH
+    parts = [wall_segments([0.0, walls[not north]], [CORRIDOR_LENGTH, walls[not north]]),
+             wall_segments([0.0, walls[north]], [CORRIDOR_LENGTH, walls[north]], [(x, _NICHE_WIDTH) for x in niches])]
+    for x in niches:
+        left, right, y = x - 0.5 * _NICHE_WIDTH, x + 0.5 * _NICHE_WIDTH, walls[north]
+        parts.append(polyline_segments([[left, y], [left, y + depth], [right, y + depth], [right, y]]))
+    return parts
+
+
+def twin_corridors_world() -> SegmentWorld:
+    """The three corridors and the two connectors that join their ends (see the module
+    docstring). The south twin's ends open north only, the north twin's south only, so the
+    junctions tell the twins apart.
+
+    Groups: "walls"."""
+    w, step = _CORRIDOR_WIDTH, float(CORRIDOR_OFFSET[1]) / 2
+    middle, north = step, 2 * step
+    parts = _corridor(0.0, _TWIN_NICHES, True) + _corridor(middle, _MIDDLE_NICHES, False)
+    parts += _corridor(north, _TWIN_NICHES, True)
+    for x_inner, x_outer in ((0.0, -w), (CORRIDOR_LENGTH, CORRIDOR_LENGTH + w)):
+        parts.append(polyline_segments([[x_inner, 0.0], [x_outer, 0.0], [x_outer, north + w], [x_inner, north + w]]))
+        parts.append(polyline_segments([[x_inner, w], [x_inner, middle]]))
+        parts.append(polyline_segments([[x_inner, middle + w], [x_inner, north]]))
+    walls = np.concatenate(parts)
+    bounds = (-w - 1.0, -_NICHE_DEPTH - 1.0, CORRIDOR_LENGTH + w + 1.0, north + w + _NICHE_DEPTH + 1.0)
+    return make_world(walls, bounds, groups={"walls": np.arange(walls.shape[0])})
+
+
+def twin_corridors_waypoints(laps: int = 2) -> np.ndarray:
+    """(P, 2) waypoints (m): ``laps`` times east along the south twin, west along the middle
+    corridor, east along the north twin, west along the middle again, then back to the start."""
+    w, step = _CORRIDOR_WIDTH, float(CORRIDOR_OFFSET[1]) / 2
+    south, middle, north = 0.5 * w, step + 0.5 * w, 2 * step + 0.5 * w
+    west, east = -0.5 * w, CORRIDOR_LENGTH + 0.5 * w
+    lap = [[east, south], [east, middle], [west, middle], [west, north], [east, north], [east, middle],
+           [west, middle], [west, south]]
+    return np.array([[1.0, south]] + lap * laps + [[1.0, south]])
+
+
+def twin_corridors_scenario(key: PRNGKeyArray, num_scans: int = 1000, num_beams: int = 180, range_max: float = 10.0,
+                            range_noise_std: float = 0.02, speed: float = 1.0,
+                            motion: MotionParams | None = None) -> Scenario:
+    """Two laps of :func:`twin_corridors_waypoints` in :func:`twin_corridors_world` (about 340 m),
+    sampled as :func:`twin_rooms_scenario` samples its tour (corners of radius 0.5 m).
+
+    Returns:
+      A :class:`~jaxslam.sim.scenarios.Scenario`; metadata as the office's plus
+      ``twin_offset`` ((3,) :data:`CORRIDOR_OFFSET`).
+    """
+    if motion is None:
+        motion = motion_params(0.05, 0.02, 0.05, 0.05, 0.001, 0.001)
+    scenario = _waypoint_scenario(key, "twin_corridors", twin_corridors_world(), twin_corridors_waypoints(), 0.5,
+                                  num_scans, num_beams, range_max, range_noise_std, speed, motion)
+    scenario.metadata["twin_offset"] = CORRIDOR_OFFSET.copy()
     return scenario
