@@ -109,7 +109,7 @@ def reachable(graph: dict[str, set[str]], start: str) -> set[str]:
 
 
 FILTER_LAYER = ("jaxslam.rbpf", "jaxslam.islands", "jaxslam.particle_filter", "jaxslam.proposals", "jaxslam.sensor_model",
-                "jaxslam.localization.mcl", "jaxslam.localization.doors")
+                "jaxslam.localization.mcl", "jaxslam.localization.doors", "jaxslam.localization.grid_mcl")
 """The pure filters: what they import must not reach the readers, the outputs or the host drivers."""
 
 
@@ -137,7 +137,7 @@ LAYERS: dict[str, int] = {
     "window_posterior": 2, "scan_matching": 2, "particle_filter": 2, "localization.beam_model": 2,
     # 3 filters
     "proposals": 3, "params": 3, "config": 3, "slip_search": 3, "rbpf": 3, "learning": 3, "localization.mcl": 3, "localization.doors": 3,
-    "localization": 3,
+    "localization.grid_mcl": 3, "localization": 3,
     # 4 runs
     "driver": 4, "slam": 4, "checkpoint": 4, "refine": 4, "islands": 4, "island_runs": 4, "graph": 4, "resources": 4,
     "sim": 4,

@@ -1,4 +1,4 @@
-"""The ``jaxslam`` command: ``map``, ``demo``, ``eval``, ``diagnose`` and ``doors``.
+"""The ``jaxslam`` command: ``map``, ``demo``, ``eval``, ``diagnose``, ``doors`` and ``localize``.
 
 Every field of :class:`~jaxslam.config.SlamConfig` and :class:`~jaxslam.config.RunSettings`
 and every parameter of :class:`~jaxslam.config.SlamParams` can be set with
@@ -30,6 +30,7 @@ from jaxslam.cli.common import (SEED_LIMIT, _add_filter_options, _Parser, build_
 from jaxslam.cli.demo import DEMO_DEFAULTS, DEMO_PROPOSAL_NOTE, _cmd_demo
 from jaxslam.cli.doors import _cmd_doors
 from jaxslam.cli.evaluate import _cmd_diagnose, _cmd_eval
+from jaxslam.cli.localize import add_localize_options
 from jaxslam.cli.map import MAP_DEFAULTS, _cmd_map, parse_laser_pose, read_map_log, write_map_outputs
 from jaxslam.config import ConfigError
 from jaxslam.laserlog import LogError
@@ -53,12 +54,13 @@ COMMAND_SUMMARIES = {
     "diagnose": "what happened in a map run, step by step (ESS, lineages, corrections, relation error over time); "
                 "in a closed run, the returns the closure missed and why",
     "doors": "localization with door-state estimation (Avots et al. 2002) in a simulated world",
+    "localize": "Monte Carlo localization of a log in a saved map (map.yaml), tracked from a pose or global",
 }
 """Each command's one line: its entry in ``jaxslam --help`` and the description of its own ``--help``."""
 
 DESCRIPTION = ("Particle filters for robot SLAM and localization in JAX: map a log (map) or a simulated office "
                "(demo), score a trajectory against relations (eval), look into a map run (diagnose), localize "
-               "with door-state estimation (doors).")
+               "with door-state estimation (doors), localize a log in a saved map (localize).")
 """``jaxslam --help``'s description, in plain words: the module docstring above is RST, which a
 terminal would print with its markup."""
 
@@ -132,6 +134,7 @@ def make_parser() -> argparse.ArgumentParser:
     p_diag.set_defaults(func=_cmd_diagnose)
 
     _add_doors_options(add_command("doors"))
+    add_localize_options(add_command("localize"))
     return parser
 
 
