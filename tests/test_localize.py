@@ -37,7 +37,8 @@ KIDNAP_AT = 25
 
 
 def room_loop(num: int) -> np.ndarray:
-    """An ellipse round the room's middle, clear of the box and the panel by about 0.2 m, (num, 3) poses facing along it."""
+    """An ellipse round the room's middle, clear of the box and the panel by about 0.2 m: (num, 3)
+    poses facing along it."""
     s = np.linspace(0.0, 2 * np.pi, num, endpoint=False)
     x, y = 3.0 + 1.8 * np.cos(s), 2.0 + 1.0 * np.sin(s)
     return np.stack([x, y, np.arctan2(np.gradient(y), np.gradient(x))], axis=-1)

@@ -25,10 +25,11 @@ when particles are to be redrawn:
 - adaptive count (KLD sampling, Fox 2003, as AMCL) with static shapes: the arrays hold
   ``max_particles``; the first ``num_active`` are the particles, the rest carry log-weight
   -inf and are never drawn. At a resampling, ``max_particles`` are drawn (systematic) in random
-  order, the recovery's share of them redrawn, and the count is the first n with ``n >= bound(k(n))``, k(n) the number of histogram
-  bins (``bin_xy`` x ``bin_xy`` x ``bin_theta``) the first n occupy and
-  ``bound(k) = (k - 1) / (2 epsilon) (1 - 2 / (9 (k - 1)) + sqrt(2 / (9 (k - 1))) z)^3``,
-  clipped to ``[min_particles, max_particles]``.
+  order, the recovery's share of them redrawn, and the count is the first n with
+  ``n >= max(bound(k(n)), min_particles)`` (all N if none), k(n) the number of histogram bins
+  (``bin_xy`` x ``bin_xy`` x ``bin_theta``) the first n occupy and
+  ``bound(k) = (k - 1) / (2 epsilon) (1 - 2 / (9 (k - 1)) + sqrt(2 / (9 (k - 1))) z)^3``.
+  Redrawn particles fill bins, so recovery raises the count, as in AMCL.
 
 Shape of the code as :mod:`jaxslam.localization.mcl`: a static :class:`GridMclConfig`, traced
 :class:`GridMclParams`, named :class:`GridMclState` / :class:`GridMclInfo`; ``init_tracked`` /
@@ -46,12 +47,12 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
+from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from jaxslam import motion as motion_model
 from jaxslam import particle_filter, resampling
 from jaxslam.geometry import wrap_angle
-from jaxslam.grid import GridSpec, cell_to_world, flat_index, in_bounds, world_to_cell
+from jaxslam.grid import GridSpec, cell_to_world, flat_index
 from jaxslam.laser import SensorSpec, subsample_beams, valid_returns
 from jaxslam.laserlog import frame_offset_of
 from jaxslam.likelihood_field import FIELD_LOOKUPS, LikelihoodParams
@@ -375,5 +376,7 @@ def filter(key: PRNGKeyArray, state: GridMclState, inputs: ScanInputs, grid: Loc
 
 
 def pose_in_map(grid_spec: GridSpec, pose) -> bool:
-    """Whether the (x, y) of ``pose`` (m) lies inside the grid (in the grid's frame)."""
-    return bool(in_bounds(grid_spec, world_to_cell(grid_spec, jnp.asarray(np.asarray(pose, np.float64)[:2]))))
+    """Whether the (x, y) of ``pose`` (m, float64) lies inside the grid (in the grid's frame)."""
+    x0, x1, y0, y1 = grid_spec.extent
+    x, y = (float(v) for v in np.asarray(pose, np.float64)[:2])
+    return x0 <= x < x1 and y0 <= y < y1
