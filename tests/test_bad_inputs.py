@@ -494,7 +494,7 @@ def test_the_memory_refusal_names_the_numbers(tmp_path, small_log, capsys, monke
             "--no-progress", "--out", str(tmp_path / "out")]
     from jaxslam.cli import MAP_DEFAULTS
 
-    config, _, _ = build_setup({**MAP_DEFAULTS, "num_particles": 30000})  # the command's defaults: the LP
+    config, _, _ = build_setup({**MAP_DEFAULTS, "num_particles": 30000})  # the command's defaults: the SMP
     need, how = jaxslam.resources.estimate_run_bytes(config, small_log.num_beams)
     assert how.startswith("(30000 particles x 25 x 25 blocks + ")
     expected = f"{need / 1e9:.0f}" if need >= 10e9 else f"{need / 1e9:.1f}"

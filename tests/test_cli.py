@@ -69,7 +69,7 @@ def test_config_file_and_flags(tmp_path, small_log):
 
 
 def test_config_file_sets_what_no_flag_overrides(tmp_path, small_log):
-    """The command's defaults (--particles 30, --proposal lp) yield to the file; a flag that is
+    """The command's defaults (--particles 30, --proposal smp) yield to the file; a flag that is
     given wins over it."""
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=12)
@@ -100,26 +100,34 @@ def _setup_of_a_run(monkeypatch, argv):
     return seen[0]
 
 
-def test_the_map_default_is_the_lp_and_help_shows_the_defaults(tmp_path, small_log, monkeypatch, capsys):
-    """The command's defaults are the library's best (docs/results.md, the robustness table: the
-    LP fails least), and --help says what they are."""
-    from jaxslam.cli import DEMO_DEFAULTS, MAP_DEFAULTS, make_parser
+def test_the_map_default_is_the_smp_and_help_shows_the_defaults(tmp_path, small_log, monkeypatch, capsys):
+    """One set of defaults (issue 84): jaxslam map runs the library's, the SMP with 30 particles
+    (the proposal of the README's figures), and --help says what they are; the LP's own settings
+    are the ones --proposal lp runs with."""
+    from jaxslam.cli import DEMO_DEFAULTS, MAP_DEFAULTS, build_setup_from_args, make_parser
+    from jaxslam.config import SlamConfig, build_setup
 
     log_path = tmp_path / "office.clf"
     write_flaser_log(log_path, small_log, stop=12)
-    config, settings, params = _setup_of_a_run(monkeypatch, ["map", str(log_path), "--no-progress",
-                                                             "--out", str(tmp_path / "o")])
-    assert (config.proposal, config.num_particles, config.num_localizers, config.horizon) == ("lp", 30, 100, 5)
+    argv = ["map", str(log_path), "--no-progress", "--out", str(tmp_path / "o")]
+    config, settings, params = _setup_of_a_run(monkeypatch, argv)
+    assert (config.proposal, config.num_particles, config.num_localizers, config.horizon) == ("smp", 30, 100, 5)
     assert (settings.linear_update, settings.angular_update, float(params.lookahead.alpha)) == (0.5, 0.25, 0.5)
-    assert MAP_DEFAULTS["proposal"] == "lp"
+    assert SlamConfig().proposal == "smp" and MAP_DEFAULTS.get("proposal", "smp") == "smp"
+    # The command's setup is the library's: no second set of defaults to drift from the first.
+    assert build_setup_from_args(make_parser().parse_args(argv), MAP_DEFAULTS)[0] == build_setup({})[0]
+    lp, _, _ = _setup_of_a_run(monkeypatch, argv + ["--proposal", "lp"])
+    assert (lp.proposal, lp.num_particles, lp.num_localizers, lp.horizon) == ("lp", 30, 100, 5)
     sub = make_parser()._subparsers._group_actions[0].choices
     text = " ".join(sub["map"].format_help().split())
-    for words in ("(default lp)", "SLAM particles N (default 30)", "per SLAM particle (default 100)",
-                  "processed scans (default 5)", "(default 0.5)", "after 0.5 m or 0.25 rad of odometry",
+    assert "(default lp" not in text
+    for words in ("(default smp)", "Defaults: --proposal smp, 30 particles", "SLAM particles N (default 30)",
+                  "per SLAM particle (default 100)", "processed scans (default 5)", "(default 0.5)",
+                  "after 0.5 m or 0.25 rad of odometry",
                   "LP: num_localizers = 100, horizon = 5, lookahead_initial = scan_match", "JAXSLAM_CACHE_DIR"):
         assert words in text, words
     demo = " ".join(sub["demo"].format_help().split())
-    assert f"(default {DEMO_DEFAULTS['proposal']}" in demo and "(default 20)" in demo
+    assert f"(default {DEMO_DEFAULTS['proposal']}, as map's" in demo and "(default 20)" in demo
     assert "after 0.25 m or 0.25 rad" in demo
 
 

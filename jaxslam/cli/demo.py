@@ -21,10 +21,9 @@ DEMO_DEFAULTS = {"proposal": "smp", "num_particles": 20, "linear_update": 0.25, 
 """``jaxslam demo``'s defaults: the simulated office is small, so scans are processed more often
 than the library's 0.5 m / 0.25 rad, and every beam is used (its 10 m laser sees little along the
 20 m corridor)."""
-DEMO_PROPOSAL_NOTE = (", not map's lp: the demo is the first command to run and should take about a minute; "
-                      "--proposal lp takes about twice as long on 2 CPU cores")
-"""Why the demo keeps the SMP (its ``--help``): measured on the project's 2-core machine with
-other jobs running, the demo took 58 s with the SMP and 2 min 15 s with the LP (user CPU time
+DEMO_PROPOSAL_NOTE = ", as map's; --proposal lp takes about twice as long on 2 CPU cores"
+"""The demo's proposal is map's, the SMP (its ``--help``): measured on the project's 2-core machine
+with other jobs running, the demo took 58 s with the SMP and 2 min 15 s with the LP (user CPU time
 31 s against 50 s), without the compilation cache."""
 
 
