@@ -423,7 +423,7 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="passed to every `jaxslam map`; use a new --out (runs are cached there)")
     parser.add_argument("--proposal", choices=["op", "smp", "lp"], default=None,
-                        help="jaxslam map's --proposal (default: its own, lp)")
+                        help="jaxslam map's --proposal (default: its own, smp)")
     parser.add_argument("--particles", type=int, default=None, help="jaxslam map's --particles (default: its own)")
     parser.add_argument("--max-scans", type=int, default=None,
                         help="only the first N scans of each log (the relations among them): a smoke run")

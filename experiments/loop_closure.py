@@ -164,6 +164,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=3, help="seeds per cell (default 3)")
     parser.add_argument("--worlds", nargs="+", choices=WORLDS, default=list(WORLDS))
     parser.add_argument("--inputs", nargs="+", choices=INPUTS, default=list(INPUTS))
+    parser.add_argument("--windows", nargs="+", choices=tuple(WINDOWS), default=list(WINDOWS),
+                        help="window variants to run (the wide one on the twin worlds only; default: both)")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="a ClosureConfig field for every run (e.g. min_score=0.5), recorded in the settings")
     parser.add_argument("--figure", help="PNG of the twin rooms' first filter run (or drift run): the loops kept and refused")
@@ -180,7 +182,7 @@ def main(argv=None) -> int:
         parser.error(str(err))
     store = ResultStore(args.out, {"filter": FILTER, "windows": WINDOWS, "set": dict(VARIANT)},
                         key=lambda r: (r["world"], r["input"], r["window"], r["seed"]))
-    cells = [(w, i, win, s) for w in args.worlds for i in args.inputs for win in WINDOWS for s in range(args.seeds)
+    cells = [(w, i, win, s) for w in args.worlds for i in args.inputs for win in args.windows for s in range(args.seeds)
              if win == "default" or w.startswith("twin_")]
     drawn = False
     for cell in tqdm(cells, desc="loop closure runs", unit="run"):
