@@ -120,5 +120,5 @@ def test_loops_after_a_long_drift_agree_with_those_before_it():
 def test_an_unknown_consistency_test_is_refused_by_name():
     import pytest
 
-    with pytest.raises(ValueError, match="consistency must be 'both' or 'group'"):
+    with pytest.raises(ValueError, match="consistency must be 'vote', 'group' or 'both'"):
         ClosureConfig(consistency="clique")

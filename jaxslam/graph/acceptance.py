@@ -301,7 +301,7 @@ def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, est
     # not judged again): a loop needs min_support agreeing and more agreeing than disagreeing.
     passed = np.nonzero(refused == "")[0]
     earlier = np.nonzero(kept_before.refused == "")[0]
-    if config.consistency == "both":
+    if config.consistency in ("vote", "both"):
         agree, disagree = consistency_votes(np.concatenate([query[passed], kept_before.query[earlier]]),
                                             np.concatenate([submap[passed], kept_before.submap[earlier]]),
                                             np.concatenate([measurement[passed], kept_before.measurement[earlier]]),
@@ -309,13 +309,12 @@ def accept(submaps: Submaps, searched: Searched, ranges, sensor, likelihood, est
         voted = (agree[:passed.size] >= config.min_support) & (disagree[:passed.size] < agree[:passed.size])
         refused[passed[~voted]] = "consistency"
         passed = passed[voted]
-    # The group test, on what the vote kept ("both": the vote's support stands) or on every loop
-    # that passed ("group").
-    group_config = dataclasses.replace(config, min_support=0) if config.consistency == "both" else config
-    ok = consistent_group(query[passed], submap[passed], measurement[passed], kept_before.query[earlier],
-                          kept_before.submap[earlier], kept_before.measurement[earlier], estimate,
-                          submaps.first_node, group_config)
-    refused[passed[~ok]] = "consistency"
+    if config.consistency in ("group", "both"):  # "both": the group test on what the vote kept
+        group_config = dataclasses.replace(config, min_support=0) if config.consistency == "both" else config
+        ok = consistent_group(query[passed], submap[passed], measurement[passed], kept_before.query[earlier],
+                              kept_before.submap[earlier], kept_before.measurement[earlier], estimate,
+                              submaps.first_node, group_config)
+        refused[passed[~ok]] = "consistency"
     return Loops(query, submap, measurement, information, score, second_ratio,
                  (result.score >= result.dropped_bound)[promising], refused, np.full(promising.size, np.nan),
                  np.zeros(promising.size, bool))

@@ -22,9 +22,7 @@ the filter"):
    along a corridor agrees with its own kind, but the loops before it disagree). Where the chain
    carries the submaps rigidly, a block's refused loops are voted again through the chain turned
    at one node by one angle, and kept where that one jump explains every disagreement
-   (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`). What the vote keeps then
-   joins the kept loops as one pairwise-consistent group
-   (:func:`jaxslam.graph.acceptance.consistent_group`, after Mangelson et al.'s PCM).
+   (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`).
 
 A pair whose best match lies on its window's edge is searched again in a wider window
 (:func:`jaxslam.graph.acceptance.widen_edge_peaks`). A query that keeps no loop is also searched
@@ -154,13 +152,10 @@ class ClosureConfig:
     """Largest jump of the chain's heading (rad) that may explain why a block's loops disagree with
     the loops kept before them (:func:`jaxslam.graph.acceptance.one_jump_explains_refused_group`;
     0: never). The widest angular window's: a larger turn leaves no loop to explain."""
-    consistency: str = "both"
-    """How the consistency test judges a block's loops: "both" (the vote,
-    :func:`jaxslam.graph.acceptance.consistency_votes`, then the group test on what it kept) or "group"
-    (:func:`jaxslam.graph.acceptance.consistent_group` alone: pairwise consistency with the kept loops). The vote
-    alone was measured and removed: "both" keeps fewer false loops on the twin corridors and rooms and moves no log by
-    more than 1.5 mm; "group" alone holds a 12 m window on the twin rooms and not the twin corridors (docs/results.md,
-    "Loops accepted as a group")."""
+    consistency: str = "vote"
+    """How the consistency test judges a block's loops: "vote" (:func:`jaxslam.graph.acceptance.consistency_votes`),
+    "group" (:func:`jaxslam.graph.acceptance.consistent_group`, pairwise consistency with the kept loops) or "both"
+    (the vote, then the group test on what it kept; docs/results.md, "Loops accepted as a group")."""
     min_support: int = 1
     """Other loops a loop must agree with."""
     loop_phi: float = 5.0
@@ -238,8 +233,8 @@ class ClosureConfig:
         for name in lengths:
             if not getattr(self, name) > 0:
                 raise ValueError(f"ClosureConfig: {name} must be > 0, got {getattr(self, name)!r}")
-        if self.consistency not in ("both", "group"):
-            raise ValueError(f"ClosureConfig: consistency must be 'both' or 'group', got {self.consistency!r}")
+        if self.consistency not in ("vote", "group", "both"):
+            raise ValueError(f"ClosureConfig: consistency must be 'vote', 'group' or 'both', got {self.consistency!r}")
         if not self.consistency_jump >= 0:
             raise ValueError(f"ClosureConfig: consistency_jump must be >= 0, got {self.consistency_jump!r}")
         if self.window_min_xy > self.window_max_xy or self.window_min_theta > self.window_max_theta:
