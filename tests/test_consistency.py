@@ -8,7 +8,7 @@ import dataclasses
 
 import numpy as np
 
-from jaxslam.geometry import between_np, compose_np
+from jaxslam.geometry import between_np, chain_np, compose_np
 from jaxslam.graph import ClosureConfig
 from jaxslam.graph.acceptance import consistent_group, pairwise_consistent
 
@@ -108,10 +108,7 @@ def test_loops_after_a_long_drift_agree_with_those_before_it():
     truth = _ring()
     steps = between_np(truth[:-1], truth[1:])
     steps[200:, 2] += 0.0005
-    drifted = [truth[0]]
-    for step in steps:
-        drifted.append(compose_np(drifted[-1], step))
-    drifted = np.array(drifted)
+    drifted = chain_np(truth[0], steps)
     kept_q, kept_j, kept_m, first = _loops(truth, np.arange(204, 230, 4))
     late_q, late_j, late_m, _ = _loops(truth, np.arange(360, 390, 4))
     grown = consistent_group(late_q, late_j, late_m, kept_q, kept_j, kept_m, drifted, first, CONFIG)
@@ -131,10 +128,7 @@ def test_a_heading_jump_far_back_in_the_chain_explains_the_miss_it_turns_and_an_
     truth = _ring()
     steps = between_np(truth[:-1], truth[1:])
     steps[310, 2] += 0.08
-    jumped = [truth[0]]
-    for step in steps:
-        jumped.append(compose_np(jumped[-1], step))
-    jumped = np.array(jumped)
+    jumped = chain_np(truth[0], steps)
     kept_q, kept_j, kept_m, first = _loops(truth, np.arange(204, 230, 4))
     late_q, late_j, late_m, _ = _loops(truth, np.arange(311, 320, 2))
     twin_q, twin_j, twin_m, _ = _loops(truth, np.arange(311, 320, 2), offset=(2.0, 0.0, 0.0))
